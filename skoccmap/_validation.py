@@ -1,0 +1,47 @@
+"""Input checks shared by the kernel, the estimators and the observation helpers."""
+
+import numpy as np
+
+
+def check_segments(X, *, name="X", allow_empty=False):
+    """Return ``X`` as a float array of segment rows ``[start, end]``.
+
+    Parameters
+    ----------
+    X : array-like of shape (n_samples, 2 * n_dims)
+        Segment rows; a point is a zero-length segment.
+    name : str, default="X"
+        Argument name used in error messages.
+    allow_empty : bool, default=False
+        Whether zero rows are accepted.
+
+    Returns
+    -------
+    X : ndarray of shape (n_samples, 2 * n_dims), dtype float64
+
+    Raises
+    ------
+    ValueError
+        If ``X`` is not 2-D, has an odd number of columns, or holds NaN or inf.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    if X.ndim != 2:
+        raise ValueError(
+            f"{name} must be a 2-D array of segment rows [start, end], got {X.ndim} dimension(s)."
+        )
+    if X.shape[1] == 0 or X.shape[1] % 2:
+        raise ValueError(
+            f"{name} has {X.shape[1]} column(s); segment rows [start_1..start_D, end_1..end_D] "
+            "need an even number of columns (2*D). Turn points into zero-length segments "
+            "with skoccmap.observations.as_segments."
+        )
+    if not allow_empty and X.shape[0] == 0:
+        raise ValueError(f"{name} has no rows.")
+    if not np.all(np.isfinite(X)):
+        raise ValueError(f"{name} contains NaN or infinite values; segments must be finite.")
+    return X
+
+
+def segment_dim(X):
+    """Spatial dimension D of segment rows with 2*D columns."""
+    return X.shape[1] // 2
