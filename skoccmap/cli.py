@@ -1,0 +1,44 @@
+"""The ``skoccmap`` command.
+
+Each subcommand lives in its own module ``skoccmap._cmd_<name>`` exposing
+``add_arguments(parser)`` and ``run(args) -> int``; heavy imports happen inside ``run``.
+"""
+
+import argparse
+import importlib
+import sys
+
+SUBCOMMANDS = {
+    "demo": "reproduce the paper's simulation experiment (tables, figures, maps)",
+    "map": "build an occupancy map from a CARMEN laser log",
+    "evaluate": "score a map on held-out scans of a CARMEN log against a counting grid",
+}
+
+
+def build_parser():
+    from skoccmap import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="skoccmap",
+        description="Occupancy maps from laser scans with a mixture of Gaussian-process experts.",
+    )
+    parser.add_argument("--version", action="version", version=f"skoccmap {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, help_text in SUBCOMMANDS.items():
+        try:
+            module = importlib.import_module(f"skoccmap._cmd_{name}")
+        except ModuleNotFoundError:
+            continue
+        command = sub.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(command)
+        command.set_defaults(_run=module.run)
+    return parser
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    return args._run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
