@@ -1,0 +1,325 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose, assert_array_equal
+from scipy.spatial.transform import Rotation
+
+from skoccmap.observations import (
+    HIT,
+    NO_RETURN,
+    RETURN,
+    ObservationKind,
+    Scans,
+    as_segments,
+    beam_directions,
+    scans_to_observations,
+    segment_endpoints,
+    segment_lengths,
+    segment_midpoints,
+)
+
+
+def _random_scans_2d(rng, n_scans=5, n_beams=7, max_range=4.0):
+    headings = rng.uniform(-np.pi, np.pi, n_scans)
+    poses = np.column_stack([rng.uniform(-3, 3, (n_scans, 2)), headings])
+    ranges = rng.uniform(0.0, 1.3 * max_range, (n_scans, n_beams))
+    ranges[rng.random((n_scans, n_beams)) < 0.1] = np.inf
+    ranges[rng.random((n_scans, n_beams)) < 0.1] = np.nan
+    angles = np.linspace(-np.pi / 2, np.pi / 2, n_beams)
+    return poses, ranges, angles, max_range
+
+
+def _random_scans_3d(rng, n_scans=4, n_beams=9, max_range=4.0):
+    quats = Rotation.random(n_scans, random_state=rng).as_quat()  # scipy: [x, y, z, w]
+    poses = np.column_stack([rng.uniform(-3, 3, (n_scans, 3)), quats[:, 3], quats[:, :3]])
+    ranges = rng.uniform(0.0, 1.3 * max_range, (n_scans, n_beams))
+    ranges[rng.random((n_scans, n_beams)) < 0.15] = np.inf
+    dirs = rng.normal(size=(n_beams, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    return poses, ranges, dirs, max_range
+
+
+def _reference_rows(poses, ranges, angles, max_range, free_margin):
+    """Row-by-row construction with loops and scipy rotations, independent of vectorised code."""
+    rows, ys, kinds, scan_ids = [], [], [], []
+    n_dims = 2 if poses.shape[1] == 3 else 3
+    for s, pose in enumerate(poses):
+        origin = pose[:n_dims]
+        per_kind = {HIT: [], RETURN: [], NO_RETURN: []}
+        for b in range(ranges.shape[1]):
+            if n_dims == 2:
+                a = angles[b] if angles.ndim == 1 else angles[s, b]
+                d = np.array([np.cos(pose[2] + a), np.sin(pose[2] + a)])
+            else:
+                w, x, y, z = pose[3:]
+                d = Rotation.from_quat([x, y, z, w]).apply(angles[b])
+            r = ranges[s, b]
+            if np.isfinite(r) and r < max_range:
+                hit = origin + r * d
+                per_kind[HIT].append(np.r_[hit, hit])
+                if r > free_margin:
+                    per_kind[RETURN].append(np.r_[origin, origin + (r - free_margin) * d])
+            else:
+                per_kind[NO_RETURN].append(np.r_[origin, origin + max_range * d])
+        for k in (HIT, RETURN, NO_RETURN):
+            rows += per_kind[k]
+            ys += [int(k == HIT)] * len(per_kind[k])
+            kinds += [k] * len(per_kind[k])
+            scan_ids += [s] * len(per_kind[k])
+    return np.array(rows), np.array(ys), np.array(kinds), np.array(scan_ids)
+
+
+def test_kind_codes_are_plain_ints():
+    assert (HIT, RETURN, NO_RETURN) == (0, 1, 2)
+    assert ObservationKind.RETURN == RETURN
+    kind = np.array([HIT, RETURN, NO_RETURN])
+    assert kind.dtype.kind == "i"
+    assert_array_equal(kind == ObservationKind.NO_RETURN, [False, False, True])
+
+
+def test_hand_computed_2d():
+    X, y, kind, scan = scans_to_observations(
+        poses=[[1.0, 1.0, np.pi / 2], [0.0, 0.0, 0.0]],
+        ranges=[[2.0, 10.0], [np.nan, 0.03]],
+        angles=[0.0, -np.pi / 2],
+        max_range=5.0,
+        free_margin=0.1,
+        return_scan_index=True,
+    )
+    expected = np.array(
+        [
+            [1.0, 3.0, 1.0, 3.0],  # scan 0 hit straight ahead (heading +y)
+            [1.0, 1.0, 1.0, 2.9],  # its return beam, 0.1 short
+            [1.0, 1.0, 6.0, 1.0],  # scan 0 beam to the right (+x): no return
+            [0.0, -0.03, 0.0, -0.03],  # scan 1 hit 3 cm to the right: no free part
+            [0.0, 0.0, 5.0, 0.0],  # scan 1 NaN -> no return
+        ]
+    )
+    assert_allclose(X, expected, atol=1e-12)
+    assert_array_equal(y, [1, 0, 0, 1, 0])
+    assert_array_equal(kind, [HIT, RETURN, NO_RETURN, HIT, NO_RETURN])
+    assert_array_equal(scan, [0, 0, 0, 1, 1])
+
+
+@pytest.mark.parametrize("make", [_random_scans_2d, _random_scans_3d])
+@pytest.mark.parametrize("free_margin", [0.0, 0.05, 0.7])
+def test_matches_loop_reference(make, free_margin):
+    poses, ranges, angles, max_range = make(np.random.default_rng(3))
+    X, y, kind, scan = scans_to_observations(
+        poses, ranges, angles, max_range, free_margin=free_margin, return_scan_index=True
+    )
+    X_ref, y_ref, kind_ref, scan_ref = _reference_rows(
+        poses, ranges, angles, max_range, free_margin
+    )
+    assert_allclose(X, X_ref, atol=1e-12)
+    assert_array_equal(y, y_ref)
+    assert_array_equal(kind, kind_ref)
+    assert_array_equal(scan, scan_ref)
+
+
+def test_per_scan_angles_2d():
+    poses, ranges, _, max_range = _random_scans_2d(np.random.default_rng(0), n_scans=3, n_beams=4)
+    angles = np.random.default_rng(1).uniform(-np.pi, np.pi, (3, 4))
+    X, y, kind = scans_to_observations(poses, ranges, angles, max_range)
+    X_ref, y_ref, kind_ref, _ = _reference_rows(poses, ranges, angles, max_range, 0.05)
+    assert_allclose(X, X_ref, atol=1e-12)
+    assert_array_equal(kind, kind_ref)
+
+
+def _check_invariants(X, y, kind, scan, poses, ranges, max_range, free_margin):
+    n_dims = X.shape[1] // 2
+    start, end = X[:, :n_dims], X[:, n_dims:]
+    origins = poses[scan, :n_dims]
+    lengths = np.linalg.norm(end - start, axis=1)
+    hits = kind == HIT
+    assert_array_equal(y, hits.astype(int))
+    assert_array_equal(lengths[hits], 0.0)
+    assert_allclose(start[~hits], origins[~hits], atol=1e-9)
+    assert_allclose(lengths[kind == NO_RETURN], max_range, rtol=1e-9)
+    # every return beam points at a hit of its scan, free_margin beyond its end
+    hit_pts, hit_scan = start[hits], scan[hits]
+    for i in np.flatnonzero(kind == RETURN):
+        d = (end[i] - start[i]) / lengths[i]
+        target = end[i] + free_margin * d
+        same = hit_pts[hit_scan == scan[i]]
+        assert np.min(np.linalg.norm(same - target, axis=1)) < 1e-9
+    returned = np.isfinite(ranges) & (ranges < max_range)
+    assert hits.sum() == returned.sum()
+    assert (kind == NO_RETURN).sum() == (~returned).sum()
+    assert (kind == RETURN).sum() == (returned & (ranges > free_margin)).sum()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    three_d=st.booleans(),
+    free_margin=st.floats(0.0, 1.0),
+    max_range=st.floats(0.5, 30.0),
+)
+def test_invariants_property(seed, three_d, free_margin, max_range):
+    rng = np.random.default_rng(seed)
+    make = _random_scans_3d if three_d else _random_scans_2d
+    poses, ranges, angles, _ = make(rng, max_range=max_range)
+    X, y, kind, scan = scans_to_observations(
+        poses, ranges, angles, max_range, free_margin=free_margin, return_scan_index=True
+    )
+    _check_invariants(X, y, kind, scan, poses, ranges, max_range, free_margin)
+
+
+def test_range_at_max_range_is_no_return():
+    X, y, kind = scans_to_observations([[0.0, 0.0, 0.0]], [[4.0, 3.999]], [0.0, 0.0], 4.0)
+    assert_array_equal(kind, [HIT, RETURN, NO_RETURN])
+
+
+def test_3d_quaternion_rotation_hand_computed():
+    # 90 degrees about z: the sensor's x axis points along world +y.
+    q = [np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)]
+    X, y, kind = scans_to_observations(
+        [[1.0, 2.0, 3.0, *q]], [[2.0]], [[1.0, 0.0, 0.0]], 5.0, free_margin=0.5
+    )
+    assert_allclose(X, [[1, 4, 3, 1, 4, 3], [1, 2, 3, 1, 3.5, 3]], atol=1e-12)
+
+
+def test_beam_directions_unit_and_rotated():
+    dirs = beam_directions([[0.0, 0.0, np.pi / 2]], [0.0, np.pi / 2])
+    assert_allclose(dirs, [[[0.0, 1.0], [-1.0, 0.0]]], atol=1e-12)
+    poses, _, d3, _ = _random_scans_3d(np.random.default_rng(5))
+    out = beam_directions(poses, d3)
+    assert_allclose(np.linalg.norm(out, axis=-1), 1.0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"poses": [[0.0, np.nan, 0.0]]}, "poses contains NaN"),
+        ({"poses": [[0.0, 0.0]]}, "poses must have shape"),
+        ({"poses": np.zeros((0, 3)), "ranges": np.zeros((0, 2))}, "poses is empty"),
+        ({"ranges": [[1.0, -0.5]]}, "ranges must be non-negative"),
+        ({"ranges": [[1.0, -np.inf]]}, "ranges must be non-negative"),
+        ({"ranges": [1.0, 2.0]}, "ranges must have shape"),
+        ({"ranges": [[1.0, 2.0], [1.0, 2.0]]}, "ranges has 2 row"),
+        ({"ranges": np.zeros((1, 0)), "angles": []}, "no beams"),
+        ({"angles": [0.0, 1.0, 2.0]}, "angles must have shape"),
+        ({"angles": [0.0, np.nan]}, "angles contains NaN"),
+        ({"max_range": 0.0}, "max_range must be a positive"),
+        ({"max_range": -1.0}, "max_range must be a positive"),
+        ({"max_range": np.inf}, "max_range must be a positive"),
+        ({"max_range": "far"}, "max_range must be a positive"),
+        ({"free_margin": -0.1}, "free_margin must be a non-negative"),
+        ({"free_margin": np.nan}, "free_margin must be a non-negative"),
+    ],
+)
+def test_bad_input_2d(kwargs, match):
+    args = {
+        "poses": [[0.0, 0.0, 0.0]],
+        "ranges": [[1.0, 2.0]],
+        "angles": [0.0, 1.0],
+        "max_range": 5.0,
+        "free_margin": 0.05,
+    }
+    args.update(kwargs)
+    free_margin = args.pop("free_margin")
+    with pytest.raises(ValueError, match=match):
+        scans_to_observations(**args, free_margin=free_margin)
+
+
+def test_bad_input_3d():
+    pose = [[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
+    with pytest.raises(ValueError, match="unit quaternions"):
+        scans_to_observations([[0, 0, 0, 2.0, 0, 0, 0]], [[1.0]], [[1.0, 0, 0]], 5.0)
+    with pytest.raises(ValueError, match="unit direction vectors"):
+        scans_to_observations(pose, [[1.0]], [[2.0, 0, 0]], 5.0)
+    with pytest.raises(ValueError, match="angles must hold unit beam directions"):
+        scans_to_observations(pose, [[1.0]], [0.0], 5.0)
+
+
+def _scans(n_scans=6, per_scan_angles=False, timestamps=True):
+    rng = np.random.default_rng(0)
+    poses, ranges, angles, max_range = _random_scans_2d(rng, n_scans=n_scans, n_beams=5)
+    if per_scan_angles:
+        angles = rng.uniform(-1, 1, (n_scans, 5))
+    ts = np.arange(n_scans) * 0.1 if timestamps else None
+    return Scans(poses, ranges, angles, max_range, timestamps=ts)
+
+
+@pytest.mark.parametrize("per_scan_angles", [False, True])
+@pytest.mark.parametrize(
+    "index",
+    [slice(None, None, 2), np.array([4, 0, 0]), np.array([True, False, True, False, False, True])],
+    ids=["slice", "int-array", "mask"],
+)
+def test_scans_indexing(per_scan_angles, index):
+    scans = _scans(per_scan_angles=per_scan_angles)
+    sub = scans[index]
+    expected = np.arange(6)[index]
+    assert isinstance(sub, Scans)
+    assert len(sub) == len(expected)
+    assert_array_equal(sub.poses, scans.poses[expected])
+    assert_array_equal(sub.ranges, scans.ranges[expected])
+    assert_array_equal(sub.timestamps, scans.timestamps[expected])
+    if per_scan_angles:
+        assert_array_equal(sub.angles, scans.angles[expected])
+    else:
+        assert_array_equal(sub.angles, scans.angles)
+    # observations of a subset equal the rows of the full set from those scans (for unique ids)
+    if len(np.unique(expected)) == len(expected) and np.all(np.diff(expected) > 0):
+        X, y, kind, scan = scans.to_observations(return_scan_index=True)
+        X_sub, _, kind_sub = sub.to_observations()
+        keep = np.isin(scan, expected)
+        assert_allclose(X_sub, X[keep])
+        assert_array_equal(kind_sub, kind[keep])
+
+
+def test_scans_int_index_keeps_one_scan():
+    scans = _scans()
+    one = scans[-1]
+    assert len(one) == 1
+    assert_array_equal(one.poses, scans.poses[-1:])
+    with pytest.raises(IndexError):
+        scans[6]
+    with pytest.raises(IndexError, match="boolean mask"):
+        scans[np.array([True, False])]
+    with pytest.raises(IndexError):
+        scans[np.array([0.5])]
+
+
+def test_scans_properties_and_helpers():
+    scans = _scans(timestamps=False)
+    assert (scans.n_dims, scans.n_scans, scans.n_beams, scans.timestamps) == (2, 6, 5, None)
+    X, y, kind = scans.to_observations(free_margin=0.05)
+    assert_allclose(scans.hit_points(), X[kind == HIT, :2])
+    assert scans.returned().sum() == (kind == HIT).sum()
+    assert_allclose(scans.origins(), scans.poses[:, :2])
+    assert scans.directions().shape == (6, 5, 2)
+
+
+def test_scans_validation():
+    with pytest.raises(ValueError, match="timestamps must have shape"):
+        Scans(np.zeros((2, 3)), np.ones((2, 1)), [0.0], 3.0, timestamps=[0.0])
+    with pytest.raises(ValueError, match="timestamps contains NaN"):
+        Scans(np.zeros((2, 3)), np.ones((2, 1)), [0.0], 3.0, timestamps=[0.0, np.nan])
+    with pytest.raises(ValueError, match="ranges must be non-negative"):
+        Scans(np.zeros((1, 3)), [[-1.0]], [0.0], 3.0)
+    scans3 = Scans(np.array([[0, 0, 0, 1.0, 0, 0, 0]]), [[1.0]], [[0.0, 0.0, 1.0]], 3.0)
+    assert scans3.n_dims == 3
+
+
+def test_segment_helpers():
+    pts = np.array([[1.0, 2.0, 3.0], [-1.0, 0.5, 0.0]])
+    X = as_segments(pts)
+    assert X.shape == (2, 6)
+    assert_array_equal(segment_lengths(X), 0.0)
+    assert_array_equal(segment_midpoints(X), pts)
+    start, end = segment_endpoints([[0.0, 1.0, 3.0, 5.0]])
+    assert_array_equal(start, [[0.0, 1.0]])
+    assert_array_equal(end, [[3.0, 5.0]])
+    assert_allclose(segment_lengths([[0.0, 1.0, 3.0, 5.0]]), [5.0])
+    assert_allclose(segment_midpoints([[0.0, 1.0, 3.0, 5.0]]), [[1.5, 3.0]])
+    assert segment_lengths(np.zeros((0, 4))).shape == (0,)
+    with pytest.raises(ValueError, match="points must be a 2-D"):
+        as_segments([1.0, 2.0])
+    with pytest.raises(ValueError, match="points contains NaN"):
+        as_segments([[np.nan, 1.0]])
+    with pytest.raises(ValueError, match="even number of columns"):
+        segment_lengths([[0.0, 1.0, 2.0]])
