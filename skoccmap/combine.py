@@ -1,0 +1,410 @@
+"""Rules that merge the predictions of several GP experts into one.
+
+Every combiner is a pure function on arrays of shape ``(n_queries, n_experts)``:
+the experts' latent means ``mu_k`` and latent variances ``s_k^2`` at each query, and the
+non-negative gating weights ``w_k`` (``p(expert k | x)``). A zero weight means "expert
+skipped at this query": its mean and variance there are never read, so they may hold NaN
+(the mixture leaves them unevaluated to save time).
+
+Each combiner returns a :class:`MergedPrediction` ``(proba, mean, variance)``: the
+probability of the positive class and the merged latent Gaussian. For the product rules
+(PoE, gPoE, BCM, rBCM) the probability is the probit link of the merged Gaussian,
+``Phi(mu / sqrt(1 + s^2))`` (R&W eq. 3.82); for the mixture of experts it is the mixture of
+the experts' probabilities.
+
+References
+----------
+.. [KK2011] S. Kim and J. Kim, "Continuous occupancy maps using overlapping local Gaussian
+   processes", ACRA 2011; S. Kim and J. Kim, "Building occupancy maps with a mixture of
+   Gaussian processes", ICRA 2012.
+.. [Tresp2000] V. Tresp, "A Bayesian committee machine", Neural Computation 12, 2000.
+.. [CF2014] Y. Cao and D. J. Fleet, "Generalized product of experts for automatic and
+   principled fusion of Gaussian process predictions", arXiv:1410.7827, 2014.
+.. [DN2015] M. P. Deisenroth and J. W. Ng, "Distributed Gaussian processes", ICML 2015.
+"""
+
+from typing import NamedTuple
+
+import numpy as np
+from scipy.special import ndtr
+
+__all__ = [
+    "COMBINERS",
+    "MergedPrediction",
+    "bayesian_committee_machine",
+    "combine",
+    "generalized_product_of_experts",
+    "mixture_of_experts",
+    "product_of_experts",
+    "robust_bayesian_committee_machine",
+]
+
+# Floor for merged latent variances: a mixture of identical experts with tiny variances
+# could otherwise round to zero or below.
+_VARIANCE_FLOOR = 1e-12
+
+
+class MergedPrediction(NamedTuple):
+    """Merged prediction at each query.
+
+    Attributes
+    ----------
+    proba : ndarray of shape (n_queries,)
+        Probability of the positive class.
+    mean : ndarray of shape (n_queries,)
+        Merged latent mean.
+    variance : ndarray of shape (n_queries,)
+        Merged latent variance (strictly positive).
+    """
+
+    proba: np.ndarray
+    mean: np.ndarray
+    variance: np.ndarray
+
+
+def _check_inputs(means, variances, weights, prior_variance=None):
+    """Validate shapes and return float arrays plus the boolean mask of used experts."""
+    means = np.asarray(means, dtype=np.float64)
+    variances = np.asarray(variances, dtype=np.float64)
+    if means.ndim != 2:
+        raise ValueError(
+            f"means must be a 2-D array of shape (n_queries, n_experts), got {means.ndim} "
+            "dimension(s)."
+        )
+    if variances.shape != means.shape:
+        raise ValueError(
+            f"variances has shape {variances.shape}, expected the shape of means {means.shape}."
+        )
+    if means.shape[1] == 0:
+        raise ValueError("means has no expert columns; at least one expert is needed.")
+    if weights is None:
+        weights = np.ones_like(means)
+    else:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != means.shape:
+            raise ValueError(
+                f"weights has shape {weights.shape}, expected the shape of means {means.shape}."
+            )
+        if not np.all(np.isfinite(weights)) or np.any(weights < 0):
+            raise ValueError("weights must be finite and non-negative.")
+    used = weights > 0
+    if not np.all(used.any(axis=1)):
+        raise ValueError(
+            "weights has a row of zeros: every query needs at least one expert with positive "
+            "weight."
+        )
+    if not np.all(np.isfinite(means[used])):
+        raise ValueError("means contains NaN or infinite values where the weight is positive.")
+    if not np.all(np.isfinite(variances[used])) or np.any(variances[used] <= 0):
+        raise ValueError("variances must be finite and positive where the weight is positive.")
+    if prior_variance is not None:
+        prior_variance = np.asarray(prior_variance, dtype=np.float64)
+        if prior_variance.shape == means.shape[:1]:
+            prior_variance = np.broadcast_to(prior_variance[:, None], means.shape)
+        elif prior_variance.shape != means.shape:
+            raise ValueError(
+                f"prior_variance has shape {prior_variance.shape}; expected (n_queries,) or "
+                f"the shape of means {means.shape}."
+            )
+        if not np.all(np.isfinite(prior_variance[used])) or np.any(prior_variance[used] <= 0):
+            raise ValueError(
+                "prior_variance must be finite and positive where the weight is positive."
+            )
+    return means, variances, weights, used, prior_variance
+
+
+def _probit(mean, variance):
+    # Probit likelihood integrated against the latent Gaussian, R&W eq. 3.82.
+    return ndtr(mean / np.sqrt(1.0 + variance))
+
+
+def _normalized(weights, used):
+    w = np.where(used, weights, 0.0)
+    return w / w.sum(axis=1, keepdims=True)
+
+
+def mixture_of_experts(means, variances, weights=None):
+    """Mixture of experts: average the experts' probabilities with the gating weights.
+
+    ``p = sum_k w_k Phi(mu_k / sqrt(1 + s_k^2))`` with the weights normalised to sum to one at
+    each query ([KK2011]_). The latent summary is the mixture's mean and variance,
+    ``mu = sum_k w_k mu_k`` and ``s^2 = sum_k w_k (s_k^2 + mu_k^2) - mu^2``.
+
+    Parameters
+    ----------
+    means : array-like of shape (n_queries, n_experts)
+        Latent means of the experts.
+    variances : array-like of shape (n_queries, n_experts)
+        Latent variances of the experts.
+    weights : array-like of shape (n_queries, n_experts), default=None
+        Non-negative gating weights; zero skips the expert. ``None`` weights all equally.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap.combine import mixture_of_experts
+    >>> merged = mixture_of_experts([[2.0, -2.0]], [[1.0, 1.0]], [[0.5, 0.5]])
+    >>> float(merged.proba[0]), float(merged.mean[0]), float(merged.variance[0])
+    (0.5, 0.0, 5.0)
+    """
+    means, variances, weights, used, _ = _check_inputs(means, variances, weights)
+    w = _normalized(weights, used)
+    mu = np.where(used, means, 0.0)
+    var = np.where(used, variances, 0.0)
+    proba = np.sum(w * _probit(mu, var), axis=1)
+    mean = np.sum(w * mu, axis=1)
+    # Law of total variance: E[var] + Var[mean].
+    variance = np.sum(w * (var + (mu - mean[:, None]) ** 2), axis=1)
+    return MergedPrediction(
+        np.clip(proba, 0.0, 1.0), mean, np.maximum(variance, _VARIANCE_FLOOR)
+    )
+
+
+def _gaussian_product(means, variances, betas, used, prior_precision=None):
+    """Merge Gaussians by adding weighted natural parameters.
+
+    ``1/s^2 = sum_k beta_k / s_k^2 + prior_precision`` and
+    ``mu = s^2 sum_k beta_k mu_k / s_k^2``; ``prior_precision`` is the BCM correction term
+    (absent for the products of experts).
+    """
+    beta = np.where(used, betas, 0.0)
+    inv_var = np.where(used, 1.0 / np.where(used, variances, 1.0), 0.0)
+    precision = np.sum(beta * inv_var, axis=1)
+    if prior_precision is not None:
+        precision = precision + prior_precision
+    precision = np.maximum(precision, 1.0 / np.finfo(np.float64).max)
+    variance = 1.0 / precision
+    mean = variance * np.sum(beta * inv_var * np.where(used, means, 0.0), axis=1)
+    variance = np.maximum(variance, _VARIANCE_FLOOR)
+    return MergedPrediction(_probit(mean, variance), mean, variance)
+
+
+def product_of_experts(means, variances, weights=None):
+    """Product of experts: multiply the experts' Gaussian predictions.
+
+    ``1/s^2 = sum_k 1/s_k^2``, ``mu = s^2 sum_k mu_k / s_k^2`` over the experts with positive
+    weight ([DN2015]_ eq. 10). The weights only select experts; the product is overconfident
+    when experts share data, and far from all data its variance shrinks with their number.
+
+    Parameters
+    ----------
+    means : array-like of shape (n_queries, n_experts)
+        Latent means of the experts.
+    variances : array-like of shape (n_queries, n_experts)
+        Latent variances of the experts.
+    weights : array-like of shape (n_queries, n_experts), default=None
+        Non-negative weights; zero skips the expert, other values are ignored.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    >>> from skoccmap.combine import product_of_experts
+    >>> merged = product_of_experts([[1.0, 3.0]], [[1.0, 1.0]])
+    >>> float(merged.mean[0]), float(merged.variance[0])
+    (2.0, 0.5)
+    """
+    means, variances, weights, used, _ = _check_inputs(means, variances, weights)
+    return _gaussian_product(means, variances, np.ones_like(means), used)
+
+
+def generalized_product_of_experts(means, variances, weights=None):
+    """Generalised product of experts with the gating weights as exponents.
+
+    ``1/s^2 = sum_k beta_k / s_k^2``, ``mu = s^2 sum_k beta_k mu_k / s_k^2`` ([CF2014]_,
+    [DN2015]_ eq. 13) with ``beta_k = w_k / sum_j w_j``. Because the betas sum to one, far
+    from all data the merged prediction falls back to the prior rather than shrinking, as
+    [DN2015]_ recommends; with equal weights ``beta_k = 1/M``.
+
+    Parameters
+    ----------
+    means : array-like of shape (n_queries, n_experts)
+        Latent means of the experts.
+    variances : array-like of shape (n_queries, n_experts)
+        Latent variances of the experts.
+    weights : array-like of shape (n_queries, n_experts), default=None
+        Non-negative gating weights; zero skips the expert. ``None`` weights all equally.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    >>> from skoccmap.combine import generalized_product_of_experts
+    >>> merged = generalized_product_of_experts([[1.0, 3.0]], [[1.0, 1.0]])
+    >>> float(merged.mean[0]), float(merged.variance[0])
+    (2.0, 1.0)
+    """
+    means, variances, weights, used, _ = _check_inputs(means, variances, weights)
+    return _gaussian_product(means, variances, _normalized(weights, used), used)
+
+
+def _information_gain(variances, prior_variance, used):
+    # 1/s_k^2 - 1/s_**^2: what expert k adds to its prior. Roundoff can put a posterior
+    # variance a hair above the prior; clip so that no expert removes information.
+    gain = 1.0 / np.where(used, variances, 1.0) - 1.0 / np.where(used, prior_variance, 1.0)
+    return np.where(used, np.maximum(gain, 0.0), 0.0)
+
+
+def _merged_prior_precision(prior_variance, used):
+    # With per-expert priors (experts with their own hyperparameters) the common prior is
+    # the mean prior precision of the experts used; with one shared prior it is that prior.
+    inv = np.where(used, 1.0 / np.where(used, prior_variance, 1.0), 0.0)
+    return inv.sum(axis=1) / used.sum(axis=1)
+
+
+def bayesian_committee_machine(means, variances, prior_variance, weights=None):
+    """Bayesian committee machine: product of experts with the prior counted once.
+
+    ``1/s^2 = sum_k 1/s_k^2 + (1 - M) / s_**^2``, ``mu = s^2 sum_k mu_k / s_k^2`` over the
+    ``M`` experts with positive weight ([Tresp2000]_, [DN2015]_ eq. 15), where ``s_**^2`` is
+    the prior variance at the query. Written as ``1/s_**^2 + sum_k (1/s_k^2 - 1/s_**^2)``,
+    which also covers experts with their own prior variances (their information gains over
+    their own priors are added to the mean prior precision).
+
+    Parameters
+    ----------
+    means : array-like of shape (n_queries, n_experts)
+        Latent means of the experts.
+    variances : array-like of shape (n_queries, n_experts)
+        Latent variances of the experts.
+    prior_variance : array-like of shape (n_queries,) or (n_queries, n_experts)
+        Prior latent variance at each query (per expert if the experts' priors differ).
+    weights : array-like of shape (n_queries, n_experts), default=None
+        Non-negative weights; zero skips the expert, other values are ignored.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    >>> from skoccmap.combine import bayesian_committee_machine
+    >>> merged = bayesian_committee_machine([[1.0, 3.0]], [[1.0, 1.0]], [2.0])
+    >>> float(merged.mean[0]), float(merged.variance[0])
+    (2.6666666666666665, 0.6666666666666666)
+    """
+    if prior_variance is None:
+        raise ValueError("prior_variance is required by the Bayesian committee machine.")
+    means, variances, weights, used, prior_variance = _check_inputs(
+        means, variances, weights, prior_variance
+    )
+    ones = np.ones_like(means)
+    return _bcm(means, variances, prior_variance, ones, used)
+
+
+def _bcm(means, variances, prior_variance, betas, used):
+    gain = _information_gain(variances, prior_variance, used)
+    beta = np.where(used, betas, 0.0)
+    precision = _merged_prior_precision(prior_variance, used) + np.sum(beta * gain, axis=1)
+    variance = 1.0 / precision
+    inv_var = np.where(used, 1.0 / np.where(used, variances, 1.0), 0.0)
+    # Zero prior mean: only the experts' linear natural parameters enter the mean.
+    mean = variance * np.sum(beta * inv_var * np.where(used, means, 0.0), axis=1)
+    variance = np.maximum(variance, _VARIANCE_FLOOR)
+    return MergedPrediction(_probit(mean, variance), mean, variance)
+
+
+def robust_bayesian_committee_machine(means, variances, prior_variance, weights=None):
+    """Robust Bayesian committee machine of Deisenroth & Ng (2015).
+
+    ``1/s^2 = sum_k beta_k / s_k^2 + (1 - sum_k beta_k) / s_**^2`` and
+    ``mu = s^2 sum_k beta_k mu_k / s_k^2`` with ``beta_k = (log s_**^2 - log s_k^2) / 2``,
+    the differential-entropy drop from prior to posterior ([DN2015]_ eq. 19-20). Experts that
+    learned nothing at a query (``s_k = s_**``) get ``beta_k = 0``, so far from all data the
+    merged prediction is the prior.
+
+    Parameters
+    ----------
+    means : array-like of shape (n_queries, n_experts)
+        Latent means of the experts.
+    variances : array-like of shape (n_queries, n_experts)
+        Latent variances of the experts.
+    prior_variance : array-like of shape (n_queries,) or (n_queries, n_experts)
+        Prior latent variance at each query (per expert if the experts' priors differ).
+    weights : array-like of shape (n_queries, n_experts), default=None
+        Non-negative weights; zero skips the expert, other values are ignored.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    Experts that learned nothing at a query leave the prior untouched:
+
+    >>> from skoccmap.combine import robust_bayesian_committee_machine
+    >>> merged = robust_bayesian_committee_machine([[0.3, -0.2]], [[1.0, 1.0]], [1.0])
+    >>> float(merged.mean[0]), float(merged.variance[0])
+    (0.0, 1.0)
+    """
+    if prior_variance is None:
+        raise ValueError("prior_variance is required by the robust Bayesian committee machine.")
+    means, variances, weights, used, prior_variance = _check_inputs(
+        means, variances, weights, prior_variance
+    )
+    safe_var = np.where(used, variances, 1.0)
+    safe_prior = np.where(used, prior_variance, 1.0)
+    # Roundoff can make s_k^2 exceed s_**^2 by a hair; an expert never gets negative weight.
+    betas = np.maximum(0.5 * (np.log(safe_prior) - np.log(safe_var)), 0.0)
+    return _bcm(means, variances, prior_variance, betas, used)
+
+
+COMBINERS = {
+    "moe": mixture_of_experts,
+    "poe": product_of_experts,
+    "gpoe": generalized_product_of_experts,
+    "bcm": bayesian_committee_machine,
+    "rbcm": robust_bayesian_committee_machine,
+}
+"""Combiner name -> function; ``"bcm"`` and ``"rbcm"`` need the prior variance."""
+
+_NEEDS_PRIOR = frozenset({"bcm", "rbcm"})
+
+
+def combine(means, variances, weights=None, *, method="moe", prior_variance=None):
+    """Merge expert predictions with the rule named by ``method``.
+
+    Parameters
+    ----------
+    means : array-like of shape (n_queries, n_experts)
+        Latent means of the experts.
+    variances : array-like of shape (n_queries, n_experts)
+        Latent variances of the experts.
+    weights : array-like of shape (n_queries, n_experts), default=None
+        Non-negative gating weights; zero skips the expert at that query.
+    method : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
+        Mixture of experts, product of experts, generalised product of experts, Bayesian
+        committee machine, robust Bayesian committee machine.
+    prior_variance : array-like of shape (n_queries,) or (n_queries, n_experts), default=None
+        Prior latent variance at each query; required by ``"bcm"`` and ``"rbcm"``.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    >>> from skoccmap.combine import combine
+    >>> merged = combine([[1.0, 3.0]], [[1.0, 1.0]], method="poe")
+    >>> float(merged.mean[0])
+    2.0
+    """
+    if method not in COMBINERS:
+        raise ValueError(f"method must be one of {sorted(COMBINERS)}, got {method!r}.")
+    if method in _NEEDS_PRIOR:
+        return COMBINERS[method](means, variances, prior_variance, weights)
+    return COMBINERS[method](means, variances, weights)
