@@ -1,0 +1,534 @@
+"""Occupancy maps sampled on a regular grid, and their export to ROS.
+
+:class:`OccupancyGrid` evaluates any estimator with ``predict_proba`` (and, when it has one,
+``predict_var``) on the cell centres of a grid, in chunks, and writes the result as a ROS
+``nav_msgs/OccupancyGrid`` layout, as ``map_server`` PGM + YAML files, or as ``.npz``.
+
+Array layout: ``probability[j, i]`` (2-D) or ``probability[k, j, i]`` (3-D) is the cell whose
+lower corner is ``origin + resolution * (i, j[, k])``: C order with x fastest, row 0 at the
+origin -- the row-major layout of ROS ``OccupancyGrid.data``.
+"""
+
+import sys
+import time
+from numbers import Real
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
+
+# map_server reads a pixel v as p = (255 - v) / 255 (negate: 0) and calls it occupied above
+# occupied_thresh, free below free_thresh, unknown otherwise. The trinary pixels 0 / 254 / 205
+# read back as p = 1, 0.004, 0.196; with free_thresh 0.196 (not the customary 0.25) the
+# unknown pixel stays unknown.
+ROS_FREE_THRESH = 0.196
+ROS_OCCUPIED_THRESH = 0.65
+_PIXEL_OCCUPIED, _PIXEL_FREE, _PIXEL_UNKNOWN = 0, 254, 205
+
+
+def _check_thresholds(free_threshold, occupied_threshold):
+    if not 0.0 <= free_threshold <= occupied_threshold <= 1.0:
+        raise ValueError(
+            "need 0 <= free_threshold <= occupied_threshold <= 1, got "
+            f"free_threshold={free_threshold}, occupied_threshold={occupied_threshold}."
+        )
+
+
+def _grid_from_extent(extent, resolution):
+    """Origin and cell counts (in coordinate order) covering ``extent``.
+
+    A flat sequence ``(min_1, max_1, .., min_D, max_D)`` is covered exactly from ``min``;
+    a 2-D array of points (m, D) or segment rows (m, 2D) is covered by a grid snapped to
+    multiples of ``resolution`` around all its coordinates.
+    """
+    arr = np.asarray(extent, dtype=np.float64)
+    if arr.ndim == 1:
+        if arr.size not in (4, 6) or not np.all(np.isfinite(arr)):
+            raise ValueError(
+                "extent must be (xmin, xmax, ymin, ymax[, zmin, zmax]) or an array of points "
+                f"or segment rows, got {extent!r}."
+            )
+        low, high = arr[0::2], arr[1::2]
+        if np.any(high <= low):
+            raise ValueError(f"extent must have max > min on every axis, got {extent!r}.")
+        counts = np.ceil((high - low) / resolution - 1e-9).astype(np.int64)
+        return low, np.maximum(counts, 1)
+    if arr.ndim != 2 or arr.shape[0] == 0 or arr.shape[1] not in (2, 3, 4, 6):
+        raise ValueError(
+            "extent data must be a non-empty array of 2-D/3-D points (m, 2|3) or segment rows "
+            f"(m, 4|6), got shape {arr.shape}."
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("extent data contains NaN or infinite values.")
+    n_dims = arr.shape[1] if arr.shape[1] in (2, 3) else arr.shape[1] // 2
+    coords = arr.reshape(-1, n_dims) if arr.shape[1] > n_dims else arr
+    low = np.floor(coords.min(axis=0) / resolution) * resolution
+    counts = np.floor((coords.max(axis=0) - low) / resolution).astype(np.int64) + 1
+    return low, counts
+
+
+class OccupancyGrid:
+    """Occupancy probabilities (and variances) on a regular 2-D or 3-D grid.
+
+    Parameters
+    ----------
+    probability : array-like of shape (ny, nx) or (nz, ny, nx)
+        P(occupied) per cell, in [0, 1]; row 0 is the row at ``origin`` (see the module notes).
+    origin : array-like of shape (n_dims,)
+        World coordinates of the lower corner of cell ``(0, .., 0)``.
+    resolution : float
+        Cell edge length in metres.
+    variance : array-like of the shape of ``probability``, default=None
+        Predictive (latent) variance per cell, if the estimator provides it.
+    unknown : array-like of bool of the shape of ``probability``, default=None
+        Cells without enough evidence to call (``-1`` in ROS). ``None``: none.
+
+    Attributes
+    ----------
+    n_dims : int
+        2 or 3.
+    shape : tuple of int
+        Array shape, ``(ny, nx)`` or ``(nz, ny, nx)``.
+    extent : tuple of float
+        ``(xmin, xmax, ymin, ymax[, zmin, zmax])``, matplotlib's ``imshow`` extent in 2-D.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap import OccupancyGrid
+    >>> grid = OccupancyGrid([[0.1, 0.9], [0.5, 0.0]], origin=(0.0, 0.0), resolution=0.5,
+    ...                      unknown=[[False, False], [True, False]])
+    >>> grid.extent
+    (0.0, 1.0, 0.0, 1.0)
+    >>> grid.to_ros_occupancy_grid()["data"]
+    array([10, 90, -1,  0], dtype=int8)
+    >>> grid.trinary()
+    array([[  0, 100],
+           [ -1,   0]], dtype=int8)
+    """
+
+    def __init__(self, probability, origin, resolution, *, variance=None, unknown=None):
+        probability = np.asarray(probability, dtype=np.float64)
+        if probability.ndim not in (2, 3) or probability.size == 0:
+            raise ValueError(
+                "probability must be a non-empty 2-D (ny, nx) or 3-D (nz, ny, nx) array, got "
+                f"shape {probability.shape}."
+            )
+        if not np.all((probability >= 0) & (probability <= 1)):
+            raise ValueError("probability must lie in [0, 1] (and hold no NaN).")
+        origin = np.asarray(origin, dtype=np.float64)
+        if origin.shape != (probability.ndim,) or not np.all(np.isfinite(origin)):
+            raise ValueError(
+                f"origin must be {probability.ndim} finite coordinates, got {origin.tolist()}."
+            )
+        if not isinstance(resolution, Real) or not (np.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
+        if variance is not None:
+            variance = np.asarray(variance, dtype=np.float64)
+            if variance.shape != probability.shape:
+                raise ValueError(
+                    f"variance has shape {variance.shape}, probability {probability.shape}."
+                )
+            if not np.all(variance >= 0):
+                raise ValueError("variance must be non-negative (and hold no NaN).")
+        if unknown is not None:
+            unknown = np.asarray(unknown)
+            if unknown.dtype != bool or unknown.shape != probability.shape:
+                raise ValueError(
+                    f"unknown must be a boolean array of shape {probability.shape}, got "
+                    f"dtype {unknown.dtype} and shape {unknown.shape}."
+                )
+        self.probability = probability
+        self.origin = origin
+        self.resolution = float(resolution)
+        self.variance = variance
+        self.unknown = unknown
+
+    # -- geometry ---------------------------------------------------------------------------
+
+    @property
+    def n_dims(self):
+        return self.probability.ndim
+
+    @property
+    def shape(self):
+        return self.probability.shape
+
+    @property
+    def extent(self):
+        counts = np.array(self.shape[::-1])
+        high = self.origin + self.resolution * counts
+        return tuple(float(v) for pair in zip(self.origin, high, strict=True) for v in pair)
+
+    def cell_centers(self):
+        """Centres of all cells, shape (n_cells, n_dims), in the C order of ``probability``."""
+        return _cell_centers(self.origin, self.resolution, self.shape[::-1])
+
+    # -- construction -----------------------------------------------------------------------
+
+    @classmethod
+    def from_estimator(
+        cls,
+        estimator,
+        extent=None,
+        resolution=0.1,
+        *,
+        unknown_variance="auto",
+        chunk_size=65_536,
+        verbose=0,
+    ):
+        """Evaluate a fitted estimator on the cell centres of a grid.
+
+        Parameters
+        ----------
+        estimator : fitted estimator
+            Has ``predict_proba`` on segment rows (column 1 = P(occupied)); ``predict_var`` is
+            used when present.
+        extent : tuple, array-like or None, default=None
+            ``(xmin, xmax, ymin, ymax[, zmin, zmax])``; or data -- points (m, 2|3) or segment
+            rows (m, 4|6) -- whose bounding box, snapped to multiples of ``resolution``, is
+            covered (pass the hit points: no-return beams reach far outside the map); or
+            ``None`` for the estimator's own ``extent_`` (as
+            :class:`~skoccmap.baselines.OccupancyGridMap` has).
+        resolution : float, default=0.1
+            Cell edge length in metres.
+        unknown_variance : float, "auto" or None, default="auto"
+            Cells whose variance exceeds this are unknown. ``"auto"``: half the largest
+            variance on the grid -- far from all data a GP's variance returns to its prior, the
+            largest value it takes. ``None``, or an estimator without ``predict_var``: no cell
+            is unknown.
+        chunk_size : int, default=65536
+            At most this many query rows are built and predicted at once.
+        verbose : int, default=0
+            Print progress (cells done, elapsed time) to stderr when > 0.
+
+        Returns
+        -------
+        grid : OccupancyGrid
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import OccupancyGrid
+        >>> from skoccmap.baselines import OccupancyGridMap
+        >>> X = np.array([[0.0, 0.0, 0.95, 0.0], [1.0, 0.0, 1.0, 0.0]])
+        >>> est = OccupancyGridMap(resolution=0.5).fit(X, [0, 1])
+        >>> grid = OccupancyGrid.from_estimator(est, extent=(0, 1.5, -0.5, 0.5), resolution=0.5)
+        >>> grid.shape, grid.probability.round(2).tolist()
+        ((2, 3), [[0.5, 0.5, 0.5], [0.4, 0.5, 0.7]])
+        """
+        if not (np.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
+        if not (isinstance(chunk_size, int) and chunk_size >= 1):
+            raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}.")
+        if not hasattr(estimator, "predict_proba"):
+            raise ValueError(f"estimator {type(estimator).__name__} has no predict_proba.")
+        if extent is None:
+            extent = getattr(estimator, "extent_", None)
+            if extent is None:
+                raise ValueError(
+                    "extent=None needs an estimator with an extent_ attribute; pass extent as "
+                    "(xmin, xmax, ymin, ymax) or the hit points to cover."
+                )
+        origin, counts = _grid_from_extent(extent, resolution)
+        shape = tuple(int(c) for c in counts[::-1])
+        proba, var = _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose)
+        proba = proba.reshape(shape)
+        var = None if var is None else var.reshape(shape)
+        unknown = None
+        if var is not None and unknown_variance is not None:
+            threshold = 0.5 * var.max() if unknown_variance == "auto" else float(unknown_variance)
+            unknown = var > threshold
+        return cls(proba, origin, resolution, variance=var, unknown=unknown)
+
+    # -- export -----------------------------------------------------------------------------
+
+    def _unknown_mask(self):
+        return np.zeros(self.shape, dtype=bool) if self.unknown is None else self.unknown
+
+    def trinary(self, free_threshold=ROS_FREE_THRESH, occupied_threshold=ROS_OCCUPIED_THRESH):
+        """The map as ``map_server`` would load it: 100 occupied, 0 free, -1 unknown.
+
+        Parameters
+        ----------
+        free_threshold, occupied_threshold : float, default=0.196, 0.65
+            Cells with P(occupied) above ``occupied_threshold`` are occupied, below
+            ``free_threshold`` free, in between (or flagged ``unknown``) unknown.
+
+        Returns
+        -------
+        values : ndarray of int8, shape of ``probability``
+        """
+        _check_thresholds(free_threshold, occupied_threshold)
+        values = np.full(self.shape, -1, dtype=np.int8)
+        values[self.probability > occupied_threshold] = 100
+        values[self.probability < free_threshold] = 0
+        values[self._unknown_mask()] = -1
+        return values
+
+    def to_ros_occupancy_grid(self, *, frame_id="map", trinary=False):
+        """The fields of a ROS ``nav_msgs/OccupancyGrid`` message, as a dict.
+
+        Parameters
+        ----------
+        frame_id : str, default="map"
+            ``header.frame_id``.
+        trinary : bool, default=False
+            ``data`` holds 0 / 100 / -1 (see :meth:`trinary`) instead of
+            ``round(100 * probability)``.
+
+        Returns
+        -------
+        message : dict
+            ``{"header": {"frame_id"}, "info": {"resolution", "width", "height", "origin":
+            {"position": {"x", "y", "z"}, "orientation": {"x", "y", "z", "w"}}}, "data"}``;
+            ``data`` is int8, row-major starting with the row at the origin, -1 unknown.
+        """
+        if self.n_dims != 2:
+            raise ValueError("nav_msgs/OccupancyGrid is 2-D; this grid is 3-D (use to_points).")
+        if trinary:
+            data = self.trinary()
+        else:
+            data = np.rint(100.0 * self.probability).astype(np.int8)
+            data[self._unknown_mask()] = -1
+        height, width = self.shape
+        return {
+            "header": {"frame_id": frame_id},
+            "info": {
+                "resolution": self.resolution,
+                "width": width,
+                "height": height,
+                "origin": {
+                    "position": {"x": float(self.origin[0]), "y": float(self.origin[1]), "z": 0.0},
+                    "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                },
+            },
+            "data": data.ravel(),
+        }
+
+    def to_points(self, occupied_threshold=ROS_OCCUPIED_THRESH):
+        """Centres of the occupied cells (known, P(occupied) above the threshold).
+
+        Parameters
+        ----------
+        occupied_threshold : float, default=0.65
+
+        Returns
+        -------
+        points : ndarray of shape (n_occupied, n_dims)
+        """
+        occupied = (self.probability > occupied_threshold) & ~self._unknown_mask()
+        return self.cell_centers()[occupied.ravel()]
+
+    def save_map_server(
+        self, stem, *, free_threshold=ROS_FREE_THRESH, occupied_threshold=ROS_OCCUPIED_THRESH
+    ):
+        """Write ``<stem>.pgm`` and ``<stem>.yaml`` for ROS ``map_server`` (trinary mode).
+
+        Pixels are 0 (occupied), 254 (free) and 205 (unknown), rows top (largest y) to bottom;
+        the YAML names the image, ``resolution``, ``origin`` (lower-left corner),
+        ``negate: 0``, ``occupied_thresh: 0.65``, ``free_thresh: 0.196`` and
+        ``mode: trinary``, the thresholds under which map_server reloads these three pixel
+        values as exactly :meth:`trinary`.
+
+        Parameters
+        ----------
+        stem : str or path-like
+            Output path without suffix.
+        free_threshold, occupied_threshold : float, default=0.196, 0.65
+            How probabilities are called free / occupied (see :meth:`trinary`).
+
+        Returns
+        -------
+        yaml_path, pgm_path : pathlib.Path
+        """
+        if self.n_dims != 2:
+            raise ValueError("map_server maps are 2-D; this grid is 3-D.")
+        values = self.trinary(free_threshold, occupied_threshold)
+        pixels = np.full(self.shape, _PIXEL_UNKNOWN, dtype=np.uint8)
+        pixels[values == 100] = _PIXEL_OCCUPIED
+        pixels[values == 0] = _PIXEL_FREE
+        stem = Path(stem)
+        pgm_path, yaml_path = stem.with_suffix(".pgm"), stem.with_suffix(".yaml")
+        height, width = self.shape
+        with open(pgm_path, "wb") as fh:
+            fh.write(f"P5\n{width} {height}\n255\n".encode("ascii"))
+            fh.write(np.ascontiguousarray(pixels[::-1]).tobytes())
+        yaml_path.write_text(
+            f"image: {pgm_path.name}\n"
+            f"resolution: {self.resolution!r}\n"
+            f"origin: [{float(self.origin[0])!r}, {float(self.origin[1])!r}, 0.0]\n"
+            "negate: 0\n"
+            f"occupied_thresh: {ROS_OCCUPIED_THRESH}\n"
+            f"free_thresh: {ROS_FREE_THRESH}\n"
+            "mode: trinary\n"
+        )
+        return yaml_path, pgm_path
+
+    @classmethod
+    def load_map_server(cls, yaml_path):
+        """Read a ``map_server`` map (YAML + PGM) the way map_server interprets it.
+
+        Supports the subset this package writes and common hand-made maps: binary ``P5``
+        images with maxval 255, ``negate`` 0 or 1, ``mode`` trinary (default) or scale.
+
+        Parameters
+        ----------
+        yaml_path : str or path-like
+
+        Returns
+        -------
+        grid : OccupancyGrid
+            ``probability`` is the pixel's occupancy ``(255 - v) / 255`` (``v / 255`` when
+            negated); ``unknown`` marks pixels map_server would load as -1, so
+            :meth:`trinary` reproduces its ``OccupancyGrid.data`` in trinary mode.
+
+        Examples
+        --------
+        >>> import tempfile, os
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.05, 0.9], [0.5, 0.1]], origin=(-1.0, 2.0), resolution=0.05)
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     yaml_path, _ = grid.save_map_server(os.path.join(tmp, "map"))
+        ...     back = OccupancyGrid.load_map_server(yaml_path)
+        >>> (back.trinary() == grid.trinary()).all(), back.origin.tolist(), back.resolution
+        (np.True_, [-1.0, 2.0], 0.05)
+        """
+        yaml_path = Path(yaml_path)
+        meta = _read_simple_yaml(yaml_path)
+        for key in ("image", "resolution", "origin"):
+            if key not in meta:
+                raise ValueError(f"{yaml_path}: missing key {key!r}.")
+        pixels = _read_pgm(yaml_path.parent / meta["image"])[::-1]
+        occ = pixels / 255.0 if int(meta.get("negate", 0)) else (255.0 - pixels) / 255.0
+        occupied_thresh = float(meta.get("occupied_thresh", ROS_OCCUPIED_THRESH))
+        free_thresh = float(meta.get("free_thresh", ROS_FREE_THRESH))
+        unknown = ~((occ > occupied_thresh) | (occ < free_thresh))
+        if meta.get("mode", "trinary") == "scale":
+            unknown = np.zeros_like(unknown)
+        origin = [float(v) for v in meta["origin"][:2]]
+        return cls(occ, origin, float(meta["resolution"]), unknown=unknown)
+
+    def save(self, path):
+        """Save to a compressed ``.npz`` file (no pickles); read back with :meth:`load`.
+
+        Parameters
+        ----------
+        path : str or path-like
+        """
+        arrays = {
+            "probability": self.probability,
+            "origin": self.origin,
+            "resolution": np.float64(self.resolution),
+        }
+        if self.variance is not None:
+            arrays["variance"] = self.variance
+        if self.unknown is not None:
+            arrays["unknown"] = self.unknown
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path):
+        """Load a grid written by :meth:`save`.
+
+        Parameters
+        ----------
+        path : str or path-like
+
+        Returns
+        -------
+        grid : OccupancyGrid
+        """
+        with np.load(path, allow_pickle=False) as data:
+            return cls(
+                data["probability"],
+                data["origin"],
+                float(data["resolution"]),
+                variance=data["variance"] if "variance" in data else None,
+                unknown=data["unknown"] if "unknown" in data else None,
+            )
+
+    def __repr__(self):
+        return (
+            f"OccupancyGrid(shape={self.shape}, resolution={self.resolution}, "
+            f"extent={tuple(round(v, 3) for v in self.extent)})"
+        )
+
+
+def _cell_centers(origin, resolution, counts, start=0, stop=None):
+    """Centres of cells ``start..stop`` in C order of an array of shape ``counts[::-1]``."""
+    n_cells = int(np.prod(counts))
+    stop = n_cells if stop is None else stop
+    flat = np.arange(start, stop)
+    index = np.unravel_index(flat, tuple(int(c) for c in counts[::-1]))[::-1]
+    return origin + resolution * (np.column_stack(index) + 0.5)
+
+
+def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose):
+    """P(occupied) and (if available) variance on all cell centres, ``chunk_size`` at a time."""
+    n_cells = int(np.prod(counts))
+    proba = np.empty(n_cells)
+    has_var = hasattr(estimator, "predict_var")
+    var = np.empty(n_cells) if has_var else None
+    tic = time.perf_counter()
+    next_report = 0.0
+    for lo in range(0, n_cells, chunk_size):
+        hi = min(lo + chunk_size, n_cells)
+        centers = _cell_centers(origin, resolution, counts, lo, hi)
+        queries = np.concatenate([centers, centers], axis=1)  # zero-length segments
+        proba[lo:hi] = estimator.predict_proba(queries)[:, 1]
+        if has_var:
+            var[lo:hi] = estimator.predict_var(queries)
+        if verbose and (hi / n_cells >= next_report or hi == n_cells):
+            elapsed = time.perf_counter() - tic
+            print(
+                f"[OccupancyGrid] {hi}/{n_cells} cells ({100 * hi / n_cells:.0f}%), "
+                f"{elapsed:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+            next_report = hi / n_cells + 0.1
+    if not np.all(np.isfinite(proba)):
+        raise ValueError("the estimator predicted NaN or infinite probabilities.")
+    return np.clip(proba, 0.0, 1.0), var
+
+
+def _read_simple_yaml(path):
+    """``key: value`` lines of a map_server YAML (flat; lists in brackets)."""
+    meta = {}
+    for raw in path.read_text().splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        key, sep, value = line.partition(":")
+        if not sep:
+            raise ValueError(f"{path}: cannot read line {raw!r}.")
+        value = value.strip().strip("'\"")
+        if value.startswith("["):
+            meta[key.strip()] = [float(v) for v in value.strip("[]").split(",")]
+        else:
+            meta[key.strip()] = value
+    return meta
+
+
+def _read_pgm(path):
+    """Pixels of a binary (P5, maxval <= 255) PGM image, rows top to bottom."""
+    data = Path(path).read_bytes()
+    fields, pos = [], 0
+    while len(fields) < 4:
+        while pos < len(data) and data[pos : pos + 1].isspace():
+            pos += 1
+        if data[pos : pos + 1] == b"#":
+            pos = data.index(b"\n", pos) + 1
+            continue
+        end = pos
+        while end < len(data) and not data[end : end + 1].isspace():
+            end += 1
+        fields.append(data[pos:end])
+        pos = end
+    magic, width, height, maxval = fields[0], *map(int, fields[1:])
+    if magic != b"P5" or maxval > 255:
+        raise ValueError(f"{path}: only binary 8-bit PGM (P5) images are supported.")
+    pixels = np.frombuffer(data, dtype=np.uint8, count=width * height, offset=pos + 1)
+    return pixels.reshape(height, width).astype(np.float64)
