@@ -1,0 +1,177 @@
+import gzip
+
+import numpy as np
+import pytest
+
+from skoccmap.datasets._carmen import flaser_angles, load_carmen
+from skoccmap.observations import Scans
+
+
+def _flaser(ranges, pose, timestamp=1.0):
+    fields = ["FLASER", str(len(ranges)), *map(str, ranges), *map(str, pose), *map(str, pose)]
+    return " ".join(fields + [str(timestamp), "host", str(timestamp)]) + "\n"
+
+
+def _robotlaser(ranges, pose, *, start, resolution, max_range, remissions=(), timestamp=2.0):
+    fields = ["ROBOTLASER1", "0", str(start), str(resolution * len(ranges)), str(resolution)]
+    fields += [str(max_range), "0.01", "0", str(len(ranges)), *map(str, ranges)]
+    fields += [str(len(remissions)), *map(str, remissions), *map(str, pose), *map(str, pose)]
+    fields += ["0", "0", "0.5", "0.5", "0", str(timestamp), "host", str(timestamp)]
+    return " ".join(fields) + "\n"
+
+
+@pytest.fixture
+def tiny_log(tmp_path):
+    """Three FLASER scans of 4 beams with an 80 m sentinel, plus lines the reader must ignore."""
+    lines = [
+        "# message formats defined: FLASER ODOM\n",
+        "PARAM robot_front_laser_max 80\n",
+        _flaser([1.0, 2.0, 80.0, 1.5], [0.0, 0.0, 0.0], 10.0),
+        "ODOM 0 0 0 0 0 0 10.1 host 10.1\n",
+        "\n",
+        _flaser([3.0, 80.0, 80.0, 0.5], [1.0, 2.0, np.pi / 2], 11.0),
+        _flaser([2.5, 2.5, 2.5, 2.5], [-1.0, 0.5, -np.pi], 12.0),
+    ]
+    path = tmp_path / "tiny.log"
+    path.write_text("".join(lines))
+    return path
+
+
+def test_flaser_angles_conventions():
+    # 180 beams: 1 degree steps from -90 deg, the last beam one step short of +90 deg.
+    a = flaser_angles(180)
+    np.testing.assert_allclose(a[[0, 90, 179]], np.deg2rad([-90.0, 0.0, 89.0]), atol=1e-12)
+    # 181 and 361 beams include both ends.
+    for n in (181, 361):
+        a = flaser_angles(n)
+        np.testing.assert_allclose([a[0], a[(n - 1) // 2], a[-1]], [-np.pi / 2, 0, np.pi / 2])
+    np.testing.assert_allclose(np.diff(flaser_angles(360)), np.pi / 360)
+
+
+def test_tiny_log_fields(tiny_log):
+    scans = load_carmen(tiny_log)
+    assert isinstance(scans, Scans)
+    assert len(scans) == 3 and scans.ranges.shape == (3, 4)
+    assert scans.max_range == 80.0  # the largest reading is the sentinel
+    np.testing.assert_array_equal(scans.ranges[0], [1.0, 2.0, np.inf, 1.5])
+    np.testing.assert_array_equal(scans.ranges[1], [3.0, np.inf, np.inf, 0.5])
+    np.testing.assert_allclose(scans.poses[1], [1.0, 2.0, np.pi / 2])
+    np.testing.assert_allclose(scans.timestamps, [10.0, 11.0, 12.0])
+    np.testing.assert_allclose(scans.angles, -np.pi / 2 + np.pi / 4 * np.arange(4))
+
+
+def test_tiny_log_hit_points_by_hand(tiny_log):
+    # Scan 1 sits at (1, 2) facing +y; its beam 0 points at heading - 90 deg = +x, range 3.
+    # Beam 3 points at heading - 90 + 135 deg = +y rotated by 45 deg, range 0.5.
+    scans = load_carmen(tiny_log)[1]
+    hits = scans.hit_points()
+    expected = [[4.0, 2.0], [1.0 - 0.5 * np.sqrt(0.5), 2.0 + 0.5 * np.sqrt(0.5)]]
+    np.testing.assert_allclose(hits, expected, atol=1e-12)
+
+
+def test_explicit_max_range_and_slicing(tiny_log):
+    scans = load_carmen(tiny_log, max_range=2.5)
+    # readings >= 2.5 are no-return beams
+    assert np.isinf(scans.ranges[2]).all()
+    assert np.isinf(scans.ranges[1, 0])
+    sub = scans[::2]
+    assert len(sub) == 2
+    np.testing.assert_array_equal(sub.timestamps, [10.0, 12.0])
+
+
+def test_gzip_is_detected_from_content(tiny_log, tmp_path):
+    plain = load_carmen(tiny_log)
+    for name in ("tiny.log.gz", "no_suffix"):
+        path = tmp_path / name
+        path.write_bytes(gzip.compress(tiny_log.read_bytes()))
+        packed = load_carmen(path)
+        np.testing.assert_array_equal(packed.ranges, plain.ranges)
+        np.testing.assert_array_equal(packed.poses, plain.poses)
+
+
+def test_robotlaser_uses_its_own_geometry(tmp_path):
+    path = tmp_path / "robot.log"
+    line = _robotlaser(
+        [1.0, 2.0, 30.0],
+        [0.5, 0.0, 0.0],
+        start=-0.5,
+        resolution=0.25,
+        max_range=30.0,
+        remissions=(7, 8),
+    )
+    # A FLASER copy of the same scan: with ROBOTLASER1 present it is not read twice.
+    path.write_text(line + _flaser([1.0, 2.0, 30.0], [0.5, 0.0, 0.0]))
+    scans = load_carmen(path)
+    assert len(scans) == 1 and scans.max_range == 30.0
+    np.testing.assert_allclose(scans.angles, [-0.5, -0.25, 0.0])
+    np.testing.assert_array_equal(scans.ranges[0], [1.0, 2.0, np.inf])
+    assert scans.timestamps[0] == 2.0
+    np.testing.assert_allclose(scans.hit_points()[0], [0.5 + np.cos(-0.5), np.sin(-0.5)])
+    only_flaser = load_carmen(path, message="FLASER")
+    np.testing.assert_allclose(only_flaser.angles, flaser_angles(3))
+
+
+@pytest.mark.parametrize(
+    "bad_line, reason",
+    [
+        ("FLASER 4 1.0 2.0 3.0\n", "fields"),
+        ("FLASER four 1 2 3 4 0 0 0 0 0 0 1 host 1\n", "not an integer"),
+        ("FLASER 4 1.0 x 3.0 4.0 0 0 0 0 0 0 1 host 1\n", "non-numeric"),
+        ("FLASER 4 1.0 -2 3.0 4.0 0 0 0 0 0 0 1 host 1\n", "negative"),
+        ("FLASER 4 1.0 2 3.0 4.0 nan 0 0 0 0 0 1 host 1\n", "non-finite"),
+    ],
+)
+def test_malformed_line_raises_with_line_number(tiny_log, bad_line, reason):
+    text = tiny_log.read_text().splitlines(keepends=True)
+    text.insert(3, bad_line)  # becomes line 4
+    tiny_log.write_text("".join(text))
+    with pytest.raises(ValueError, match=rf"line 4: malformed FLASER.*{reason}"):
+        load_carmen(tiny_log)
+    with pytest.warns(UserWarning, match=r"skipped 1 malformed laser line\(s\): line 4"):
+        scans = load_carmen(tiny_log, errors="skip")
+    assert len(scans) == 3
+
+
+def test_bad_arguments_and_empty_logs(tiny_log, tmp_path):
+    with pytest.raises(ValueError, match="errors"):
+        load_carmen(tiny_log, errors="ignore")
+    with pytest.raises(ValueError, match="message"):
+        load_carmen(tiny_log, message="RLASER")
+    with pytest.raises(ValueError, match="max_range"):
+        load_carmen(tiny_log, max_range=-1.0)
+    empty = tmp_path / "empty.log"
+    empty.write_text("# nothing\nODOM 0 0 0 0 0 0 1 host 1\n")
+    with pytest.raises(ValueError, match="no valid FLASER or ROBOTLASER1"):
+        load_carmen(empty)
+    with pytest.raises(ValueError, match="no valid ROBOTLASER1"):
+        load_carmen(tiny_log, message="ROBOTLASER1")
+    mixed = tmp_path / "mixed.log"
+    mixed.write_text(_flaser([1.0, 2.0], [0, 0, 0]) + _flaser([1.0, 2.0, 3.0], [0, 0, 0]))
+    with pytest.raises(ValueError, match="different beam counts"):
+        load_carmen(mixed)
+
+
+@pytest.mark.parametrize(
+    "name, n_scans, sentinel, no_return_fraction, hit_box",
+    [
+        ("intel.gfs.log", 910, 81.83, 0.025, (-19.9, 18.8, -23.2, 12.8)),
+        ("aces-corrected.log.gz", 440, 50.0, 0.008, (-26.4, 30.7, -47.6, 9.2)),
+    ],
+)
+def test_shared_logs(shared_data, name, n_scans, sentinel, no_return_fraction, hit_box):
+    # Figures from the data README, measured independently of this reader.
+    scans = load_carmen(shared_data / name)
+    assert scans.ranges.shape == (n_scans, 180)
+    assert scans.max_range == pytest.approx(sentinel)
+    assert np.isinf(scans.ranges).mean() == pytest.approx(no_return_fraction, abs=0.001)
+    hits = scans.hit_points()
+    box = (hits[:, 0].min(), hits[:, 0].max(), hits[:, 1].min(), hits[:, 1].max())
+    np.testing.assert_allclose(box, hit_box, atol=0.06)
+    # First and last scans against a plain split of the raw lines.
+    opener = gzip.open if name.endswith(".gz") else open
+    with opener(shared_data / name, "rt") as fh:
+        lines = [line.split() for line in fh if line.startswith("FLASER")]
+    for index in (0, -1):
+        fields = lines[index]
+        assert scans.timestamps[index] == float(fields[-3])
+        np.testing.assert_array_equal(scans.poses[index], np.array(fields[182:185], float))
