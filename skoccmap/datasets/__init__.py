@@ -1,0 +1,16 @@
+"""Data sets: a laser simulator, the paper's simulated environment, a 3-D room."""
+
+from ._paper import make_paper_environment, make_paper_scans
+from ._room3d import Room3D, make_room3d_environment, make_room3d_scans, scanner_directions
+from ._simulator import Environment2D, simulate_scans
+
+__all__ = [
+    "Environment2D",
+    "Room3D",
+    "make_paper_environment",
+    "make_paper_scans",
+    "make_room3d_environment",
+    "make_room3d_scans",
+    "scanner_directions",
+    "simulate_scans",
+]
