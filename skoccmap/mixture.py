@@ -1,0 +1,782 @@
+"""Mixture of Gaussian-process experts for occupancy mapping (Kim & Kim, ACRA 2011).
+
+The hit points are clustered; every observation joins a cluster; one GP classifier (an
+*expert*) is fitted per cluster; at query time a gating function ``p(cluster | x)`` weighs
+the experts, whose latent predictions are merged by a rule of :mod:`skoccmap.combine`.
+"""
+
+import sys
+import time
+from numbers import Integral, Real
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.special import ndtri
+from sklearn import get_config
+from sklearn.base import BaseEstimator, ClassifierMixin, _fit_context, clone
+from sklearn.utils import check_random_state, gen_batches
+from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
+from sklearn.utils.multiclass import check_classification_targets
+from sklearn.utils.parallel import Parallel, delayed
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from .combine import COMBINERS, combine
+from .observations import HIT, NO_RETURN, RETURN
+
+__all__ = ["MixtureGPOccupancyMap"]
+
+# Covariance ridge of the Gaussians that gate the pieces of a split cluster, relative to
+# the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
+_GATING_RIDGE = 1e-3
+# Rows of no-return beams compared with return beams per kernel block.
+_NO_RETURN_BLOCK = 128
+# Beyond this many length scales apart, two segments' integral-kernel similarity is
+# below exp(-4.5^2 / 2) ~ 4e-5 of its peak: not a candidate for "most similar".
+_SIMILARITY_CUTOFF = 4.5
+# Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
+_GATING_GPC_MAX_SAMPLES = 600
+
+
+def _check_segment_columns(X, name="X"):
+    if X.shape[1] % 2:
+        # "feature(s)" wording: the message sklearn's checks look for on 1-column input.
+        raise ValueError(
+            f"{name} has {X.shape[1]} feature(s); MixtureGPOccupancyMap needs segment rows "
+            "[start_1..start_D, end_1..end_D] with an even number of columns (2*D). Turn "
+            "points into zero-length segments with skoccmap.observations.as_segments."
+        )
+
+
+def _midpoints(X):
+    d = X.shape[1] // 2
+    return 0.5 * (X[:, :d] + X[:, d:])
+
+
+def _log(verbose, message):
+    if verbose:
+        print(f"[MixtureGPOccupancyMap] {message}", file=sys.stdout, flush=True)
+
+
+# ---------------------------------------------------------------------------------------
+# Assignment of observations to clusters
+# ---------------------------------------------------------------------------------------
+
+
+def _observation_kinds(X, occupied, return_radius):
+    """HIT / RETURN / NO_RETURN code per row and the nearest hit of every return beam.
+
+    A beam is a return beam when a hit lies within ``return_radius`` of its end (the
+    observation model stops return beams a small margin short of their hit).
+    """
+    d = X.shape[1] // 2
+    kinds = np.full(X.shape[0], NO_RETURN, dtype=np.intp)
+    kinds[occupied] = HIT
+    nearest_hit = np.full(X.shape[0], -1, dtype=np.intp)
+    beams = np.flatnonzero(~occupied)
+    hit_rows = np.flatnonzero(occupied)
+    if beams.size and hit_rows.size:
+        dist, idx = cKDTree(X[hit_rows, :d]).query(X[beams, d:])
+        is_return = dist <= return_radius
+        kinds[beams[is_return]] = RETURN
+        nearest_hit[beams[is_return]] = hit_rows[idx[is_return]]
+    return kinds, nearest_hit
+
+
+def _kernel_length_scale(kernel):
+    """Largest length scale among a kernel's parameters, or None when it has none."""
+    scales = [
+        np.max(value)
+        for key, value in kernel.get_params(deep=True).items()
+        if key.endswith("length_scale") and np.size(value)
+    ]
+    return float(max(scales)) if scales else None
+
+
+def _assign_no_return(X_nr, X_ret, ret_labels, kernel):
+    """Cluster of the most similar return beam under ``kernel`` for each no-return beam.
+
+    The paper's rule. Only return beams that can be close are compared: two segments whose
+    midpoints are further apart than their half lengths plus a few length scales have a
+    negligible integral-kernel similarity, so a KD-tree on midpoints prunes the pairs.
+    """
+    mid_ret = _midpoints(X_ret)
+    d = X_ret.shape[1] // 2
+    half_ret = 0.5 * np.linalg.norm(X_ret[:, d:] - X_ret[:, :d], axis=1)
+    half_nr = 0.5 * np.linalg.norm(X_nr[:, d:] - X_nr[:, :d], axis=1)
+    mid_nr = _midpoints(X_nr)
+    length_scale = _kernel_length_scale(kernel)
+    labels = np.empty(X_nr.shape[0], dtype=np.intp)
+    tree = cKDTree(mid_ret)
+    # Spatially coherent blocks keep the union of candidates small.
+    order = np.lexsort(mid_nr.T[::-1])
+    for block in gen_batches(order.size, _NO_RETURN_BLOCK):
+        rows = order[block]
+        if length_scale is None:
+            cand = np.arange(X_ret.shape[0])
+            mask = None
+        else:
+            radius = half_nr[rows] + half_ret.max() + _SIMILARITY_CUTOFF * length_scale
+            lists = tree.query_ball_point(mid_nr[rows], radius)
+            cand = np.unique(np.concatenate([np.asarray(c, dtype=np.intp) for c in lists]))
+            mask = np.zeros((rows.size, cand.size), dtype=bool)
+            for i, c in enumerate(lists):
+                mask[i, np.searchsorted(cand, c)] = True
+        if cand.size == 0:
+            # Nothing within reach: the return beam with the nearest midpoint.
+            labels[rows] = ret_labels[tree.query(mid_nr[rows])[1]]
+            continue
+        sim = kernel(X_nr[rows], X_ret[cand])
+        if mask is not None:
+            sim = np.where(mask, sim, -np.inf)
+        best = np.argmax(sim, axis=1)
+        labels[rows] = ret_labels[cand[best]]
+        lonely = ~np.isfinite(sim[np.arange(rows.size), best])
+        if np.any(lonely):
+            labels[rows[lonely]] = ret_labels[tree.query(mid_nr[rows[lonely]])[1]]
+    return labels
+
+
+# ---------------------------------------------------------------------------------------
+# Splitting big clusters
+# ---------------------------------------------------------------------------------------
+
+
+def _bisect(points, max_size):
+    """Split point indices recursively at the median along the principal axis.
+
+    Returns a list of index arrays, each of at most ``max_size`` points. Deterministic and
+    balanced, so expert sizes stay bounded however large the map grows.
+    """
+    pieces, stack = [], [np.arange(points.shape[0])]
+    while stack:
+        idx = stack.pop()
+        if idx.size <= max_size:
+            pieces.append(idx)
+            continue
+        p = points[idx]
+        centred = p - p.mean(axis=0)
+        # Principal axis = top right-singular vector of the centred points.
+        axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+        order = np.argsort(centred @ axis, kind="stable")
+        half = idx.size // 2
+        stack.append(idx[order[half:]])
+        stack.append(idx[order[:half]])
+    return pieces
+
+
+class _PieceGate:
+    """Gaussian responsibilities of the pieces of one split cluster (a fixed GMM)."""
+
+    def __init__(self, pieces_points):
+        self.means_, self.chols_, self.log_weights_ = [], [], []
+        n_total = sum(len(p) for p in pieces_points)
+        for pts in pieces_points:
+            mean = pts.mean(axis=0)
+            dim = pts.shape[1]
+            cov = np.atleast_2d(np.cov(pts, rowvar=False)) if len(pts) > 1 else np.eye(dim)
+            ridge = _GATING_RIDGE * max(np.trace(cov) / dim, 1e-12) + 1e-12
+            chol = np.linalg.cholesky(cov + ridge * np.eye(dim))
+            self.means_.append(mean)
+            self.chols_.append(chol)
+            self.log_weights_.append(np.log(len(pts) / n_total))
+
+    def predict_proba(self, points):
+        log_p = np.empty((points.shape[0], len(self.means_)))
+        for j, (mean, chol, logw) in enumerate(
+            zip(self.means_, self.chols_, self.log_weights_, strict=True)
+        ):
+            z = np.linalg.solve(chol, (points - mean).T)
+            log_p[:, j] = logw - 0.5 * np.sum(z * z, axis=0) - np.sum(np.log(np.diag(chol)))
+        log_p -= log_p.max(axis=1, keepdims=True)
+        p = np.exp(log_p)
+        return p / p.sum(axis=1, keepdims=True)
+
+
+# ---------------------------------------------------------------------------------------
+# Experts
+# ---------------------------------------------------------------------------------------
+
+
+class _ConstantExpert:
+    """Expert of a cluster that saw one class only.
+
+    Its latent variance is the prior variance (it learned nothing about the shape of the
+    map) and its latent mean is chosen so that ``Phi(mu / sqrt(1 + var))`` equals the
+    Laplace-smoothed frequency of the positive class, ``(n_pos + 1) / (n + 2)``.
+    """
+
+    def __init__(self, kernel, n_positive, n_samples):
+        self.kernel_ = kernel
+        self.proba_ = (n_positive + 1.0) / (n_samples + 2.0)
+
+    def prior_variance(self, X):
+        if self.kernel_ is None:
+            return np.ones(X.shape[0])
+        return np.asarray(self.kernel_.diag(X), dtype=np.float64)
+
+    def latent_mean_and_variance(self, X):
+        var = self.prior_variance(X)
+        return ndtri(self.proba_) * np.sqrt(1.0 + var), var
+
+
+def _fit_expert(expert, X, y):
+    """Fit one expert; one-class data get a :class:`_ConstantExpert`."""
+    n_positive = int(np.sum(y == 1))
+    if n_positive in (0, y.size):
+        kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
+        return _ConstantExpert(kernel, n_positive, y.size)
+    return expert.fit(X, y)
+
+
+def _prior_variance(expert, X):
+    if isinstance(expert, _ConstantExpert):
+        return expert.prior_variance(X)
+    kernel = getattr(expert, "kernel_", None)
+    if kernel is None:
+        return np.ones(X.shape[0])
+    return np.asarray(kernel.diag(X), dtype=np.float64)
+
+
+def _default_kernel():
+    from sklearn.gaussian_process.kernels import ConstantKernel
+
+    from .kernels import IntegralKernel
+
+    return ConstantKernel(1.0) * IntegralKernel()
+
+
+# ---------------------------------------------------------------------------------------
+# The estimator
+# ---------------------------------------------------------------------------------------
+
+
+class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
+    """Occupancy map from a mixture of Gaussian-process experts (Kim & Kim, ACRA 2011).
+
+    ``fit`` clusters the hit points, assigns every observation to a cluster, fits one GP
+    classifier per cluster (in parallel) and a gating function ``p(cluster | x)``;
+    ``predict_proba`` merges the experts' latent predictions with ``combiner``.
+
+    Observations are segment rows ``[start_1..start_D, end_1..end_D]`` (see
+    :func:`skoccmap.observations.as_segments`); ``y`` holds two class labels, the larger
+    one (``classes_[1]``, i.e. 1 in {0, 1}) meaning *occupied*: its rows are the hit
+    points and are clustered; the others are laser beams (free space).
+
+    Parameters
+    ----------
+    clusterer : estimator, default=None
+        Clusters the hit points (the start coordinates of the occupied rows, shape
+        ``(n_hits, D)``). Anything with ``fit`` and ``predict`` works; ``labels_`` is used
+        when present. With ``gating="clusterer"`` its ``predict_proba`` (if any) gives the
+        gating weights, otherwise its hard ``predict``. ``None`` means
+        :class:`~skoccmap.DPGMMClusterer` with default parameters.
+    expert : estimator, default=None
+        Binary classifier cloned once per cluster; it must have ``fit`` and
+        ``latent_mean_and_variance``. ``None`` means
+        :class:`~skoccmap.EPGaussianProcessClassifier` with
+        ``ConstantKernel() * IntegralKernel()``.
+    gating : {"clusterer", "gpc"}, default="clusterer"
+        ``"clusterer"``: the clusterer's posterior responsibilities at the query's
+        midpoint. ``"gpc"``: a GP classifier over the expert labels of the training
+        observations' midpoints (the paper's gate; sklearn's
+        ``GaussianProcessClassifier`` with an RBF kernel, on at most 600 points).
+    combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
+        Merging rule, see :mod:`skoccmap.combine`.
+    max_expert_size : int or None, default=400
+        Clusters with more observations are split at the median along their principal
+        axis until every piece has at most this many; pieces are gated by Gaussians fitted
+        to their midpoints within the cluster's gate. This bounds the cost of each expert,
+        so fit time grows about linearly with the number of observations. ``None``
+        disables splitting (the paper's model; cubic cost in the cluster size).
+    share_hyperparameters : bool, default=False
+        Learn the expert's kernel hyperparameters once, on the largest expert, and give
+        every other expert that fitted kernel with ``optimizer=None``. The expert must
+        have ``kernel`` and ``optimizer`` parameters.
+    gating_threshold : float, default=1e-3
+        Experts whose gating weight at a query is below this are skipped there (the
+        expert with the largest weight is always kept).
+    return_radius : float, default=0.1
+        A beam is a *return* beam when a hit lies within this distance (metres) of its
+        end; it then joins that hit's cluster. Other beams are *no-return* beams and join
+        the cluster of the return beam most similar to them under the expert's kernel
+        (the paper's rule). Keep it a few cm above the ``free_margin`` of
+        :func:`~skoccmap.observations.scans_to_observations` (0.05 m).
+    n_jobs : int, default=None
+        Experts fitted in parallel with :class:`sklearn.utils.parallel.Parallel`; honours
+        ``joblib.parallel_config`` (e.g. ``backend="dask"``). ``None`` means 1 unless in a
+        joblib context.
+    random_state : int, RandomState instance or None, default=None
+        Seeds the clusterer and, drawn up front, one seed per expert; results do not
+        depend on ``n_jobs``.
+    verbose : int, default=0
+        Progress of clustering, experts (k of K) and prediction; higher is chattier.
+
+    Attributes
+    ----------
+    classes_ : ndarray of shape (2,)
+        Class labels; ``classes_[1]`` is *occupied*.
+    n_features_in_ : int
+        Number of columns of ``X`` (``2 * D``).
+    clusterer_ : estimator
+        The fitted clusterer.
+    observation_kind_ : ndarray of shape (n_samples,)
+        ``HIT``, ``RETURN`` or ``NO_RETURN`` code (:mod:`skoccmap.observations`) per row.
+    cluster_labels_ : ndarray of shape (n_samples,)
+        Expert index (0 .. ``n_experts_ - 1``) of every training row.
+    expert_cluster_ : ndarray of shape (n_experts_,)
+        Clusterer cluster (position in ``cluster_ids_``) each expert's piece belongs to.
+    cluster_ids_ : ndarray
+        Labels of the clusterer that received hit points, in order.
+    n_experts_ : int
+        Number of experts.
+    experts_ : list of estimators
+        Fitted experts; one-class pieces hold a constant expert (prior variance, smoothed
+        class frequency).
+    gating_ : estimator or None
+        The fitted gating classifier when ``gating="gpc"`` and there are several experts.
+    shared_kernel_ : kernel or None
+        The kernel learned once when ``share_hyperparameters=True``.
+
+    See Also
+    --------
+    skoccmap.EPGaussianProcessClassifier : a single GP classifier on all data.
+    skoccmap.combine : the merging rules.
+
+    Notes
+    -----
+    Gating of a query segment uses its midpoint (a query cell is a zero-length segment,
+    so its midpoint is the cell centre). Queries are predicted in chunks sized by
+    sklearn's ``working_memory`` so that a million cells keep memory bounded.
+
+    References
+    ----------
+    S. Kim and J. Kim, "Continuous occupancy maps using overlapping local Gaussian
+    processes", ACRA 2011.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from sklearn.cluster import KMeans
+    >>> from sklearn.gaussian_process import GaussianProcessClassifier
+    >>> from skoccmap import MixtureGPOccupancyMap
+    >>> from skoccmap.observations import as_segments
+    >>> rng = np.random.default_rng(0)
+    >>> points = rng.uniform(-3, 3, size=(120, 2))
+    >>> y = (np.abs(points[:, 0]) > 2).astype(int)
+    >>> X = as_segments(points)
+    >>> model = MixtureGPOccupancyMap(
+    ...     clusterer=KMeans(2, n_init=3, random_state=0),
+    ...     expert=GaussianProcessClassifier(), random_state=0).fit(X, y)
+    >>> model.n_experts_
+    2
+    >>> model.predict(as_segments([[2.8, 0.0], [0.0, 0.0]]))
+    array([1, 0])
+    """
+
+    _parameter_constraints: dict = {
+        "clusterer": [HasMethods(["fit", "predict"]), None],
+        "expert": [HasMethods(["fit", "latent_mean_and_variance"]), None],
+        "gating": [StrOptions({"clusterer", "gpc"})],
+        "combiner": [StrOptions(set(COMBINERS))],
+        "max_expert_size": [Interval(Integral, 2, None, closed="left"), None],
+        "share_hyperparameters": ["boolean"],
+        "gating_threshold": [Interval(Real, 0, 1, closed="left")],
+        "return_radius": [Interval(Real, 0, None, closed="left")],
+        "n_jobs": [Integral, None],
+        "random_state": ["random_state"],
+        "verbose": ["verbose"],
+    }
+
+    def __init__(
+        self,
+        clusterer=None,
+        expert=None,
+        *,
+        gating="clusterer",
+        combiner="moe",
+        max_expert_size=400,
+        share_hyperparameters=False,
+        gating_threshold=1e-3,
+        return_radius=0.1,
+        n_jobs=None,
+        random_state=None,
+        verbose=0,
+    ):
+        self.clusterer = clusterer
+        self.expert = expert
+        self.gating = gating
+        self.combiner = combiner
+        self.max_expert_size = max_expert_size
+        self.share_hyperparameters = share_hyperparameters
+        self.gating_threshold = gating_threshold
+        self.return_radius = return_radius
+        self.n_jobs = n_jobs
+        self.random_state = random_state
+        self.verbose = verbose
+
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.classifier_tags.multi_class = False
+        return tags
+
+    # -- fit -------------------------------------------------------------------------
+
+    @_fit_context(prefer_skip_nested_validation=False)
+    def fit(self, X, y):
+        """Cluster, assign, fit the experts and the gate.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, 2 * D)
+            Segment rows ``[start, end]``; hits are zero-length segments.
+        y : array-like of shape (n_samples,)
+            Two class labels; ``classes_[1]`` (the larger) marks hit points.
+
+        Returns
+        -------
+        self : MixtureGPOccupancyMap
+            Fitted estimator.
+        """
+        X, y = validate_data(self, X, y, dtype=np.float64)
+        _check_segment_columns(X)
+        check_classification_targets(y)
+        self.classes_, y_enc = np.unique(y, return_inverse=True)
+        if self.classes_.size != 2:
+            raise ValueError(
+                "MixtureGPOccupancyMap needs y with exactly 2 classes (free and occupied), "
+                f"got {self.classes_.size} class(es): {self.classes_.tolist()}."
+            )
+        rng = check_random_state(self.random_state)
+        start = time.perf_counter()
+
+        occupied = y_enc == 1
+        expert = self._make_expert()
+        labels = self._cluster_and_assign(X, occupied, expert, rng)
+        _log(self.verbose, f"clustering done: {self.cluster_ids_.size} cluster(s) "
+             f"({time.perf_counter() - start:.1f} s)")
+        labels = self._split_clusters(X, labels)
+        self.cluster_labels_ = labels
+        self.n_experts_ = int(self.expert_cluster_.size)
+
+        self.experts_ = self._fit_experts(X, y_enc, labels, expert, rng)
+        _log(self.verbose, f"{self.n_experts_} expert(s) fitted "
+             f"({time.perf_counter() - start:.1f} s)")
+        self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
+        return self
+
+    def _make_expert(self):
+        if self.expert is not None:
+            return self.expert
+        from .classifier import EPGaussianProcessClassifier
+
+        return EPGaussianProcessClassifier(kernel=_default_kernel())
+
+    def _similarity_kernel(self, expert):
+        kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
+        if kernel is None:
+            from .kernels import IntegralKernel
+
+            kernel = IntegralKernel()
+        return kernel
+
+    def _cluster_and_assign(self, X, occupied, expert, rng):
+        d = X.shape[1] // 2
+        hits = X[occupied, :d]
+        if self.clusterer is None:
+            from .cluster import DPGMMClusterer
+
+            clusterer = DPGMMClusterer()
+        else:
+            clusterer = clone(self.clusterer)
+        if "random_state" in clusterer.get_params():
+            clusterer.set_params(random_state=rng.randint(np.iinfo(np.int32).max))
+        _log(self.verbose, f"clustering {hits.shape[0]} hit point(s)")
+        self.clusterer_ = clusterer.fit(hits)
+        raw = getattr(self.clusterer_, "labels_", None)
+        if raw is None or len(raw) != hits.shape[0]:
+            raw = self.clusterer_.predict(hits)
+        self.cluster_ids_, hit_labels = np.unique(np.asarray(raw), return_inverse=True)
+
+        labels = np.empty(X.shape[0], dtype=np.intp)
+        labels[occupied] = hit_labels
+        kinds, nearest_hit = _observation_kinds(X, occupied, self.return_radius)
+        self.observation_kind_ = kinds
+        is_ret = kinds == RETURN
+        # Position of each hit row among the hits, to look up its cluster.
+        hit_pos = np.cumsum(occupied) - 1
+        labels[is_ret] = hit_labels[hit_pos[nearest_hit[is_ret]]]
+        is_nr = kinds == NO_RETURN
+        if np.any(is_nr):
+            if np.any(is_ret):
+                labels[is_nr] = _assign_no_return(
+                    X[is_nr], X[is_ret], labels[is_ret], self._similarity_kernel(expert)
+                )
+            else:
+                # No return beams to compare with: the cluster of the hit nearest to the
+                # beam's midpoint.
+                idx = cKDTree(hits).query(_midpoints(X[is_nr]))[1]
+                labels[is_nr] = hit_labels[idx]
+        return labels
+
+    def _split_clusters(self, X, labels):
+        """Split clusters above ``max_expert_size``; returns expert labels per row."""
+        mids = _midpoints(X)
+        expert_labels = np.empty_like(labels)
+        expert_cluster, piece_gates = [], []
+        for c in range(self.cluster_ids_.size):
+            rows = np.flatnonzero(labels == c)
+            if self.max_expert_size is None or rows.size <= self.max_expert_size:
+                pieces = [np.arange(rows.size)]
+            else:
+                pieces = _bisect(mids[rows], self.max_expert_size)
+            first = len(expert_cluster)
+            for j, piece in enumerate(pieces):
+                expert_labels[rows[piece]] = first + j
+                expert_cluster.append(c)
+            piece_gates.append(
+                _PieceGate([mids[rows[p]] for p in pieces]) if len(pieces) > 1 else None
+            )
+        self.expert_cluster_ = np.asarray(expert_cluster, dtype=np.intp)
+        self._piece_gates = piece_gates
+        if any(g is not None for g in piece_gates):
+            _log(self.verbose, f"split big clusters into {len(expert_cluster)} pieces of at "
+                 f"most {self.max_expert_size} observations")
+        return expert_labels
+
+    def _fit_experts(self, X, y, labels, expert, rng):
+        n_experts = self.expert_cluster_.size
+        # Seeds drawn up front so that results do not depend on n_jobs or on the order in
+        # which workers finish.
+        seeds = rng.randint(np.iinfo(np.int32).max, size=n_experts)
+        has_seed = "random_state" in expert.get_params()
+        rows = [np.flatnonzero(labels == k) for k in range(n_experts)]
+
+        def prepared(k, base):
+            est = clone(base)
+            if has_seed:
+                est.set_params(random_state=int(seeds[k]))
+            return est
+
+        fitted = [None] * n_experts
+        todo = list(range(n_experts))
+        self.shared_kernel_ = None
+        base = expert
+        if self.share_hyperparameters:
+            base, fitted, todo = self._learn_shared(X, y, rows, expert, prepared, fitted)
+
+        if todo:
+            _log(self.verbose, f"fitting {len(todo)} expert(s) with n_jobs={self.n_jobs}")
+        results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
+            delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]]) for k in todo
+        )
+        for k, est in zip(todo, results, strict=True):
+            fitted[k] = est
+        return fitted
+
+    def _learn_shared(self, X, y, rows, expert, prepared, fitted):
+        params = expert.get_params()
+        if "kernel" not in params or "optimizer" not in params:
+            raise ValueError(
+                "share_hyperparameters=True needs an expert with 'kernel' and 'optimizer' "
+                f"parameters; {type(expert).__name__} lacks them."
+            )
+        two_class = [k for k, r in enumerate(rows) if 0 < y[r].sum() < r.size]
+        todo = list(range(len(rows)))
+        if not two_class:
+            return expert, fitted, todo
+        # The largest two-class piece: a spatially coherent sample of the map.
+        k0 = max(two_class, key=lambda k: rows[k].size)
+        _log(self.verbose, f"learning shared hyperparameters on expert {k0} "
+             f"({rows[k0].size} observations)")
+        fitted[k0] = _fit_expert(prepared(k0, expert), X[rows[k0]], y[rows[k0]])
+        self.shared_kernel_ = fitted[k0].kernel_
+        base = clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
+        todo.remove(k0)
+        return base, fitted, todo
+
+    def _fit_gpc_gate(self, X, labels, rng):
+        if self.n_experts_ == 1:
+            return None
+        from sklearn.gaussian_process import GaussianProcessClassifier
+        from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+
+        mids = _midpoints(X)
+        idx = np.arange(X.shape[0])
+        if idx.size > _GATING_GPC_MAX_SAMPLES:
+            # Stratified, so that every expert keeps some training points.
+            per = max(_GATING_GPC_MAX_SAMPLES // self.n_experts_, 1)
+            idx = np.concatenate([
+                rng.permutation(np.flatnonzero(labels == k))[:per]
+                for k in range(self.n_experts_)
+            ])
+        scale = float(np.mean(np.std(mids[idx], axis=0))) or 1.0
+        gate = GaussianProcessClassifier(
+            kernel=ConstantKernel(1.0) * RBF(scale),
+            random_state=rng.randint(np.iinfo(np.int32).max),
+        )
+        _log(self.verbose, f"fitting the gpc gate on {idx.size} point(s)")
+        return gate.fit(mids[idx], labels[idx])
+
+    # -- gating ----------------------------------------------------------------------
+
+    def _cluster_weights(self, mids):
+        n_clusters = self.cluster_ids_.size
+        if n_clusters == 1:
+            return np.ones((mids.shape[0], 1))
+        soft = hasattr(self.clusterer_, "predict_proba") and (
+            np.issubdtype(self.cluster_ids_.dtype, np.integer) and self.cluster_ids_.min() >= 0
+        )
+        if soft:
+            proba = np.asarray(self.clusterer_.predict_proba(mids), dtype=np.float64)
+            soft = self.cluster_ids_.max() < proba.shape[1]
+        if soft:
+            # Columns are the clusterer's labels 0..n-1; keep those that received hits.
+            weights = proba[:, self.cluster_ids_.astype(np.intp)]
+            total = weights.sum(axis=1, keepdims=True)
+            empty = total[:, 0] <= 0
+            weights = weights / np.where(empty[:, None], 1.0, total)
+        else:
+            weights = np.zeros((mids.shape[0], n_clusters))
+            empty = np.ones(mids.shape[0], dtype=bool)
+        if np.any(empty):
+            # Hard assignment where the clusterer gives no soft weights.
+            pred = np.asarray(self.clusterer_.predict(mids[empty]))
+            pos = np.searchsorted(self.cluster_ids_, pred).clip(0, n_clusters - 1)
+            found = self.cluster_ids_[pos] == pred
+            sub = np.full((pred.size, n_clusters), 1.0 / n_clusters)
+            sub[found] = 0.0
+            sub[np.flatnonzero(found), pos[found]] = 1.0
+            weights[empty] = sub
+        return weights
+
+    def _gating_weights(self, X):
+        """``p(expert | x)`` at the midpoints of the query rows, thresholded."""
+        mids = _midpoints(X)
+        if self.n_experts_ == 1:
+            return np.ones((X.shape[0], 1))
+        if self.gating == "gpc":
+            weights = np.zeros((X.shape[0], self.n_experts_))
+            weights[:, self.gating_.classes_] = self.gating_.predict_proba(mids)
+        else:
+            cluster_w = self._cluster_weights(mids)
+            weights = cluster_w[:, self.expert_cluster_]
+            for c, gate in enumerate(self._piece_gates):
+                if gate is not None:
+                    cols = np.flatnonzero(self.expert_cluster_ == c)
+                    weights[:, cols] *= gate.predict_proba(mids)
+        best = np.argmax(weights, axis=1)
+        keep = weights >= self.gating_threshold
+        keep[np.arange(X.shape[0]), best] = True
+        weights = np.where(keep, weights, 0.0)
+        # A row of tiny weights (all below threshold) still has its best expert.
+        weights[np.arange(X.shape[0]), best] = np.maximum(weights[np.arange(X.shape[0]), best],
+                                                          np.finfo(np.float64).tiny)
+        return weights
+
+    # -- prediction ------------------------------------------------------------------
+
+    def _validate_queries(self, X):
+        check_is_fitted(self)
+        X = validate_data(self, X, reset=False, dtype=np.float64)
+        _check_segment_columns(X)
+        return X
+
+    def _merged(self, X):
+        """Merged prediction (proba, mean, variance) over query chunks."""
+        X = self._validate_queries(X)
+        needs_prior = self.combiner in ("bcm", "rbcm")
+        largest = max(int(np.bincount(self.cluster_labels_).max()), 1)
+        # Each query row costs a kernel row against the biggest expert (plus workspace).
+        row_bytes = 8 * (4 * largest + 8 * self.n_experts_)
+        chunk = int(get_config()["working_memory"] * 2**20 // row_bytes)
+        chunk = min(max(chunk, 1), max(X.shape[0], 1))
+        out = [np.empty(X.shape[0]) for _ in range(3)]
+        batches = list(gen_batches(X.shape[0], chunk))
+        for b, batch in enumerate(batches):
+            merged = self._merge_chunk(X[batch], needs_prior)
+            for arr, part in zip(out, merged, strict=True):
+                arr[batch] = part
+            if self.verbose > 1:
+                _log(self.verbose, f"predicted chunk {b + 1} of {len(batches)}")
+        return tuple(out)
+
+    def _merge_chunk(self, Xc, needs_prior):
+        weights = self._gating_weights(Xc)
+        shape = weights.shape
+        means = np.full(shape, np.nan)
+        variances = np.full(shape, np.nan)
+        prior = np.full(shape, np.nan) if needs_prior else None
+        for k, expert in enumerate(self.experts_):
+            rows = np.flatnonzero(weights[:, k] > 0)
+            if rows.size == 0:
+                continue
+            m, v = expert.latent_mean_and_variance(Xc[rows])
+            means[rows, k] = m
+            variances[rows, k] = v
+            if needs_prior:
+                prior[rows, k] = _prior_variance(expert, Xc[rows])
+        return combine(means, variances, weights, method=self.combiner, prior_variance=prior)
+
+    def predict_proba(self, X):
+        """Probability of each class at the query segments.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * D)
+            Query segments; a map cell is a zero-length segment.
+
+        Returns
+        -------
+        proba : ndarray of shape (n_queries, 2)
+            Column 1 is the probability of ``classes_[1]`` (occupied).
+        """
+        p = self._merged(X)[0]
+        return np.column_stack([1.0 - p, p])
+
+    def predict(self, X):
+        """Most probable class at the query segments.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * D)
+            Query segments.
+
+        Returns
+        -------
+        y : ndarray of shape (n_queries,)
+            Labels from ``classes_``.
+        """
+        return self.classes_[np.argmax(self.predict_proba(X), axis=1)]
+
+    def latent_mean_and_variance(self, X):
+        """Merged latent mean and variance at the query segments.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * D)
+            Query segments.
+
+        Returns
+        -------
+        mean : ndarray of shape (n_queries,)
+            Merged latent mean.
+        variance : ndarray of shape (n_queries,)
+            Merged latent variance (for ``"moe"`` the variance of the mixture).
+        """
+        _, mean, variance = self._merged(X)
+        return mean, variance
+
+    def predict_var(self, X):
+        """Merged latent variance at the query segments.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * D)
+            Query segments.
+
+        Returns
+        -------
+        variance : ndarray of shape (n_queries,)
+            Merged latent variance, strictly positive.
+        """
+        return self._merged(X)[2]
