@@ -1,0 +1,462 @@
+"""Binary Gaussian-process classification by Expectation Propagation."""
+
+import warnings
+from numbers import Integral, Real
+
+import numpy as np
+import scipy.optimize
+from scipy.special import ndtr
+from sklearn.base import BaseEstimator, ClassifierMixin, _fit_context, clone
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.gaussian_process.kernels import RBF, Kernel
+from sklearn.gaussian_process.kernels import ConstantKernel as C
+from sklearn.utils import check_random_state, gen_batches
+from sklearn.utils._param_validation import Interval, StrOptions
+from sklearn.utils.multiclass import check_classification_targets
+from sklearn.utils.optimize import _check_optimize_result
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from .ep import (
+    ep_latent_predictive,
+    ep_log_marginal_likelihood,
+    ep_log_marginal_likelihood_gradient,
+    expectation_propagation,
+)
+
+# Test points per block in predictions: bounds the (block, n_train) cross-covariance to ~32 MB.
+_PREDICT_BLOCK_ELEMENTS = 2**22
+# Floor of the latent variance; predictions promise a strictly positive variance.
+_VAR_FLOOR = 1e-12
+
+
+class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
+    """Binary GP classifier with a probit likelihood, fitted by Expectation Propagation.
+
+    The posterior over the latent function is approximated by EP (Rasmussen & Williams 2006,
+    Algorithm 3.5) in the numerically stable ``B = I + S^1/2 K S^1/2`` form; predictions follow
+    Algorithm 3.6 and the kernel hyperparameters maximise the EP approximation of the log
+    marginal likelihood (eq. 3.65) with its analytic gradient (eq. 5.27). The EP math lives in
+    :mod:`skoccmap.ep`.
+
+    Parameters
+    ----------
+    kernel : kernel instance, default=None
+        Covariance of the latent GP. None means ``ConstantKernel(1.0, (1e-3, 1e3)) *
+        RBF(1.0, (1e-3, 1e3))``, whose hyperparameters are learnt. The kernel decides what the
+        columns of ``X`` mean (e.g. :class:`skoccmap.IntegralKernel` reads segment rows).
+    optimizer : "fmin_l_bfgs_b", callable or None, default="fmin_l_bfgs_b"
+        Maximiser of the log marginal likelihood over the kernel's log-hyperparameters. A
+        callable is called as ``optimizer(obj_func, initial_theta, bounds=bounds)`` and returns
+        ``(theta_opt, func_min)``, as in scikit-learn's GP estimators; ``obj_func(theta,
+        eval_gradient=True)`` returns the negative log marginal likelihood and its gradient.
+        None keeps the hyperparameters fixed.
+    n_restarts_optimizer : int, default=0
+        Further optimiser runs, started from log-hyperparameters drawn uniformly within the
+        (log-space) bounds of the kernel. The best run is kept.
+    ep_update : {"parallel", "sequential"}, default="parallel"
+        ``"parallel"`` updates all sites from the current marginals and refactorises once per
+        sweep; ``"sequential"`` updates one site at a time with rank-one updates. Both reach
+        the same fixed point.
+    damping : float in [0, 1), default=0.5
+        Weight kept on the current site parameters in each update: ``new = damping * current
+        + (1 - damping) * proposed``. 0 is undamped EP. Raise it if parallel EP oscillates
+        (large signal variances).
+    max_iter : int, default=200
+        Maximum number of EP sweeps per EP run.
+    tol : float, default=1e-6
+        EP stops when every site residual ``|proposed - current| / (1 + |current|)`` is at most
+        ``tol``.
+    copy_X_train : bool, default=True
+        Whether ``X_train_`` is a copy of the training data or a reference to it.
+    random_state : int, RandomState instance or None, default=None
+        Draws the starting points of the optimiser restarts.
+
+    Attributes
+    ----------
+    kernel_ : kernel instance
+        The kernel with the learnt (or fixed) hyperparameters.
+    classes_ : ndarray of shape (2,)
+        The two class labels; ``classes_[1]`` is the positive class (latent ``f > 0``).
+    X_train_ : ndarray of shape (n_samples, n_features)
+        Training inputs, needed for predictions.
+    y_train_ : ndarray of shape (n_samples,)
+        Training labels as -1 / +1 (+1 for ``classes_[1]``).
+    site_precision_ : ndarray of shape (n_samples,)
+        EP site precisions tau (R&W's tau-tilde), all ``>= 0``.
+    site_nu_ : ndarray of shape (n_samples,)
+        EP site natural means nu = tau * site mean (R&W's nu-tilde).
+    log_marginal_likelihood_value_ : float
+        EP log marginal likelihood at ``kernel_.theta``.
+    n_iter_ : int
+        Number of EP sweeps of the final EP run, at ``kernel_``'s hyperparameters.
+    n_features_in_ : int
+        Number of columns seen in fit.
+
+    See Also
+    --------
+    sklearn.gaussian_process.GaussianProcessClassifier : Laplace approximation, logistic link.
+
+    Notes
+    -----
+    No ``decision_function`` is provided: the latent mean ranks test points differently from
+    ``predict_proba``, which also accounts for the latent variance.
+
+    References
+    ----------
+    C. E. Rasmussen and C. K. I. Williams, "Gaussian Processes for Machine Learning",
+    MIT Press, 2006, chapters 3.6 and 5.5.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap import EPGaussianProcessClassifier
+    >>> rng = np.random.default_rng(0)
+    >>> X = rng.uniform(-3, 3, size=(60, 1))
+    >>> y = (np.sin(X[:, 0]) > 0).astype(int)
+    >>> clf = EPGaussianProcessClassifier(random_state=0).fit(X, y)
+    >>> clf.predict([[-1.5], [1.5]])
+    array([0, 1])
+    >>> mean, var = clf.latent_mean_and_variance([[1.5]])
+    >>> bool(mean[0] > 0 and var[0] > 0)
+    True
+    """
+
+    _parameter_constraints: dict = {
+        "kernel": [Kernel, None],
+        "optimizer": [StrOptions({"fmin_l_bfgs_b"}), callable, None],
+        "n_restarts_optimizer": [Interval(Integral, 0, None, closed="left")],
+        "ep_update": [StrOptions({"parallel", "sequential"})],
+        "damping": [Interval(Real, 0, 1, closed="left")],
+        "max_iter": [Interval(Integral, 1, None, closed="left")],
+        "tol": [Interval(Real, 0, None, closed="neither")],
+        "copy_X_train": ["boolean"],
+        "random_state": ["random_state"],
+    }
+
+    def __init__(
+        self,
+        kernel=None,
+        *,
+        optimizer="fmin_l_bfgs_b",
+        n_restarts_optimizer=0,
+        ep_update="parallel",
+        damping=0.5,
+        max_iter=200,
+        tol=1e-6,
+        copy_X_train=True,
+        random_state=None,
+    ):
+        self.kernel = kernel
+        self.optimizer = optimizer
+        self.n_restarts_optimizer = n_restarts_optimizer
+        self.ep_update = ep_update
+        self.damping = damping
+        self.max_iter = max_iter
+        self.tol = tol
+        self.copy_X_train = copy_X_train
+        self.random_state = random_state
+
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.classifier_tags.multi_class = False
+        return tags
+
+    @_fit_context(prefer_skip_nested_validation=True)
+    def fit(self, X, y):
+        """Fit the EP approximation and, unless ``optimizer=None``, the hyperparameters.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+            Training inputs.
+        y : array-like of shape (n_samples,)
+            Labels of exactly two classes.
+
+        Returns
+        -------
+        self : object
+            The fitted classifier.
+        """
+        if self.kernel is None:
+            self.kernel_ = C(1.0, constant_value_bounds=(1e-3, 1e3)) * RBF(
+                1.0, length_scale_bounds=(1e-3, 1e3)
+            )
+        else:
+            self.kernel_ = clone(self.kernel)
+        if self.kernel_.requires_vector_input:
+            X, y = validate_data(self, X, y, ensure_2d=True, dtype="numeric")
+        else:
+            X, y = validate_data(self, X, y, ensure_2d=False, dtype=None)
+        check_classification_targets(y)
+        self.classes_ = np.unique(y)
+        if self.classes_.size > 2:
+            raise ValueError(
+                f"Only binary classification is supported. y holds {self.classes_.size} "
+                f"classes ({self.classes_[:5].tolist()}...); {type(self).__name__} needs two."
+            )
+        if self.classes_.size < 2:
+            raise ValueError(
+                f"y holds one class ({self.classes_.tolist()}); {type(self).__name__} needs "
+                "samples of two classes."
+            )
+        self.X_train_ = np.copy(X) if self.copy_X_train else X
+        self.y_train_ = np.where(y == self.classes_[1], 1.0, -1.0)
+        self._rng = check_random_state(self.random_state)
+
+        # Sites of the last EP run: each optimiser step starts from them (a warm start).
+        warm = [None]
+        if self.optimizer is not None and self.kernel_.n_dims > 0:
+            self._optimize_hyperparameters(warm)
+
+        K = self.kernel_(self.X_train_)
+        result = self._run_ep(K, warm)
+        if not result.converged:
+            warnings.warn(
+                f"EP did not converge in max_iter={self.max_iter} sweeps (largest site "
+                f"residual {result.residual:.2e} > tol={self.tol:g}). Increase max_iter, or "
+                "increase damping (parallel updates oscillate at large signal variances), or "
+                "use ep_update='sequential'.",
+                ConvergenceWarning,
+                stacklevel=2,
+            )
+        self.site_precision_ = result.site_precision
+        self.site_nu_ = result.site_nu
+        self.n_iter_ = result.n_iter
+        self._posterior = result.posterior
+        self.log_marginal_likelihood_value_ = ep_log_marginal_likelihood(
+            K, self.y_train_, result.site_precision, result.site_nu, posterior=result.posterior
+        )
+        return self
+
+    def _run_ep(self, K, warm):
+        """EP started from the sites in ``warm[0]`` (zeros if None); from zero sites if that
+        fails. Stores the new sites in ``warm[0]``."""
+        start = warm[0] if warm[0] is not None else (None, None)
+        try:
+            result = expectation_propagation(
+                K,
+                self.y_train_,
+                site_precision=start[0],
+                site_nu=start[1],
+                update=self.ep_update,
+                damping=self.damping,
+                max_iter=self.max_iter,
+                tol=self.tol,
+            )
+        except np.linalg.LinAlgError:
+            result = None
+        if (result is None or not result.converged) and warm[0] is not None:
+            warm[0] = None
+            return self._run_ep(K, warm)
+        if result is None:
+            raise np.linalg.LinAlgError(
+                "EP failed: the kernel matrix is not positive definite at these "
+                "hyperparameters. Add a WhiteKernel or check the kernel."
+            )
+        warm[0] = (result.site_precision, result.site_nu)
+        return result
+
+    def _optimize_hyperparameters(self, warm):
+        def obj_func(theta, eval_gradient=True):
+            kernel = self.kernel_.clone_with_theta(theta)
+            try:
+                out = self._lml(kernel, warm, eval_gradient)
+            except np.linalg.LinAlgError:
+                return (np.inf, np.zeros_like(theta)) if eval_gradient else np.inf
+            return (-out[0], -out[1]) if eval_gradient else -out
+
+        bounds = self.kernel_.bounds
+        optima = [self._constrained_optimization(obj_func, self.kernel_.theta, bounds)]
+        if self.n_restarts_optimizer > 0:
+            if not np.isfinite(bounds).all():
+                raise ValueError(
+                    "n_restarts_optimizer > 0 needs finite bounds on every kernel "
+                    "hyperparameter."
+                )
+            for _ in range(self.n_restarts_optimizer):
+                # kernel.bounds are already log-transformed: draw uniformly in log space.
+                theta_initial = self._rng.uniform(bounds[:, 0], bounds[:, 1])
+                optima.append(self._constrained_optimization(obj_func, theta_initial, bounds))
+        best = int(np.argmin([func_min for _, func_min in optima]))
+        self.kernel_.theta = optima[best][0]
+
+    def _lml(self, kernel, warm, eval_gradient):
+        """EP log marginal likelihood (and gradient) of the training data under ``kernel``."""
+        if eval_gradient:
+            K, K_gradient = kernel(self.X_train_, eval_gradient=True)
+        else:
+            K = kernel(self.X_train_)
+        result = self._run_ep(K, warm)
+        lml = ep_log_marginal_likelihood(
+            K, self.y_train_, result.site_precision, result.site_nu, posterior=result.posterior
+        )
+        if not eval_gradient:
+            return lml
+        return lml, ep_log_marginal_likelihood_gradient(K_gradient, result.posterior)
+
+    def _constrained_optimization(self, obj_func, initial_theta, bounds):
+        if self.optimizer == "fmin_l_bfgs_b":
+            opt_res = scipy.optimize.minimize(
+                obj_func, initial_theta, method="L-BFGS-B", jac=True, bounds=bounds
+            )
+            _check_optimize_result("lbfgs", opt_res)
+            return opt_res.x, opt_res.fun
+        return self.optimizer(obj_func, initial_theta, bounds=bounds)
+
+    def log_marginal_likelihood(self, theta=None, eval_gradient=False, clone_kernel=True):
+        """EP log marginal likelihood of the training data (R&W eq. 3.65).
+
+        Parameters
+        ----------
+        theta : array-like of shape (n_kernel_params,), default=None
+            Log-hyperparameters at which to evaluate; None returns the value at ``kernel_``
+            computed in fit.
+        eval_gradient : bool, default=False
+            Whether to return the gradient with respect to ``theta`` too (R&W eq. 5.27).
+        clone_kernel : bool, default=True
+            If False, ``kernel_``'s hyperparameters are set to ``theta`` in place.
+
+        Returns
+        -------
+        log_likelihood : float
+        log_likelihood_gradient : ndarray of shape (n_kernel_params,)
+            Only when ``eval_gradient`` is True.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import EPGaussianProcessClassifier
+        >>> X = np.linspace(0, 1, 8)[:, None]
+        >>> clf = EPGaussianProcessClassifier().fit(X, X[:, 0] > 0.5)
+        >>> lml, grad = clf.log_marginal_likelihood(clf.kernel_.theta, eval_gradient=True)
+        >>> bool(np.isclose(lml, clf.log_marginal_likelihood_value_)), grad.shape
+        (True, (2,))
+        """
+        check_is_fitted(self)
+        if theta is None:
+            if eval_gradient:
+                raise ValueError("Gradient can only be evaluated for theta!=None")
+            return self.log_marginal_likelihood_value_
+        theta = np.asarray(theta, dtype=np.float64)
+        if clone_kernel:
+            kernel = self.kernel_.clone_with_theta(theta)
+        else:
+            kernel = self.kernel_
+            kernel.theta = theta
+        return self._lml(kernel, [(self.site_precision_, self.site_nu_)], eval_gradient)
+
+    def latent_mean_and_variance(self, X):
+        """Mean and variance of the latent function at ``X`` under the EP posterior.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, n_features)
+            Query points.
+
+        Returns
+        -------
+        mean : ndarray of shape (n_queries,)
+            Latent mean (positive favours ``classes_[1]``).
+        var : ndarray of shape (n_queries,)
+            Latent variance, strictly positive (rounding below zero is clipped).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import EPGaussianProcessClassifier
+        >>> X = np.linspace(0, 1, 8)[:, None]
+        >>> clf = EPGaussianProcessClassifier(optimizer=None).fit(X, X[:, 0] > 0.5)
+        >>> mean, var = clf.latent_mean_and_variance([[0.0], [1.0]])
+        >>> bool(mean[0] < 0 < mean[1]), bool(np.all(var < clf.kernel_.diag(X[:2])))
+        (True, True)
+        """
+        check_is_fitted(self)
+        if self.kernel_.requires_vector_input:
+            X = validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
+        else:
+            X = validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
+        n_train = self.X_train_.shape[0]
+        mean = np.empty(X.shape[0])
+        var = np.empty(X.shape[0])
+        block = max(1, _PREDICT_BLOCK_ELEMENTS // max(n_train, 1))
+        for rows in gen_batches(X.shape[0], block):
+            K_star = self.kernel_(X[rows], self.X_train_)
+            mean[rows], var[rows] = ep_latent_predictive(
+                K_star, self.kernel_.diag(X[rows]), self._posterior
+            )
+        return mean, np.maximum(var, _VAR_FLOOR)
+
+    def predict_var(self, X):
+        """Latent variance at ``X``.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, n_features)
+            Query points.
+
+        Returns
+        -------
+        var : ndarray of shape (n_queries,)
+            Latent variance, strictly positive.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import EPGaussianProcessClassifier
+        >>> X = np.linspace(0, 1, 8)[:, None]
+        >>> clf = EPGaussianProcessClassifier(optimizer=None).fit(X, X[:, 0] > 0.5)
+        >>> bool(clf.predict_var([[0.5]])[0] < clf.predict_var([[5.0]])[0])
+        True
+        """
+        return self.latent_mean_and_variance(X)[1]
+
+    def predict_proba(self, X):
+        """Class probabilities, ``P(classes_[1]) = Phi(mean / sqrt(1 + var))`` (R&W eq. 3.80).
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, n_features)
+            Query points.
+
+        Returns
+        -------
+        proba : ndarray of shape (n_queries, 2)
+            Columns in the order of ``classes_``.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import EPGaussianProcessClassifier
+        >>> X = np.linspace(0, 1, 8)[:, None]
+        >>> clf = EPGaussianProcessClassifier(optimizer=None).fit(X, X[:, 0] > 0.5)
+        >>> clf.predict_proba([[1.0]]).sum(axis=1)
+        array([1.])
+        """
+        mean, var = self.latent_mean_and_variance(X)
+        z = mean / np.sqrt(1.0 + var)
+        return np.column_stack([ndtr(-z), ndtr(z)])
+
+    def predict(self, X):
+        """Most probable class at ``X``.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, n_features)
+            Query points.
+
+        Returns
+        -------
+        y_pred : ndarray of shape (n_queries,)
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import EPGaussianProcessClassifier
+        >>> X = np.linspace(0, 1, 8)[:, None]
+        >>> y = np.where(X[:, 0] > 0.5, "b", "a")
+        >>> clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+        >>> clf.predict([[0.0], [1.0]]).tolist()
+        ['a', 'b']
+        """
+        proba = self.predict_proba(X)
+        return self.classes_[np.argmax(proba, axis=1)]
