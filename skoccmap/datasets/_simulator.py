@@ -103,6 +103,9 @@ def _cells_crossed(starts, ends, lo, resolution, counts):
         same = ids[1:] == ids[:-1]
         mid, ids = 0.5 * (t[1:] + t[:-1])[same], ids[1:][same]
         cell = np.floor(s[ids] + mid[:, None] * (e[ids] - s[ids])).astype(int)
+        # End points on a cell boundary belong to the cell above it (floor), like any point.
+        ends_cells = np.floor(np.concatenate([s, e])).astype(int)
+        cell = np.concatenate([cell, ends_cells])
         inside = np.all((cell >= 0) & (cell < counts), axis=1)
         seen[cell[inside] @ strides] = True
     return seen
@@ -293,8 +296,8 @@ class Environment2D:
         rel_n = np.einsum("kmd,md->km", rel, n)
         for side in (h, -h):
             with np.errstate(divide="ignore", invalid="ignore"):
-                t = (side - rel_n) / d_n
-            along = np.einsum("kmd,md->km", rel, u) + t * (d @ u.T)
+                t = (side - rel_n) / d_n  # rays parallel to the wall: +-inf or NaN, dropped
+                along = np.einsum("kmd,md->km", rel, u) + t * (d @ u.T)
             ok = (t >= 0) & (along >= 0) & (along <= length) & (length > 0) & np.isfinite(t)
             best = np.where(ok, np.minimum(best, t), best)
 

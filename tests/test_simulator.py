@@ -1,0 +1,359 @@
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.testing import assert_allclose, assert_array_equal
+
+from skoccmap.datasets import (
+    Environment2D,
+    Room3D,
+    make_paper_environment,
+    make_paper_scans,
+    make_room3d_environment,
+    make_room3d_scans,
+    scanner_directions,
+    simulate_scans,
+)
+from skoccmap.datasets._simulator import _cells_crossed, _grid
+from skoccmap.observations import HIT, NO_RETURN, RETURN, Scans, segment_endpoints
+
+
+def _first_entry_by_marching(occupancy, origin, direction, max_t, step=1e-3):
+    """Reference: march along the ray and bisect the first occupied sample (independent)."""
+    t = np.arange(0.0, max_t + step, step)
+    occ = occupancy(origin + t[:, None] * direction)
+    if not occ.any():
+        return np.inf
+    i = int(np.argmax(occ))
+    if i == 0:
+        return 0.0
+    lo, hi = t[i - 1], t[i]
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        if occupancy((origin + mid * direction)[None])[0]:
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
+# --------------------------------------------------------------------------------------------
+# Environment2D
+# --------------------------------------------------------------------------------------------
+
+
+def test_cast_hand_computed():
+    env = Environment2D([[2.0, -1.0, 2.0, 1.0], [3.0, 0.0, 5.0, 0.0]], wall_thickness=0.2)
+    origins = [[0, 0], [0, 0], [0, 0.5], [2.5, 0.0], [0, 0], [2.0, 0.05], [0, 0], [0, 0]]
+    dirs = [[1, 0], [-1, 0], [1, 0], [1, 0], [0, 1], [1, 0], [1, 0.25], [1, 1]]
+    ranges = env.cast(origins, dirs, max_range=10.0)
+    expected = [
+        1.9,  # thick wall face
+        np.inf,  # nothing behind
+        1.9,  # face, off-centre
+        0.4,  # round cap of the second wall at x = 3 - 0.1
+        np.inf,  # parallel to both
+        0.0,  # origin inside a wall
+        1.9 * np.hypot(1, 0.25),  # oblique onto the face x = 1.9
+        np.inf,  # passes above the end cap at (2, 1): distance sqrt(1/2) > 0.1
+    ]
+    assert_allclose(ranges, expected, atol=1e-12)
+    # beyond max_range -> inf
+    assert_array_equal(env.cast([[0, 0]], [[1, 0]], max_range=1.5), [np.inf])
+    # direction need not be normalised
+    assert_allclose(env.cast([[0, 0]], [[5, 0]]), [1.9])
+
+
+def test_cast_cap_tangent_and_offset_ray():
+    env = Environment2D([[0.0, 0.0, 0.0, 0.0]], wall_thickness=2.0)  # a disc of radius 1
+    ranges = env.cast([[-3.0, 0.0], [-3.0, 0.5], [-3.0, 1.5]], [[1, 0]] * 3)
+    assert_allclose(ranges, [2.0, 3.0 - np.sqrt(1 - 0.25), np.inf])
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), thickness=st.sampled_from([0.0, 0.1, 0.6]))
+def test_cast_matches_marching(seed, thickness):
+    rng = np.random.default_rng(seed)
+    walls = rng.uniform(-4, 4, (5, 4))
+    env = Environment2D(walls, wall_thickness=thickness)
+    origins = rng.uniform(-4, 4, (8, 2))
+    angle = rng.uniform(-np.pi, np.pi, 8)
+    dirs = np.column_stack([np.cos(angle), np.sin(angle)])
+    ranges = env.cast(origins, dirs, max_range=6.0)
+    for o, d, r in zip(origins, dirs, ranges, strict=True):
+        if thickness == 0.0:
+            # zero-thickness walls are measure-zero: check the hit point lies on a wall and
+            # the ray crosses no wall before it (distance along the segment changes sign)
+            if np.isfinite(r):
+                assert env.distance((o + r * d)[None])[0] < 1e-9
+            continue
+        ref = _first_entry_by_marching(env.occupancy, o, d, 6.0)
+        if np.isinf(r):
+            assert np.isinf(ref) or ref >= 6.0 - 1e-6  # marching may run a step past 6 m
+        elif np.isinf(ref):
+            # marching stepped over a sliver only a near-tangent ray can cut
+            t = np.linspace(r, r + 2e-3, 50)
+            assert env.distance(o + t[:, None] * d).min() > thickness / 2 - 1e-5
+        else:
+            assert abs(r - ref) < 2e-6
+
+
+def test_occupancy_and_distance():
+    env = Environment2D([[0.0, 0.0, 2.0, 0.0]], wall_thickness=0.4)
+    pts = [[1.0, 0.2], [1.0, 0.2001], [2.15, 0.0], [2.3, 0.0], [-0.1, -0.1]]
+    assert_array_equal(env.occupancy(pts), [1, 0, 1, 0, 1])
+    assert_allclose(env.distance(pts), [0.2, 0.2001, 0.15, 0.3, np.sqrt(0.02)])
+
+
+def test_extent():
+    env = Environment2D([[0, 0, 4, 0], [1, -2, 1, 3]], wall_thickness=0.2)
+    assert_allclose(env.extent, [-0.1, 4.1, -2.1, 3.1])
+
+
+def test_ground_truth_grid_matches_supersampling():
+    rng = np.random.default_rng(0)
+    env = Environment2D(rng.uniform(0, 3, (4, 4)), wall_thickness=0.1)
+    res = 0.25
+    grid = env.ground_truth_grid(res, extent=(0, 3, 0, 3))
+    assert grid.shape == (12, 12)
+    assert len(grid.points) == 144
+    assert_allclose(grid.points[:2], [[0.125, 0.125], [0.375, 0.125]])  # x fastest
+    # supersample each cell: the minimum distance to a wall over the cell
+    offsets = (np.arange(41) / 40 - 0.5) * res
+    sub = np.stack(np.meshgrid(offsets, offsets), -1).reshape(-1, 2)
+    min_dist = np.array([env.distance(c + sub).min() for c in grid.points])
+    h, slack = 0.05, res / 40
+    sure_in, sure_out = min_dist <= h, min_dist > h + slack
+    assert np.all(grid.occupied[sure_in] == 1)
+    assert np.all(grid.occupied[sure_out] == 0)
+    assert sure_in.sum() > 10
+
+
+def test_cells_crossed_matches_box_test():
+    rng = np.random.default_rng(1)
+    lo, counts, centres = _grid((0, 4, 0, 3), 0.5, 2)
+    starts, ends = rng.uniform(-1, 5, (6, 2)), rng.uniform(-1, 5, (6, 2))
+    starts[0] = ends[0] = [1.3, 1.7]  # a point
+    seen = _cells_crossed(starts, ends, lo, 0.5, counts)
+    # reference: dense sampling along each segment (random segments never touch a corner)
+    t = np.linspace(0, 1, 20001)
+    pts = (starts[:, None] + t[None, :, None] * (ends - starts)[:, None]).reshape(-1, 2)
+    idx = np.floor((pts - lo) / 0.5).astype(int)
+    ok = np.all((idx >= 0) & (idx < counts), axis=1)
+    ref = np.zeros(len(centres), bool)
+    ref[idx[ok, 0] + counts[0] * idx[ok, 1]] = True
+    assert_array_equal(seen, ref)
+
+
+def test_ground_truth_grid_observed_mask():
+    env = Environment2D([[3.0, -1.0, 3.0, 1.0]], wall_thickness=0.0)
+    scans = simulate_scans(env, [[0.5, 0.25, 0.0]], [0.0], max_range=8.0)
+    grid = env.ground_truth_grid(0.5, extent=(0, 4, 0, 1), scans=scans)
+    observed = grid.observed.reshape(grid.shape)
+    # the beam runs along y = 0.25 from x = 0.5 to the wall at x = 3
+    expected = np.zeros((2, 8), bool)
+    expected[0, 1:7] = True
+    assert_array_equal(observed, expected)
+
+
+# --------------------------------------------------------------------------------------------
+# simulate_scans
+# --------------------------------------------------------------------------------------------
+
+
+def _free_along(env, X, kind, n=50):
+    start, end = segment_endpoints(X[kind != HIT])
+    t = np.linspace(0, 1, n)
+    pts = (start[:, None] + t[None, :, None] * (end - start)[:, None]).reshape(-1, X.shape[1] // 2)
+    return env.occupancy(pts)
+
+
+def test_simulated_observations_agree_with_truth():
+    data = make_paper_scans()
+    env, X, kind = data.environment, data.X, data.kind
+    hits = X[kind == HIT, :2]
+    assert np.all(env.occupancy(hits) == 1)
+    assert_allclose(env.distance(hits), env.wall_thickness / 2, atol=1e-9)
+    assert not np.any(_free_along(env, X, kind))
+
+
+def test_simulate_scans_determinism_and_noise():
+    env = make_paper_environment()
+    poses = [[10.0, 6.0, 0.3], [14.0, 8.0, 2.0]]
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 9)
+    exact = simulate_scans(env, poses, angles, 8.0)
+    a = simulate_scans(env, poses, angles, 8.0, noise_std=0.05, random_state=3)
+    b = simulate_scans(env, poses, angles, 8.0, noise_std=0.05, random_state=3)
+    c = simulate_scans(env, poses, angles, 8.0, noise_std=0.05, random_state=4)
+    assert_array_equal(a.ranges, b.ranges)
+    assert not np.array_equal(a.ranges, c.ranges)
+    both = np.isfinite(exact.ranges) & np.isfinite(a.ranges)
+    diff = a.ranges[both] - exact.ranges[both]
+    assert 0 < np.abs(diff).max() < 0.5
+    assert isinstance(exact, Scans) and exact.max_range == 8.0
+    assert np.all(np.isinf(exact.ranges) | (exact.ranges < 8.0))
+
+
+def test_simulate_scans_noise_statistics():
+    env = Environment2D([[5.0, -50.0, 5.0, 50.0]], wall_thickness=0.0)
+    scans = simulate_scans(
+        env, np.zeros((1, 3)), np.zeros(4000), 8.0, noise_std=0.1, random_state=0
+    )
+    r = scans.ranges.ravel()
+    assert abs(r.mean() - 5.0) < 0.01
+    assert abs(r.std() - 0.1) < 0.01
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"noise_std": -1.0}, "noise_std"),
+        ({"noise_std": np.nan}, "noise_std"),
+        ({"max_range": 0.0}, "max_range"),
+        ({"poses": [[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]], "angles": [[1.0, 0.0, 0.0]]}, "3-D"),
+        ({"poses": [[np.nan, 0.0, 0.0]]}, "poses"),
+    ],
+)
+def test_simulate_scans_bad_input(kwargs, match):
+    args = {"poses": [[1.0, 1.0, 0.0]], "angles": [0.0], "max_range": 5.0}
+    args.update(kwargs)
+    env = make_paper_environment()
+    with pytest.raises(ValueError, match=match):
+        simulate_scans(
+            env, args.pop("poses"), args.pop("angles"), args.pop("max_range"), **args
+        )
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: Environment2D([[0, 0, 1]]), "walls must have shape"),
+        (lambda: Environment2D(np.zeros((0, 4))), "walls must have shape"),
+        (lambda: Environment2D([[0, 0, np.nan, 1]]), "walls contains NaN"),
+        (lambda: Environment2D([[0, 0, 1, 1]], wall_thickness=-0.1), "wall_thickness"),
+        (lambda: make_paper_environment().cast([[0, 0]], [[0, 0]]), "zero vectors"),
+        (lambda: make_paper_environment().cast([[0, 0, 0]], [[1, 0, 0]]), "origins must"),
+        (lambda: make_paper_environment().occupancy([[0, np.nan]]), "points contains NaN"),
+        (lambda: make_paper_environment().ground_truth_grid(0.0), "resolution"),
+        (lambda: make_paper_environment().ground_truth_grid(0.2, (0, 1, 2)), "extent"),
+        (lambda: make_paper_environment().ground_truth_grid(0.2, (1, 0, 0, 1)), "max > min"),
+        (lambda: make_paper_environment().ground_truth_grid(1e-5), "too large"),
+        (
+            lambda: make_paper_environment().ground_truth_grid(
+                1.0, scans=make_room3d_scans().scans
+            ),
+            "2-D",
+        ),
+        (lambda: Room3D(size=(1, 1)), "size"),
+        (lambda: Room3D(obstacles=[[0, 0, 0, 1, 1]]), "obstacles must have shape"),
+        (lambda: Room3D(obstacles=[[1, 1, 1, 0, 0, 0]]), "max >= min"),
+        (lambda: make_room3d_scans(n_azimuths=0), "n_azimuths"),
+    ],
+)
+def test_environment_bad_input(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+# --------------------------------------------------------------------------------------------
+# The paper's data set
+# --------------------------------------------------------------------------------------------
+
+
+def test_paper_scans_setup_and_counts():
+    data = make_paper_scans(random_state=0)
+    scans = data.scans
+    assert (len(scans), scans.n_beams, scans.max_range) == (26, 17, 8.0)
+    assert_allclose(np.diff(scans.angles), np.pi / 16)
+    assert_allclose(scans.angles[[0, -1]], [-np.pi / 2, np.pi / 2])
+    counts = np.bincount(data.kind, minlength=3)
+    assert counts.sum() == len(data.X) == len(data.y)
+    for got, paper in zip(counts, (254, 254, 188), strict=True):
+        assert abs(got - paper) <= 0.3 * paper
+    assert counts[HIT] + counts[NO_RETURN] == 26 * 17
+    assert_array_equal(data.y, data.kind == HIT)
+    assert_array_equal(np.bincount(data.piece), [13, 13])
+    ext = data.environment.extent
+    assert_allclose([ext[1] - ext[0], ext[3] - ext[2]], [22.1, 18.1])
+    assert np.all(data.environment.occupancy(scans.origins()) == 0)
+
+
+def test_paper_scans_noise_is_seeded():
+    a = make_paper_scans(noise_std=0.03, random_state=1)
+    b = make_paper_scans(noise_std=0.03, random_state=1)
+    c = make_paper_scans(noise_std=0.03, random_state=2)
+    assert_array_equal(a.X, b.X)
+    assert not np.array_equal(a.X, c.X)
+
+
+def test_paper_free_margin_passed_on():
+    data = make_paper_scans(free_margin=0.3)
+    ret = data.kind == RETURN
+    start, end = segment_endpoints(data.X)
+    # each return beam is followed by... not by order: compare with the hit of the same beam
+    hits = start[data.kind == HIT]
+    d = (end[ret] - start[ret]) / np.linalg.norm(end[ret] - start[ret], axis=1, keepdims=True)
+    target = end[ret] + 0.3 * d
+    dist = np.linalg.norm(target[:, None] - hits[None], axis=-1).min(axis=1)
+    assert dist.max() < 1e-9
+
+
+# --------------------------------------------------------------------------------------------
+# 3-D room
+# --------------------------------------------------------------------------------------------
+
+
+def test_room_cast_hand_computed():
+    room = Room3D(size=(4, 4, 2), obstacles=[[2, 2, 0, 3, 3, 1]])
+    origins = [[1, 2.5, 0.5], [1, 2.5, 0.5], [1, 2.5, 1.5], [2.5, 2.5, 0.5], [1, 1, 1]]
+    dirs = [[1, 0, 0], [-1, 0, 0], [1, 0, 0], [0, 0, 1], [1, 1, 0]]
+    assert_allclose(room.cast(origins, dirs), [1.0, 1.0, 3.0, 0.0, np.sqrt(2) * 1.0])
+    assert_array_equal(room.cast([[1, 2.5, 0.5]], [[1, 0, 0]], max_range=0.5), [np.inf])
+
+
+def test_room_cast_matches_marching():
+    room = make_room3d_environment()
+    rng = np.random.default_rng(2)
+    origins = np.column_stack([rng.uniform(0.2, 5.8, 30), rng.uniform(0.2, 4.8, 30),
+                               rng.uniform(0.2, 2.8, 30)])  # fmt: skip
+    dirs = rng.normal(size=(30, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    ranges = room.cast(origins, dirs)
+    for o, d, r in zip(origins, dirs, ranges, strict=True):
+        ref = _first_entry_by_marching(room.occupancy, o, d, 9.0)
+        assert abs(r - ref) < 2e-6
+
+
+def test_room_grid_matches_supersampling():
+    room = make_room3d_environment()
+    grid = room.ground_truth_grid(0.5)
+    assert grid.shape == (7, 11, 13)  # z, y, x over [-0.2, 3.2] x [-0.2, 5.2] x [-0.2, 6.2]
+    offsets = (np.arange(1, 10) / 10 - 0.5) * 0.5  # interior samples: positive-volume overlap
+    sub = np.stack(np.meshgrid(offsets, offsets, offsets), -1).reshape(-1, 3)
+    ref = np.array([room.occupancy(c + sub).any() for c in grid.points])
+    assert_array_equal(grid.occupied, ref)
+
+
+def test_room3d_scans():
+    data = make_room3d_scans(random_state=0)
+    room, X, kind = data.environment, data.X, data.kind
+    assert data.scans.n_dims == 3 and X.shape[1] == 6
+    assert 150 <= len(X) <= 600
+    counts = np.bincount(kind, minlength=3)
+    assert counts.min() > 0
+    assert np.all(room.occupancy(X[kind == HIT, :3]) == 1)
+    assert not np.any(_free_along(room, X, kind))
+    lengths = np.linalg.norm(X[:, 3:] - X[:, :3], axis=1)
+    assert_allclose(lengths[kind == NO_RETURN], 4.0)
+    assert_array_equal(lengths[kind == HIT], 0.0)
+    noisy_a = make_room3d_scans(noise_std=0.02, random_state=5)
+    noisy_b = make_room3d_scans(noise_std=0.02, random_state=5)
+    assert_array_equal(noisy_a.X, noisy_b.X)
+    assert not np.array_equal(noisy_a.X[noisy_a.kind == HIT], X[kind == HIT])
+
+
+def test_scanner_directions():
+    d = scanner_directions([0.0, np.pi / 2], [0.0, np.pi / 6])
+    assert_allclose(np.linalg.norm(d, axis=1), 1.0)
+    assert_allclose(d[1], [0, 1, 0], atol=1e-12)
+    assert_allclose(d[2], [np.cos(np.pi / 6), 0, 0.5], atol=1e-12)
