@@ -76,39 +76,58 @@ def traverse_cells(starts, ends, origin, resolution, shape):
     >>> sorted(map(tuple, cells.tolist()))
     [(0, 0), (1, 0), (1, 1), (2, 1)]
     """
-    starts = np.asarray(starts, dtype=np.float64)
-    ends = np.asarray(ends, dtype=np.float64)
-    n, n_dims = starts.shape
+    origin = np.asarray(origin, dtype=np.float64)
+    q0 = (np.asarray(starts, dtype=np.float64) - origin) / resolution
+    q1 = (np.asarray(ends, dtype=np.float64) - origin) / resolution
+    seg, flat = _traverse_flat(q0, q1, tuple(int(s) for s in shape))
+    return seg, np.column_stack(np.unravel_index(flat, shape))
+
+
+def _traverse_flat(q0, q1, shape):
+    """:func:`traverse_cells` in grid units (cell edge 1, origin 0), returning flat indices.
+
+    The one hot loop of the counting grid: per axis, all crossings of all segments at once,
+    on 1-D columns only (gathers of whole rows cost more than the arithmetic).
+    """
+    n, n_dims = q0.shape
     upper = np.asarray(shape) - 1
-    i0 = np.clip(np.floor((starts - origin) / resolution).astype(np.int64), 0, upper)
-    i1 = np.clip(np.floor((ends - origin) / resolution).astype(np.int64), 0, upper)
-    direction = ends - starts
-    segment_parts = [np.arange(n)]
-    cell_parts = [i0]
+    i0 = np.clip(np.floor(q0).astype(np.int64), 0, upper)
+    i1 = np.clip(np.floor(q1).astype(np.int64), 0, upper)
+    dq = q1 - q0
+    strides = np.cumprod((1,) + shape[:0:-1])[::-1]
+    seg_parts = [np.arange(n)]
+    flat_parts = [i0 @ strides]
     for d in range(n_dims):
         n_cross = np.abs(i1[:, d] - i0[:, d])
         total = int(n_cross.sum())
         if total == 0:
             continue
         seg = np.repeat(np.arange(n), n_cross)
-        # k = 1..n_cross within each segment
-        k = np.arange(total) - np.repeat(np.cumsum(n_cross) - n_cross, n_cross) + 1
-        step = np.sign(i1[seg, d] - i0[seg, d])
-        entered = i0[seg, d] + step * k
-        # Boundary between the cell left and the cell entered: its lower face when moving up,
-        # its upper face when moving down.
-        boundary = origin[d] + resolution * (entered + (step < 0))
-        t = (boundary - starts[seg, d]) / direction[seg, d]
-        point = starts[seg] + t[:, None] * direction[seg]
-        cells = np.floor((point - origin) / resolution).astype(np.int64)
-        # Rounding at a face must not push the other axes outside the segment's cell range.
-        low = np.minimum(i0[seg], i1[seg])
-        high = np.maximum(i0[seg], i1[seg])
-        cells = np.clip(cells, low, high)
-        cells[:, d] = entered
-        segment_parts.append(seg)
-        cell_parts.append(cells)
-    return np.concatenate(segment_parts), np.concatenate(cell_parts)
+        step = np.sign(i1[:, d] - i0[:, d])
+        # k = 1..n_cross within each segment; the cell entered at crossing k is i0 + step * k.
+        k = np.arange(1, total + 1) - np.repeat(np.cumsum(n_cross) - n_cross, n_cross)
+        entered = i0[seg, d] + step[seg] * k
+        # The face crossed is the entered cell's lower face moving up, its upper face moving
+        # down.
+        t = (entered + (step[seg] < 0) - q0[seg, d]) / dq[seg, d]
+        flat = entered * strides[d]
+        for e in range(n_dims):
+            if e == d:
+                continue
+            q = q0[seg, e] + t * dq[seg, e]
+            idx = np.floor(q)
+            # Through an exact corner the axes are crossed in index order (e before d), so a
+            # path stays face-connected and no cell is entered twice.
+            moving_up = dq[seg, e] > 0
+            on_face = (q == idx) & (dq[seg, e] != 0)
+            idx -= on_face & (moving_up if e > d else ~moving_up)
+            low = np.minimum(i0[:, e], i1[:, e])[seg]
+            high = np.maximum(i0[:, e], i1[:, e])[seg]
+            # Rounding at a face must not push an axis outside the segment's cell range.
+            flat += np.clip(idx.astype(np.int64), low, high) * strides[e]
+        seg_parts.append(seg)
+        flat_parts.append(flat)
+    return np.concatenate(seg_parts), np.concatenate(flat_parts)
 
 
 class OccupancyGridMap(ClassifierMixin, BaseEstimator):
@@ -262,8 +281,9 @@ class OccupancyGridMap(ClassifierMixin, BaseEstimator):
         free = np.flatnonzero(~hit)
         for lo in range(0, free.size, self.chunk_size):
             rows = free[lo : lo + self.chunk_size]
-            seg, cells = traverse_cells(starts[rows], ends[rows], self.origin_, res, self.shape_)
-            flat = self._flat(cells)
+            seg, flat = _traverse_flat(
+                (starts[rows] - self.origin_) / res, (ends[rows] - self.origin_) / res, self.shape_
+            )
             end_flat = self._flat(self._cell_of(ends[rows]))[seg]
             start_flat = self._flat(self._cell_of(starts[rows]))[seg]
             keep = (flat != end_flat) | (start_flat == end_flat)

@@ -7,9 +7,10 @@ Each estimator joins ``ESTIMATORS`` as it lands. Expected failures, if any, go i
 import pytest
 from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
+from skoccmap.baselines import OccupancyGridMap
 from skoccmap.classifier import EPGaussianProcessClassifier
 
-ESTIMATORS = [EPGaussianProcessClassifier()]
+ESTIMATORS = [OccupancyGridMap(), EPGaussianProcessClassifier()]
 
 # {estimator class name: {check name: reason}}
 EXPECTED_FAILED_CHECKS = {}

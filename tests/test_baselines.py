@@ -1,0 +1,244 @@
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.special import expit
+from sklearn.exceptions import NotFittedError
+
+from skoccmap.baselines import OccupancyGridMap, traverse_cells
+
+
+def _cells_by_slabs(start, end, origin, res, shape):
+    """Reference: every cell whose box the segment overlaps over a positive length.
+
+    Liang-Barsky clipping of the segment against each candidate box, one box at a time.
+    """
+    direction = end - start
+    length = np.linalg.norm(direction)
+    lo_cell = np.floor((np.minimum(start, end) - origin) / res).astype(int)
+    hi_cell = np.floor((np.maximum(start, end) - origin) / res).astype(int)
+    cells = set()
+    ranges = [
+        range(max(lo, 0), min(hi, n - 1) + 1)
+        for lo, hi, n in zip(lo_cell, hi_cell, shape, strict=True)
+    ]
+    for cell in itertools.product(*ranges):
+        box_lo = origin + res * np.array(cell)
+        box_hi = box_lo + res
+        t0, t1 = 0.0, 1.0
+        for d in range(len(start)):
+            if direction[d] == 0:
+                if not box_lo[d] <= start[d] < box_hi[d]:
+                    t0, t1 = 1.0, 0.0
+                continue
+            a = (box_lo[d] - start[d]) / direction[d]
+            b = (box_hi[d] - start[d]) / direction[d]
+            t0, t1 = max(t0, min(a, b)), min(t1, max(a, b))
+        if length == 0:
+            inside = np.all((box_lo <= start) & (start < box_hi))
+            if inside:
+                cells.add(cell)
+        elif (t1 - t0) * length > 1e-9:
+            cells.add(cell)
+    return cells
+
+
+@pytest.mark.parametrize("n_dims", [2, 3])
+def test_traverse_cells_matches_box_clipping(n_dims):
+    rng = np.random.default_rng(n_dims)
+    origin, res = np.full(n_dims, -2.0), 0.3
+    shape = (14,) * n_dims
+    starts = rng.uniform(-2.0, 2.2, (40, n_dims))
+    ends = rng.uniform(-2.0, 2.2, (40, n_dims))
+    seg, cells = traverse_cells(starts, ends, origin, res, shape)
+    for i in range(len(starts)):
+        got = [tuple(c) for c in cells[seg == i].tolist()]
+        assert len(got) == len(set(got)), "a cell visited twice"
+        assert set(got) == _cells_by_slabs(starts[i], ends[i], origin, res, shape)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(-3.0, 3.0, allow_nan=False), min_size=4, max_size=4),
+    st.floats(0.05, 1.0),
+)
+def test_traverse_cells_property(coords, res):
+    start, end = np.array(coords[:2]), np.array(coords[2:])
+    origin = np.floor(np.minimum(start, end) / res) * res
+    shape = tuple(np.floor((np.maximum(start, end) - origin) / res).astype(int) + 1)
+    seg, cells = traverse_cells(start[None], end[None], origin, res, shape)
+    visited = [tuple(c) for c in cells.tolist()]
+    # First and last visits are the start and end cells; consecutive cells along a crossing
+    # sequence form a connected path, so the count is 1 + the number of boundary crossings.
+    i0 = tuple(np.clip(np.floor((start - origin) / res).astype(int), 0, np.array(shape) - 1))
+    i1 = tuple(np.clip(np.floor((end - origin) / res).astype(int), 0, np.array(shape) - 1))
+    assert visited[0] == i0 and i1 in visited
+    assert len(visited) == 1 + sum(abs(a - b) for a, b in zip(i0, i1, strict=True))
+    assert len(set(visited)) == len(visited)
+
+
+def _loop_reference(X, y, res, l_occ, l_free, l_min, l_max):
+    """Per-row log-odds sums with the box-clipping cells, excluding each beam's end cell."""
+    n_dims = X.shape[1] // 2
+    low = np.floor(np.minimum(X[:, :n_dims], X[:, n_dims:]).min(axis=0) / res) * res
+    high = np.maximum(X[:, :n_dims], X[:, n_dims:]).max(axis=0)
+    shape = tuple(np.floor((high - low) / res).astype(int) + 1)
+    total = {}
+    for row, label in zip(X, y, strict=True):
+        start, end = row[:n_dims], row[n_dims:]
+        end_cell = tuple(np.floor((end - low) / res).astype(int))
+        if label == 1:
+            total[end_cell] = total.get(end_cell, 0.0) + l_occ
+            continue
+        cells = _cells_by_slabs(start, end, low, res, shape)
+        if len(cells) > 1:
+            cells.discard(end_cell)
+        for cell in cells:
+            total[cell] = total.get(cell, 0.0) + l_free
+    return low, {cell: np.clip(v, l_min, l_max) for cell, v in total.items()}
+
+
+def test_log_odds_match_loop_reference():
+    rng = np.random.default_rng(0)
+    sensor = rng.uniform(-1, 1, (30, 2))
+    hit = sensor + rng.uniform(-3, 3, (30, 2))
+    beam_end = hit - 0.05 * (hit - sensor) / np.linalg.norm(hit - sensor, axis=1, keepdims=True)
+    X = np.vstack([np.hstack([sensor, beam_end]), np.hstack([hit, hit])])
+    y = np.r_[np.zeros(30), np.ones(30)]
+    params = dict(l_occ=0.9, l_free=-0.3, l_min=-1.0, l_max=2.0)
+    est = OccupancyGridMap(resolution=0.25, **params).fit(X, y)
+    origin, ref = _loop_reference(X, y, 0.25, **params)
+    np.testing.assert_allclose(est.origin_, origin)
+    assert len(ref) == est.cell_index_.size
+    cells = np.array(list(ref))
+    centers = origin + 0.25 * (cells + 0.5)
+    queries = np.hstack([centers, centers])
+    np.testing.assert_allclose(est.log_odds(queries), list(ref.values()), atol=1e-12)
+    np.testing.assert_allclose(est.predict_proba(queries)[:, 1], expit(list(ref.values())))
+
+
+def test_unknown_and_outside_are_half():
+    X = np.array([[0.0, 0.0, 2.0, 0.0], [2.02, 0.0, 2.02, 0.0], [0.0, 3.0, 0.0, 3.0]])
+    est = OccupancyGridMap(resolution=0.1).fit(X, [0, 1, 1])
+    queries = np.array([[1.0, 2.0], [50.0, 50.0], [-50.0, 0.0], [1.05, 0.05], [2.05, 0.05]])
+    proba = est.predict_proba(np.hstack([queries, queries]))
+    np.testing.assert_allclose(proba[:3], 0.5)  # never observed / outside the grid
+    assert proba[3, 1] < 0.5 < proba[4, 1]
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+    np.testing.assert_array_equal(est.predict(np.hstack([queries, queries])), [0, 0, 0, 0, 1])
+
+
+def test_hit_cell_survives_its_own_beam():
+    # A beam stopping 5 cm short of its hit ends in the hit's cell: it must not lower it.
+    X = np.array([[0.0, 0.0, 0.98, 0.0], [1.03, 0.0, 1.03, 0.0]] * 3)
+    est = OccupancyGridMap(resolution=0.1).fit(X, [0, 1] * 3)
+    hit = np.array([[1.03, 0.0, 1.03, 0.0]])
+    assert est.log_odds(hit)[0] == pytest.approx(min(3 * 0.85, 3.5))
+
+
+def test_points_layout_equals_zero_length_segments():
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-2, 2, (200, 3))
+    y = (points[:, 0] > 0).astype(int)
+    as_points = OccupancyGridMap(resolution=0.5, layout="points").fit(points, y)
+    as_segments = OccupancyGridMap(resolution=0.5).fit(np.hstack([points, points]), y)
+    queries = rng.uniform(-2.5, 2.5, (100, 3))
+    np.testing.assert_allclose(
+        as_points.predict_proba(queries),
+        as_segments.predict_proba(np.hstack([queries, queries])),
+    )
+    # "auto" reads 3 columns as points
+    auto = OccupancyGridMap(resolution=0.5).fit(points, y)
+    np.testing.assert_allclose(auto.predict_proba(queries), as_points.predict_proba(queries))
+
+
+def test_3d_room_is_mapped():
+    # A sensor at the centre of a 4 m cube room, beams to the walls.
+    rng = np.random.default_rng(2)
+    directions = rng.normal(size=(2000, 3))
+    directions /= np.abs(directions).max(axis=1, keepdims=True)  # hit the cube faces
+    hits = 1.95 * directions
+    beam_ends = hits * (1 - 0.05 / np.linalg.norm(hits, axis=1, keepdims=True))
+    X = np.vstack([np.hstack([np.zeros_like(hits), beam_ends]), np.hstack([hits, hits])])
+    y = np.r_[np.zeros(len(hits)), np.ones(len(hits))]
+    est = OccupancyGridMap(resolution=0.2).fit(X, y)
+    inside = rng.uniform(-1.5, 1.5, (500, 3))
+    wall = 1.95 * directions[:500]
+    p_in = est.predict_proba(np.hstack([inside, inside]))[:, 1]
+    p_wall = est.predict_proba(np.hstack([wall, wall]))[:, 1]
+    assert np.mean(p_in < 0.5) > 0.95
+    assert np.mean(p_wall > 0.5) > 0.8
+
+
+def test_bad_input():
+    X = np.zeros((4, 4))
+    with pytest.raises(ValueError, match="2 classes"):
+        OccupancyGridMap().fit(X, [1, 1, 1, 1])
+    with pytest.raises(ValueError, match="Only binary"):
+        OccupancyGridMap().fit(X, [0, 1, 2, 1])
+    with pytest.raises(ValueError, match="NaN"):
+        OccupancyGridMap().fit(np.full((4, 4), np.nan), [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="layout='segments'"):
+        OccupancyGridMap(layout="segments").fit(np.zeros((4, 3)), [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="l_min"):
+        OccupancyGridMap(l_min=0.0, l_max=0.0).fit(X, [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="resolution"):
+        OccupancyGridMap(resolution=0).fit(X, [0, 1, 0, 1])
+    with pytest.raises(NotFittedError):
+        OccupancyGridMap().predict_proba(X)
+    est = OccupancyGridMap().fit(X, [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="features"):
+        est.predict_proba(np.zeros((2, 6)))
+
+
+def test_string_labels_larger_is_occupied():
+    X = np.array([[0.0, 0.0, 0.48, 0.0], [0.53, 0.0, 0.53, 0.0]])
+    est = OccupancyGridMap(resolution=0.1).fit(X, ["free", "wall"])
+    np.testing.assert_array_equal(est.classes_, ["free", "wall"])
+    queries = np.array([[0.53, 0.0, 0.53, 0.0], [0.2, 0.0, 0.2, 0.0]])
+    np.testing.assert_array_equal(est.predict(queries), ["wall", "free"])
+
+
+def test_chunking_does_not_change_result():
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-3, 3, (500, 4))
+    y = rng.integers(0, 2, 500)
+    a = OccupancyGridMap(resolution=0.2, chunk_size=7).fit(X, y)
+    b = OccupancyGridMap(resolution=0.2).fit(X, y)
+    np.testing.assert_array_equal(a.cell_index_, b.cell_index_)
+    np.testing.assert_allclose(a.log_odds_, b.log_odds_)
+
+
+def test_sparse_accumulation_equals_dense(monkeypatch):
+    import skoccmap.baselines as baselines
+
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-3, 3, (300, 4))
+    y = rng.integers(0, 2, 300)
+    dense = OccupancyGridMap(resolution=0.2).fit(X, y)
+    monkeypatch.setattr(baselines, "_DENSE_CELL_LIMIT", 10)
+    sparse = OccupancyGridMap(resolution=0.2).fit(X, y)
+    np.testing.assert_array_equal(sparse.cell_index_, dense.cell_index_)
+    np.testing.assert_allclose(sparse.log_odds_, dense.log_odds_)
+
+
+def test_counting_grid_on_intel(shared_data):
+    from skoccmap.datasets._carmen import load_carmen
+
+    # The first 300 scans (a third of the log) keep the test fast.
+    scans = load_carmen(shared_data / "intel.gfs.log")[:300]
+    train, test = scans[np.arange(len(scans)) % 10 != 0], scans[::10]
+    X, y, _ = train.to_observations()
+    est = OccupancyGridMap(resolution=0.1).fit(X, y)
+    # Held-out hits should mostly land in occupied cells and mid-beam points in free ones.
+    hits = test.hit_points()
+    directions = test.directions()[test.returned()]
+    origins = np.broadcast_to(test.origins()[:, None], test.directions().shape)[test.returned()]
+    ranges = test.ranges[test.returned()]
+    middle = origins + 0.5 * ranges[:, None] * directions
+    p_hit = est.predict_proba(np.hstack([hits, hits]))[:, 1]
+    p_mid = est.predict_proba(np.hstack([middle, middle]))[:, 1]
+    assert np.mean(p_hit > 0.5) > 0.6
+    assert np.mean(p_mid < 0.5) > 0.9
