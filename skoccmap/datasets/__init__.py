@@ -1,5 +1,6 @@
 """Data sets: a laser simulator, the paper's simulated environment, a 3-D room."""
 
+from ._carmen import flaser_angles, load_carmen
 from ._paper import make_paper_environment, make_paper_scans
 from ._room3d import Room3D, make_room3d_environment, make_room3d_scans, scanner_directions
 from ._simulator import Environment2D, simulate_scans
@@ -7,6 +8,8 @@ from ._simulator import Environment2D, simulate_scans
 __all__ = [
     "Environment2D",
     "Room3D",
+    "flaser_angles",
+    "load_carmen",
     "make_paper_environment",
     "make_paper_scans",
     "make_room3d_environment",
