@@ -1,0 +1,536 @@
+"""Integrals of the squared-exponential kernel along segments.
+
+All functions work in *scaled* coordinates: every coordinate divided by its length scale, so that
+the point kernel is ``exp(-|p - q|**2 / 2)``. A segment is ``a + u * d`` with ``u`` in ``[0, 1]``
+and the integral kernel is the average of the point kernel over both segments::
+
+    k(s1, s2) = int_0^1 int_0^1 exp(-|a1 + u d1 - a2 - v d2|**2 / 2) du dv
+
+so a point against itself gives 1 and a zero-length segment reduces to the point kernel.
+
+Evaluation (see :func:`pair_integrals`):
+
+- point-point: the closed form.
+- segment-point and the inner integral of segment-segment: ``|w - v d|**2`` is a quadratic in
+  ``v``, so the integral is a Gaussian factor times a difference of normal CDFs. It is written with
+  ``erfcx`` of non-negative arguments only, so that neither tail of the CDF cancels.
+- segment-segment: the inner integral (over the longer segment) is analytic, the outer one (over
+  the shorter segment) is Gauss-Legendre on the window where the integrand is not negligible, with
+  a node count that grows with the window length (:data:`_GL_MAX_WINDOW`). Viewed along the outer
+  segment, the integrand is a mixture of unit-width Gaussians, so the rule that integrates every
+  unit Gaussian to 1e-12 (relative to its mass) integrates the mixture as well.
+- two segments both shorter than :data:`_SHORT`: a fixed tensor Gauss-Legendre rule (the analytic
+  inner form divides by the length and would lose digits there).
+
+Gradients are with respect to the log length scale of each dimension. Differentiating the
+integrand, ``d/d log l_k exp(-sum_j (dx_j / l_j)**2 / 2) = (dx_k / l_k)**2 * exp(...)``, so the
+gradient is the integral of the squared scaled difference in dimension ``k`` times the point
+kernel; the inner integral of that is analytic too (first and second moments of a truncated
+Gaussian).
+"""
+
+import numpy as np
+from scipy.special import erfcx
+
+_SQRT_2PI = np.sqrt(2.0 * np.pi)
+_SQRT_HALF = np.sqrt(0.5)
+
+# Pairs of segments further apart than this (scaled) are set to zero: exp(-8**2 / 2) < 1.3e-14.
+_CUTOFF = 8.0
+# The outer window extends this far beyond the projections of the relevant part of the inner
+# segment; the neglected tails are below 2 * Phi(-5.75) < 1e-8 of the value.
+_WINDOW_MARGIN = 5.75
+# Below this scaled length the analytic inner integral loses more than ~1/_SHORT of its digits.
+_SHORT = 0.05
+# Gauss-Legendre order for pairs of short segments (error < 1e-12 for lengths below _SHORT).
+_SHORT_ORDER = 5
+
+# _GL_MAX_WINDOW[n - 1]: the longest interval (scaled units) on which n-point Gauss-Legendre
+# integrates a unit Gaussian, centred anywhere, with an error below 5e-13 of its mass
+# (found by bisection; tests/test_integrals.py checks it). Longer windows are split into panels.
+_GL_MAX_WINDOW = np.array([
+    0.000311, 0.01784, 0.1077, 0.3027, 0.597, 0.9704, 1.403, 1.877, 2.383, 2.909, 3.451, 4.004,
+    4.564, 5.13, 5.699, 6.27, 6.842, 7.416, 7.988, 8.562, 9.131, 9.702, 10.27, 10.84, 11.41,
+    11.98, 12.55, 13.11, 13.67, 14.23, 14.8, 15.35,
+])
+_GL_MAX_ORDER = len(_GL_MAX_WINDOW)
+
+
+def _gauss_legendre_table(max_order):
+    """Nodes and weights on [0, 1] for orders 1..max_order, padded rows of a 2-D table."""
+    nodes = np.zeros((max_order + 1, max_order))
+    weights = np.zeros((max_order + 1, max_order))
+    for n in range(1, max_order + 1):
+        x, w = np.polynomial.legendre.leggauss(n)
+        nodes[n, :n] = 0.5 * (x + 1.0)
+        weights[n, :n] = 0.5 * w
+    return nodes, weights
+
+
+_GL_NODES, _GL_WEIGHTS = _gauss_legendre_table(_GL_MAX_ORDER)
+
+
+def gauss_legendre_order(window):
+    """Number of Gauss-Legendre nodes for an outer window of the given scaled length.
+
+    Parameters
+    ----------
+    window : ndarray
+        Window lengths in scaled units, at most ``_GL_MAX_WINDOW[-1]``.
+
+    Returns
+    -------
+    order : ndarray of int
+        The smallest order whose error on any unit Gaussian is below 5e-13 of its mass.
+    """
+    return np.searchsorted(_GL_MAX_WINDOW, window) + 1
+
+
+def point_point(p, q):
+    """Squared-exponential kernel between points in scaled coordinates.
+
+    Parameters
+    ----------
+    p, q : ndarray of shape (..., n_dims)
+
+    Returns
+    -------
+    k : ndarray of shape (...)
+        ``exp(-|p - q|**2 / 2)``.
+    """
+    diff = np.asarray(p, dtype=float) - np.asarray(q, dtype=float)
+    return np.exp(-0.5 * np.einsum("...i,...i->...", diff, diff))
+
+
+def _inner_scalars(f0, dw, length):
+    """Line-point integral from the scalars of ``f(v) = |w - v d|**2``.
+
+    ``f0 = |w|**2``, ``dw = w . d``, ``length = |d|`` (>= _SHORT). Returns
+    ``M0 = int_0^1 exp(-f(v)/2) dv`` and the pieces the moments need.
+
+    With ``v0 = dw / length**2`` the closest point, ``h**2 = f0 - dw**2 / length**2`` and
+    ``x1 = -length * v0``, ``x2 = x1 + length``::
+
+        M0 = sqrt(2 pi) / length * exp(-h**2 / 2) * (Phi(x2) - Phi(x1))
+
+    ``Phi(x) exp(-h**2/2) = E(-x) exp(-f/2)`` for x <= 0 with ``E(z) = erfcx(z / sqrt 2) / 2`` and
+    ``f = h**2 + x**2`` (``f0`` at ``x1``, ``f1 = f(1)`` at ``x2``); the upper tail is symmetric.
+    Using only non-negative erfcx arguments keeps both tails free of cancellation.
+    """
+    inv_len = 1.0 / length
+    x1 = -dw * inv_len
+    x2 = x1 + length
+    f1 = f0 - 2.0 * dw + length * length
+    h2 = np.maximum(f0 - x1 * x1, 0.0)
+    e0 = np.exp(-0.5 * f0)
+    e1 = np.exp(-0.5 * f1)
+    g1 = 0.5 * erfcx(np.abs(x1) * _SQRT_HALF) * e0
+    g2 = 0.5 * erfcx(np.abs(x2) * _SQRT_HALF) * e1
+    # Peak before the segment (x1 >= 0), after it (x2 <= 0), or inside it.
+    diff = np.where(x1 >= 0.0, g1 - g2, np.where(x2 <= 0.0, g2 - g1, np.exp(-0.5 * h2) - g1 - g2))
+    m0 = _SQRT_2PI * inv_len * diff
+    return m0, x1, x2, e0, e1, h2, inv_len
+
+
+def _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len):
+    """``int_0^1 |w - v d|**2 exp(-f(v)/2) dv`` (the isotropic gradient integrand).
+
+    With ``t = v - v0`` and ``w - v d = w_perp - t d`` (``w_perp . d = 0``) this is
+    ``h**2 M0 + |d|**2 M2``, and integrating by parts
+    ``|d|**2 M2 = M0 - [t exp(-f/2)]_{t=-v0}^{1-v0} = M0 - (x2 e1 - x1 e0) / |d|``.
+    """
+    return (1.0 + h2) * m0 - (x2 * e1 - x1 * e0) * inv_len
+
+
+def _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, d):
+    """Per-dimension ``int_0^1 (w_k - v d_k)**2 exp(-f(v)/2) dv``, shape (..., n_dims).
+
+    ``(w_k - v d_k)**2 = wp_k**2 - 2 wp_k d_k t + d_k**2 t**2`` with ``wp = w - v0 d``,
+    ``M1 = (e0 - e1) / |d|**2`` and ``M2`` as in :func:`_inner_gradient_iso`.
+    """
+    inv_len2 = inv_len * inv_len
+    v0 = -x1 * inv_len
+    m1 = (e0 - e1) * inv_len2
+    m2 = (m0 - (x2 * e1 - x1 * e0) * inv_len) * inv_len2
+    wp = w - v0[..., None] * d
+    return (wp * wp) * m0[..., None] - 2.0 * (wp * d) * m1[..., None] + (d * d) * m2[..., None]
+
+
+def segment_point(a, d, p, *, eval_gradient=False):
+    """Average of the point kernel along a segment, against a point (scaled coordinates).
+
+    ``int_0^1 exp(-|a + v d - p|**2 / 2) dv`` in closed form; segments shorter than the
+    cancellation threshold use Gauss-Legendre on the (then nearly flat) integrand.
+
+    Parameters
+    ----------
+    a, d : ndarray of shape (..., n_dims)
+        Segment start and direction (end minus start).
+    p : ndarray of shape (..., n_dims)
+        Point.
+    eval_gradient : bool, default=False
+        Also return, per dimension k, ``int (a_k + v d_k - p_k)**2 exp(...) dv``.
+
+    Returns
+    -------
+    k : ndarray of shape (...)
+    grad : ndarray of shape (..., n_dims), only when ``eval_gradient``
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap._integrals import segment_point
+    >>> round(float(segment_point(np.zeros(2), np.array([1e-9, 0.0]), np.zeros(2))), 12)
+    1.0
+    """
+    a, d, p = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (a, d, p)))
+    s1 = np.concatenate([p, p], axis=-1).reshape(-1, 2 * a.shape[-1])
+    s2 = np.concatenate([a, a + d], axis=-1).reshape(-1, 2 * a.shape[-1])
+    out = pair_integrals(s1, s2, gradient="aniso" if eval_gradient else None)
+    k = out[0].reshape(a.shape[:-1])
+    if eval_gradient:
+        return k, out[1].reshape(a.shape)
+    return k
+
+
+def segment_self(length, *, eval_gradient=False):
+    """Integral kernel of a segment with itself, closed form.
+
+    ``int_0^1 int_0^1 exp(-(u - v)**2 L**2 / 2) du dv = 2 int_0^1 (1 - t) exp(-L**2 t**2 / 2) dt``.
+
+    Parameters
+    ----------
+    length : ndarray
+        Scaled segment lengths ``L``.
+    eval_gradient : bool, default=False
+        Also return ``H(L) = 2 int_0^1 (1 - t) t**2 exp(-L**2 t**2 / 2) dt``; the gradient with
+        respect to log l_k is ``(d_k / l_k)**2 * H``.
+
+    Returns
+    -------
+    k : ndarray
+    H : ndarray, only when ``eval_gradient``
+
+    Examples
+    --------
+    >>> from skoccmap._integrals import segment_self
+    >>> float(segment_self(0.0))
+    1.0
+    """
+    length = np.asarray(length, dtype=float)
+    a2 = length * length
+    small = length < 1.0
+    # Series for short segments: exp(-a2 t^2/2) = sum (-a2/2)^j t^(2j) / j!, and
+    # 2 int_0^1 (1-t) t^m dt = 2 / ((m+1)(m+2)).
+    a2s = np.where(small, a2, 0.0)
+    k_series = np.zeros_like(a2)
+    h_series = np.zeros_like(a2)
+    term = np.ones_like(a2)
+    for j in range(25):
+        k_series += term * 2.0 / ((2 * j + 1) * (2 * j + 2))
+        h_series += term * 2.0 / ((2 * j + 3) * (2 * j + 4))
+        term = term * (-0.5 * a2s) / (j + 1)
+    # Closed form for longer ones: I0 = int_0^1 exp(-a2 t^2/2) dt, I1 = int t exp(.), etc.
+    big = np.where(small, 1.0, length)
+    ebig = np.exp(-0.5 * big * big)
+    i0 = _SQRT_2PI / big * (0.5 - 0.5 * erfcx(big * _SQRT_HALF) * ebig)
+    i1 = -np.expm1(-0.5 * big * big) / (big * big)
+    i2 = (i0 - ebig) / (big * big)
+    i3 = (2.0 / big**4) * (1.0 - ebig * (1.0 + 0.5 * big * big))
+    k = np.where(small, k_series, 2.0 * (i0 - i1))
+    if not eval_gradient:
+        return k
+    return k, np.where(small, h_series, 2.0 * (i2 - i3))
+
+
+def _point_pairs(s1, s2, dim, gradient):
+    diff2 = (s1[:, :dim] - s2[:, :dim]) ** 2
+    k = np.exp(-0.5 * diff2.sum(axis=1))
+    return k, diff2 * k[:, None]
+
+
+def _short_pairs(s1, s2, dim, gradient):
+    """Tensor Gauss-Legendre on the point kernel for pairs of short segments."""
+    x, w = _GL_NODES[_SHORT_ORDER, :_SHORT_ORDER], _GL_WEIGHTS[_SHORT_ORDER, :_SHORT_ORDER]
+    a1, d1 = s1[:, :dim], s1[:, dim:] - s1[:, :dim]
+    a2, d2 = s2[:, :dim], s2[:, dim:] - s2[:, :dim]
+    # diff[p, i, j, k] = a1 + x_i d1 - a2 - x_j d2
+    diff = ((a1 - a2)[:, None, None, :] + x[None, :, None, None] * d1[:, None, None, :]
+            - x[None, None, :, None] * d2[:, None, None, :])
+    diff2 = diff * diff
+    kern = np.exp(-0.5 * diff2.sum(axis=-1)) * (w[:, None] * w[None, :])
+    k = kern.sum(axis=(1, 2))
+    if gradient is None:
+        return k, None
+    return k, np.einsum("pij,pijk->pk", kern, diff2)
+
+
+def _outer_windows(a1, d1, len1, a2, d2):
+    """Window ``[lo, hi]`` (in u) on the outer segment where the integrand matters.
+
+    Only the part of the inner segment within ``_CUTOFF`` of the outer segment's line matters;
+    its projections onto that line, widened by ``_WINDOW_MARGIN`` and clipped to the segment,
+    give the window. Returns (lo, hi, keep) with ``keep`` False for pairs further apart than
+    ``_CUTOFF`` (their value is below exp(-_CUTOFF**2 / 2)).
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv1 = np.where(len1 > 0.0, 1.0 / len1, 0.0)
+        e1 = d1 * inv1[:, None]
+        c = a2 - a1
+        tau0 = np.einsum("pk,pk->p", c, e1)
+        tau1 = np.einsum("pk,pk->p", d2, e1)
+        r0 = c - tau0[:, None] * e1
+        r1 = d2 - tau1[:, None] * e1
+        # |r0 + v r1|^2 <= CUTOFF^2: quadratic alpha v^2 + 2 beta v + gamma <= 0.
+        alpha = np.einsum("pk,pk->p", r1, r1)
+        beta = np.einsum("pk,pk->p", r0, r1)
+        gamma = np.einsum("pk,pk->p", r0, r0) - _CUTOFF**2
+        disc = beta * beta - alpha * gamma
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        # Stable roots of the quadratic (no cancellation between -beta and sq).
+        q = -(beta + np.copysign(sq, beta))
+        root_a = np.where(q != 0.0, gamma / q, 0.0)
+        root_b = np.where(alpha > 0.0, q / alpha, 0.0)
+        flat = alpha <= 1e-300
+        va = np.where(flat, 0.0, np.minimum(root_a, root_b))
+        vb = np.where(flat, 1.0, np.maximum(root_a, root_b))
+        keep = np.where(flat, gamma <= 0.0, disc >= 0.0)
+        va = np.clip(va, 0.0, 1.0)
+        vb = np.clip(vb, 0.0, 1.0)
+        keep &= vb >= va
+        t_a = tau0 + va * tau1
+        t_b = tau0 + vb * tau1
+        t_lo = np.minimum(t_a, t_b)
+        t_hi = np.maximum(t_a, t_b)
+        keep &= (t_lo <= len1 + _CUTOFF) & (t_hi >= -_CUTOFF)
+        # Keep at least min(margin, length) of the segment so a window is never empty.
+        lo = np.clip(t_lo - _WINDOW_MARGIN, 0.0, np.maximum(len1 - _WINDOW_MARGIN, 0.0))
+        hi = np.clip(t_hi + _WINDOW_MARGIN, np.minimum(_WINDOW_MARGIN, len1), len1)
+        lo = np.where(len1 > 0.0, lo * inv1, 0.0)
+        hi = np.where(len1 > 0.0, hi * inv1, 1.0)
+    return lo, hi, keep
+
+
+def _segment_pairs(s1, s2, dim, gradient, max_nodes):
+    """Analytic inner integral over the longer segment, Gauss-Legendre over the shorter one."""
+    a1, d1 = s1[:, :dim], s1[:, dim:] - s1[:, :dim]
+    a2, d2 = s2[:, :dim], s2[:, dim:] - s2[:, :dim]
+    len1 = np.sqrt(np.einsum("pk,pk->p", d1, d1))
+    len2 = np.sqrt(np.einsum("pk,pk->p", d2, d2))
+    # The kernel is symmetric in its arguments: integrate the shorter segment numerically.
+    swap = len1 > len2
+    if np.any(swap):
+        a1, a2 = np.where(swap[:, None], a2, a1), np.where(swap[:, None], a1, a2)
+        d1, d2 = np.where(swap[:, None], d2, d1), np.where(swap[:, None], d1, d2)
+        len1, len2 = np.where(swap, len2, len1), np.where(swap, len1, len2)
+    n_pairs = len(len1)
+    k = np.zeros(n_pairs)
+    n_grad = dim if gradient == "aniso" else 1
+    grad = np.zeros((n_pairs, n_grad)) if gradient else None
+
+    lo, hi, keep = _outer_windows(a1, d1, len1, a2, d2)
+    pidx = np.flatnonzero(keep)
+    if pidx.size == 0:
+        return k, grad
+    # Split long windows into equal panels short enough for the largest tabulated rule.
+    span = (hi - lo)[pidx]
+    window = span * len1[pidx]
+    n_panels = np.maximum(np.ceil(window / _GL_MAX_WINDOW[-1]).astype(np.intp), 1)
+    panel_pair = np.repeat(pidx, n_panels)
+    first = np.cumsum(n_panels) - n_panels
+    panel_rank = np.arange(panel_pair.size) - np.repeat(first, n_panels)
+    panel_span = np.repeat(span / n_panels, n_panels)
+    panel_lo = lo[panel_pair] + panel_rank * panel_span
+    order = gauss_legendre_order(np.repeat(window / n_panels, n_panels))
+
+    # Chunks of panels with at most max_nodes nodes each bound the temporaries.
+    ends = np.cumsum(order)
+    start = 0
+    while start < panel_pair.size:
+        stop = max(np.searchsorted(ends, (ends[start - 1] if start else 0) + max_nodes,
+                                   side="right"), start + 1)
+        sl = slice(start, stop)
+        _accumulate_panels(k, grad, panel_pair[sl], panel_lo[sl], panel_span[sl], order[sl],
+                           a1, d1, a2, d2, len2, gradient)
+        start = stop
+    return k, grad
+
+
+def _accumulate_panels(k, grad, pair, lo, span, order, a1, d1, a2, d2, len2, gradient):
+    """Add the Gauss-Legendre sums of the given panels into ``k`` and ``grad`` (in place)."""
+    n_nodes = order.sum()
+    node_panel = np.repeat(np.arange(order.size), order)
+    first = np.cumsum(order) - order
+    rank = np.arange(n_nodes) - first[node_panel]
+    node_order = order[node_panel]
+    u = lo[node_panel] + span[node_panel] * _GL_NODES[node_order, rank]
+    weight = span[node_panel] * _GL_WEIGHTS[node_order, rank]
+
+    # Per pair scalars of f0(u) = |w0 + u d1|^2 and dw(u) = d2 . (w0 + u d1), w0 = a1 - a2.
+    p = pair
+    w0 = a1[p] - a2[p]
+    dd1, dd2 = d1[p], d2[p]
+    coef_a = np.einsum("pk,pk->p", w0, w0)
+    coef_b = 2.0 * np.einsum("pk,pk->p", w0, dd1)
+    coef_c = np.einsum("pk,pk->p", dd1, dd1)
+    coef_p = np.einsum("pk,pk->p", dd2, w0)
+    coef_q = np.einsum("pk,pk->p", dd2, dd1)
+    f0 = coef_a[node_panel] + u * (coef_b[node_panel] + u * coef_c[node_panel])
+    dw = coef_p[node_panel] + u * coef_q[node_panel]
+    m0, x1, x2, e0, e1, h2, inv_len = _inner_scalars(f0, dw, len2[p][node_panel])
+
+    sums = np.add.reduceat(weight * m0, first)
+    np.add.at(k, p, sums)
+    if gradient is None:
+        return
+    if gradient == "iso":
+        g = _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len)[:, None]
+    else:
+        w = w0[node_panel] + u[:, None] * dd1[node_panel]
+        g = _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, dd2[node_panel])
+    gsums = np.add.reduceat(weight[:, None] * g, first, axis=0)
+    np.add.at(grad, p, gsums)
+
+
+def pair_integrals(s1, s2, gradient=None, max_nodes=1 << 16):
+    """Integral kernel of paired segment rows, in scaled coordinates.
+
+    This is the one hot loop: it sorts the pairs into points, short segments and general
+    segments and evaluates each group vectorised.
+
+    Parameters
+    ----------
+    s1, s2 : ndarray of shape (n_pairs, 2 * n_dims)
+        Segment rows ``[start, end]``, already divided by the length scales.
+    gradient : {None, "iso", "aniso"}, default=None
+        None: values only. "iso": also the sum over dimensions of the log-length-scale gradient,
+        shape (n_pairs, 1). "aniso": the gradient per dimension, shape (n_pairs, n_dims).
+    max_nodes : int, default=65536
+        Quadrature nodes evaluated at once (bounds the temporary memory).
+
+    Returns
+    -------
+    k : ndarray of shape (n_pairs,)
+    grad : ndarray of shape (n_pairs, n_grad) or None
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap._integrals import pair_integrals
+    >>> k, _ = pair_integrals(np.array([[0.0, 0.0, 0.0, 0.0]]), np.array([[1.0, 0.0, 1.0, 0.0]]))
+    >>> bool(np.isclose(k[0], np.exp(-0.5)))
+    True
+    """
+    dim = s1.shape[1] // 2
+    n_pairs = s1.shape[0]
+    n_grad = dim if gradient == "aniso" else 1
+    k = np.zeros(n_pairs)
+    grad = np.zeros((n_pairs, n_grad)) if gradient else None
+    d1 = s1[:, dim:] - s1[:, :dim]
+    d2 = s2[:, dim:] - s2[:, :dim]
+    len1 = np.sqrt(np.einsum("pk,pk->p", d1, d1))
+    len2 = np.sqrt(np.einsum("pk,pk->p", d2, d2))
+    longest = np.maximum(len1, len2)
+    groups = (
+        (longest == 0.0, _point_pairs, {}),
+        ((longest > 0.0) & (longest < _SHORT), _short_pairs, {}),
+        (longest >= _SHORT, _segment_pairs, {"max_nodes": max_nodes}),
+    )
+    for mask, func, kwargs in groups:
+        idx = np.flatnonzero(mask)
+        if idx.size == 0:
+            continue
+        k_g, grad_g = func(s1[idx], s2[idx], dim, gradient, **kwargs)
+        k[idx] = k_g
+        if gradient == "iso":
+            grad[idx] = grad_g.sum(axis=1, keepdims=True) if grad_g.shape[1] > 1 else grad_g
+        elif gradient == "aniso":
+            grad[idx] = grad_g
+    return k, grad
+
+
+def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotropic=False,
+                    block_size=None):
+    """Integral kernel matrix between segment rows, in blocks.
+
+    Parameters
+    ----------
+    X : ndarray of shape (n_X, 2 * n_dims)
+        Segment rows in the original units (already validated).
+    Y : ndarray of shape (n_Y, 2 * n_dims) or None
+        None means ``Y = X``: only the upper triangle is computed, the diagonal by the closed form
+        of :func:`segment_self`, and K is exactly symmetric.
+    length_scale : float or ndarray of shape (n_dims,)
+    eval_gradient : bool, default=False
+        Also return the gradient with respect to log length scale(s) (needs ``Y is None``).
+    anisotropic : bool, default=False
+        Gradient per dimension (shape (n, n, n_dims)) instead of one column.
+    block_size : int, optional
+        Pairs per block; by default a sixteenth of the output size (at least 4096, at most
+        262144), so that temporaries stay within about the output's size.
+
+    Returns
+    -------
+    K : ndarray of shape (n_X, n_Y)
+    K_gradient : ndarray of shape (n_X, n_X, n_grad), only when ``eval_gradient``
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap._integrals import integral_kernel
+    >>> X = np.array([[0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 2.0, 0.0]])
+    >>> K = integral_kernel(X, length_scale=1.0)
+    >>> bool(np.allclose(K, K.T)) and float(K[0, 0])
+    1.0
+    """
+    dim = X.shape[1] // 2
+    scale = np.broadcast_to(np.asarray(length_scale, dtype=float), (dim,))
+    scale2 = np.concatenate([scale, scale])
+    Xs = X / scale2
+    symmetric = Y is None
+    Ys = Xs if symmetric else Y / scale2
+    n, m = Xs.shape[0], Ys.shape[0]
+    gradient = ("aniso" if anisotropic else "iso") if eval_gradient else None
+    n_grad = dim if anisotropic else 1
+    K = np.zeros((n, m))
+    G = np.zeros((n, m, n_grad)) if eval_gradient else None
+    if block_size is None:
+        block_size = int(np.clip(n * m // 16, 4096, 1 << 18))
+    max_nodes = block_size
+
+    row = 0
+    while row < n:
+        # Rows [row, stop) against the columns after them (symmetric) or all columns.
+        width = (m - row - 1) if symmetric else m
+        n_rows = max(1, block_size // max(width, 1))
+        stop = min(n, row + n_rows)
+        if symmetric:
+            rr, cc = np.triu_indices(stop - row, 1, m - row)
+            rr, cc = rr + row, cc + row
+        else:
+            rr, cc = np.divmod(np.arange((stop - row) * m), m)
+            rr += row
+        if rr.size:
+            k, g = pair_integrals(Xs[rr], Ys[cc], gradient=gradient, max_nodes=max_nodes)
+            K[rr, cc] = k
+            if symmetric:
+                K[cc, rr] = k
+            if eval_gradient:
+                G[rr, cc] = g
+                if symmetric:
+                    G[cc, rr] = g
+        row = stop
+
+    if symmetric:
+        d = (Xs[:, dim:] - Xs[:, :dim])
+        diag = np.arange(n)
+        if eval_gradient:
+            kd, h = segment_self(np.sqrt(np.einsum("pk,pk->p", d, d)), eval_gradient=True)
+            gd = (d * d) * h[:, None]
+            G[diag, diag] = gd if anisotropic else gd.sum(axis=1, keepdims=True)
+        else:
+            kd = segment_self(np.sqrt(np.einsum("pk,pk->p", d, d)))
+        K[diag, diag] = kd
+    if eval_gradient:
+        return K, G
+    return K

@@ -1,0 +1,298 @@
+"""Reference tests of the segment integrals against scipy quadrature and finite differences."""
+
+import numpy as np
+import pytest
+from scipy import integrate
+from scipy.special import ndtr
+
+from skoccmap._integrals import (
+    _GL_MAX_WINDOW,
+    _GL_NODES,
+    _GL_WEIGHTS,
+    _SHORT,
+    gauss_legendre_order,
+    integral_kernel,
+    pair_integrals,
+    segment_point,
+    segment_self,
+)
+
+RTOL = 1e-6
+ATOL = 1e-12
+
+
+def _closest_params(a1, d1, a2, d2):
+    """Parameters on segment 1 where the integrand may peak (reference breakpoints)."""
+    pts = []
+    dd = d1 @ d1
+    if dd > 0:
+        for q in (a2, a2 + d2):
+            pts.append((q - a1) @ d1 / dd)
+        # closest approach of the two lines
+        b = d1 @ d2
+        c = d2 @ d2
+        den = dd * c - b * b
+        if den > 1e-12 * dd * c:
+            w = a1 - a2
+            pts.append((b * (d2 @ w) - c * (d1 @ w)) / den)
+    return sorted({float(p) for p in pts if 0.0 < p < 1.0})
+
+
+def reference_nested_quad(s1, s2, gradient_dim=None):
+    """Double integral by nested adaptive ``scipy.integrate.quad``.
+
+    Breakpoints at the projections of the other segment's ends and at the lines' closest
+    approach (outer), and at the closest point (inner), so that narrow peaks of long segments
+    are never missed. ``gradient_dim`` integrates ``dx_k**2 * kernel`` instead.
+    """
+    dim = len(s1) // 2
+    a1, d1 = s1[:dim], s1[dim:] - s1[:dim]
+    a2, d2 = s2[:dim], s2[dim:] - s2[:dim]
+    dd2 = d2 @ d2
+
+    def inner(u):
+        p = a1 + u * d1
+
+        def f(v):
+            diff = p - a2 - v * d2
+            val = np.exp(-0.5 * diff @ diff)
+            return val if gradient_dim is None else diff[gradient_dim] ** 2 * val
+
+        pts = None
+        if dd2 > 0:
+            v0 = (p - a2) @ d2 / dd2
+            if 0.0 < v0 < 1.0:
+                pts = [v0]
+        return integrate.quad(f, 0.0, 1.0, points=pts, epsabs=1e-15, epsrel=1e-12, limit=500)[0]
+
+    pts = _closest_params(a1, d1, a2, d2) or None
+    return integrate.quad(inner, 0.0, 1.0, points=pts, epsabs=1e-15, epsrel=1e-11, limit=500)[0]
+
+
+def reference_dblquad(s1, s2):
+    """Double integral by ``scipy.integrate.dblquad`` on a grid of unit-length sub-squares."""
+    dim = len(s1) // 2
+    a1, d1 = s1[:dim], s1[dim:] - s1[:dim]
+    a2, d2 = s2[:dim], s2[dim:] - s2[:dim]
+
+    def f(v, u):
+        diff = a1 + u * d1 - a2 - v * d2
+        return np.exp(-0.5 * diff @ diff)
+
+    n1 = int(np.ceil(np.linalg.norm(d1))) + 1
+    n2 = int(np.ceil(np.linalg.norm(d2))) + 1
+    total = 0.0
+    for i in range(n1):
+        for j in range(n2):
+            total += integrate.dblquad(
+                f, i / n1, (i + 1) / n1, j / n2, (j + 1) / n2, epsabs=1e-16, epsrel=1e-12
+            )[0]
+    return total
+
+
+def assert_close(actual, expected, rtol=RTOL, atol=ATOL):
+    actual, expected = np.asarray(actual), np.asarray(expected)
+    err = np.abs(actual - expected)
+    ok = (err <= rtol * np.abs(expected)) | (err <= atol)
+    assert np.all(ok), f"actual={actual[~ok]}, expected={expected[~ok]}, err={err[~ok]}"
+
+
+def _seg(start, end):
+    return np.concatenate([np.asarray(start, float), np.asarray(end, float)])
+
+
+# Scaled coordinates (length scale 1). Named geometries that stress the quadrature.
+CASES_2D = {
+    "long crossing": (_seg([-50, 0.3], [50, 0.3]), _seg([0.1, -50], [0.7, 50])),
+    "long shallow crossing": (_seg([0, 0], [100, 0]), _seg([10, -2], [90, 3])),
+    "long parallel offset": (_seg([0, 0], [100, 0]), _seg([30, 1.5], [130, 1.5])),
+    "long collinear overlap": (_seg([0, 0], [100, 0]), _seg([50, 0], [150, 0])),
+    "long collinear touching": (_seg([0, 0], [100, 0]), _seg([100, 0], [200, 0])),
+    "long antiparallel identical": (_seg([0, 0], [100, 0]), _seg([100, 0], [0, 0])),
+    "shared start (one pose)": (_seg([1, 1], [9, 3]), _seg([1, 1], [3, 8])),
+    "touching T": (_seg([0, 0], [6, 0]), _seg([3, 0], [3, 7])),
+    "near miss tail": (_seg([0, 0], [5, 0]), _seg([12, 0], [20, 0])),
+    "short vs long": (_seg([0.2, 0.1], [0.25, 0.12]), _seg([-40, 0], [40, 0.5])),
+    "point vs long": (_seg([7.3, 0.4], [7.3, 0.4]), _seg([-40, 0], [40, 0])),
+    "point off end": (_seg([46, 0.0], [46, 0.0]), _seg([-40, 0], [40, 0])),
+    "two short": (_seg([0, 0], [0.03, 0.01]), _seg([0.5, 0.2], [0.49, 0.24])),
+    "short at threshold": (_seg([0, 0], [_SHORT, 0]), _seg([0.3, 0.2], [0.3, 0.2 + _SHORT])),
+}
+CASES_3D = {
+    "long skew": (_seg([-50, 0, 0], [50, 0, 0]), _seg([0, -50, 1], [3, 50, 1.2])),
+    "long skew far": (_seg([-50, 0, 0], [50, 0, 0]), _seg([0, -50, 6], [3, 50, 6.5])),
+    "long parallel": (_seg([0, 0, 0], [0, 0, 100]), _seg([1, 0.5, 20], [1, 0.5, 70])),
+    "crossing": (_seg([0, 0, 0], [4, 4, 4]), _seg([4, 0, 4], [0, 4, 0])),
+    "collinear touching": (_seg([0, 0, 0], [2, 3, 1]), _seg([2, 3, 1], [4, 6, 2])),
+}
+
+
+@pytest.mark.parametrize(
+    "s1, s2", list(CASES_2D.values()) + list(CASES_3D.values()),
+    ids=list(CASES_2D) + list(CASES_3D),
+)
+def test_pairs_match_nested_quad(s1, s2):
+    expected = reference_nested_quad(s1, s2)
+    k, _ = pair_integrals(s1[None], s2[None])
+    assert_close(k[0], expected)
+    # The kernel is symmetric in its arguments.
+    k_swapped, _ = pair_integrals(s2[None], s1[None])
+    assert_close(k_swapped[0], expected)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_random_pairs_match_dblquad(dim):
+    rng = np.random.default_rng(dim)
+    s1, s2 = [], []
+    for _ in range(6):
+        for out in (s1, s2):
+            start = rng.uniform(-2, 2, dim)
+            length = rng.choice([0.0, 0.01, 0.3, 1.5, 4.0])
+            direction = rng.normal(size=dim)
+            out.append(_seg(start, start + length * direction / np.linalg.norm(direction)))
+    s1, s2 = np.array(s1), np.array(s2)
+    k, _ = pair_integrals(s1, s2)
+    expected = [reference_dblquad(a, b) for a, b in zip(s1, s2, strict=True)]
+    assert_close(k, expected)
+
+
+def test_references_agree():
+    # The two reference methods are independent ways to integrate; they must agree.
+    s1, s2 = _seg([0, 0], [3, 1]), _seg([1, -1], [2, 2.5])
+    assert reference_nested_quad(s1, s2) == pytest.approx(reference_dblquad(s1, s2), rel=1e-9)
+
+
+@pytest.mark.parametrize("length", [0.0, 1e-9, 1e-4, 0.02, _SHORT * 0.999, _SHORT * 1.001,
+                                    0.5, 3.0, 100.0])
+@pytest.mark.parametrize("offset", [[0.0, 0.0], [0.3, 0.4], [-2.0, 1.0], [0.6, 7.5]])
+def test_segment_point_matches_quad(length, offset):
+    # Short segments are where the erf difference would cancel; far points probe the tails.
+    a = np.array([0.2, -0.1])
+    d = length * np.array([0.6, 0.8])
+    p = a + np.asarray(offset) + 0.5 * d
+    pts = None
+    if length > 0:
+        v0 = (p - a) @ d / (d @ d)
+        pts = [v0] if 0 < v0 < 1 else None
+
+    def f(v, k=None):
+        diff = a + v * d - p
+        val = np.exp(-0.5 * diff @ diff)
+        return val if k is None else diff[k] ** 2 * val
+
+    quad = dict(points=pts, epsabs=1e-16, epsrel=1e-12, limit=200)
+    expected = integrate.quad(f, 0, 1, **quad)[0]
+    expected_grad = [integrate.quad(f, 0, 1, args=(k,), **quad)[0] for k in range(2)]
+    k, grad = segment_point(a, d, p, eval_gradient=True)
+    assert_close(k, expected)
+    assert_close(grad, expected_grad)
+
+
+@pytest.mark.parametrize("length", [0.0, 1e-6, 0.3, 0.999, 1.001, 2.5, 40.0])
+def test_segment_self_matches_quad(length):
+    def f(t, power):
+        return 2.0 * (1.0 - t) * t**power * np.exp(-0.5 * (length * t) ** 2)
+
+    quad = dict(epsabs=1e-16, epsrel=1e-13, limit=200)
+    k, h = segment_self(np.array(length), eval_gradient=True)
+    assert_close(k, integrate.quad(f, 0, 1, args=(0,), **quad)[0], rtol=1e-12)
+    assert_close(h, integrate.quad(f, 0, 1, args=(2,), **quad)[0], rtol=1e-10)
+
+
+@pytest.mark.parametrize("case", ["long crossing", "shared start (one pose)", "two short"])
+def test_gradient_matches_nested_quad(case):
+    s1, s2 = CASES_2D[case]
+    _, grad = pair_integrals(s1[None], s2[None], gradient="aniso")
+    expected = [reference_nested_quad(s1, s2, gradient_dim=k) for k in range(2)]
+    assert_close(grad[0], expected)
+
+
+def _random_segments(rng, n, dim, box=4.0, max_length=8.0, point_fraction=0.3):
+    start = rng.uniform(0, box, (n, dim))
+    direction = rng.normal(size=(n, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    length = rng.uniform(0, max_length, n)
+    length[rng.random(n) < point_fraction] = 0.0
+    return np.hstack([start, start + length[:, None] * direction])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_gradient_matches_finite_differences(dim):
+    rng = np.random.default_rng(10 + dim)
+    X = _random_segments(rng, 25, dim)
+    scale = rng.uniform(0.4, 1.2, dim)
+    _, grad = integral_kernel(X, length_scale=scale, eval_gradient=True, anisotropic=True)
+    _, grad_iso = integral_kernel(X, length_scale=0.7, eval_gradient=True)
+    eps = 1e-5
+    for k in range(dim + 1):
+        if k < dim:
+            step = np.zeros(dim)
+            step[k] = eps
+            plus = integral_kernel(X, length_scale=scale * np.exp(step))
+            minus = integral_kernel(X, length_scale=scale * np.exp(-step))
+            analytic = grad[..., k]
+        else:  # isotropic: one log length scale for all dimensions
+            plus = integral_kernel(X, length_scale=0.7 * np.exp(eps))
+            minus = integral_kernel(X, length_scale=0.7 * np.exp(-eps))
+            analytic = grad_iso[..., 0]
+        fd = (plus - minus) / (2 * eps)
+        assert_close(analytic, fd, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_kernel_matrix_symmetric_psd(dim):
+    rng = np.random.default_rng(20 + dim)
+    X = _random_segments(rng, 300, dim, box=6.0)
+    K = integral_kernel(X, length_scale=0.5)
+    assert np.array_equal(K, K.T)
+    assert np.linalg.eigvalsh(K).min() >= -1e-9 * len(X)
+
+
+def test_blocks_do_not_change_the_result():
+    rng = np.random.default_rng(3)
+    X = _random_segments(rng, 40, 2)
+    Y = _random_segments(rng, 17, 2)
+    K, G = integral_kernel(X, length_scale=[0.6, 0.9], eval_gradient=True, anisotropic=True)
+    K_small, G_small = integral_kernel(
+        X, length_scale=[0.6, 0.9], eval_gradient=True, anisotropic=True, block_size=7
+    )
+    np.testing.assert_allclose(K_small, K, rtol=1e-14, atol=1e-300)
+    np.testing.assert_allclose(G_small, G, rtol=1e-14, atol=1e-300)
+    KXY = integral_kernel(X, Y, length_scale=0.8)
+    KYX = integral_kernel(Y, X, length_scale=0.8, block_size=5)
+    assert_close(KXY, KYX.T, rtol=1e-12, atol=1e-15)
+    # Off-diagonal entries of K(X, X) equal K(X, Y) with Y = X (the diagonal is closed form).
+    KXX = integral_kernel(X, X.copy(), length_scale=0.8)
+    assert_close(KXX, integral_kernel(X, length_scale=0.8), rtol=1e-9, atol=1e-14)
+
+
+def test_point_pairs_are_the_rbf_kernel():
+    rng = np.random.default_rng(4)
+    P = rng.normal(size=(30, 3))
+    X = np.hstack([P, P])
+    scale = np.array([0.5, 1.0, 2.0])
+    diff = (P[:, None, :] - P[None, :, :]) / scale
+    expected = np.exp(-0.5 * (diff**2).sum(-1))
+    K, G = integral_kernel(X, length_scale=scale, eval_gradient=True, anisotropic=True)
+    assert_close(K, expected, rtol=1e-14, atol=0)
+    assert_close(G, diff**2 * expected[..., None], rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("order", [1, 2, 5, 12, 20, len(_GL_MAX_WINDOW)])
+def test_gauss_legendre_table(order):
+    # The tabulated window for each order integrates a unit Gaussian centred anywhere to
+    # 1e-12 of its mass, and the next-lower order would not.
+    window = _GL_MAX_WINDOW[order - 1]
+    centres = np.linspace(-10, window + 10, 2001)
+    exact = np.sqrt(2 * np.pi) * (ndtr(window - centres) - ndtr(-centres))
+
+    def worst_error(n):
+        x = window * _GL_NODES[n, :n]
+        w = window * _GL_WEIGHTS[n, :n]
+        approx = np.exp(-0.5 * (x[None, :] - centres[:, None]) ** 2) @ w
+        return np.abs(approx - exact).max() / np.sqrt(2 * np.pi)
+
+    assert gauss_legendre_order(np.array([window]))[0] == order
+    assert worst_error(order) <= 1e-12
+    if order > 1:
+        assert worst_error(order - 1) > 1e-12

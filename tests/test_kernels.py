@@ -1,0 +1,192 @@
+"""IntegralKernel as a scikit-learn kernel: algebra, gradients, validation, GP estimators."""
+
+import numpy as np
+import pytest
+from scipy import integrate
+from sklearn.base import clone
+from sklearn.gaussian_process import GaussianProcessClassifier, GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import RBF, WhiteKernel
+from sklearn.gaussian_process.kernels import ConstantKernel as C
+
+from skoccmap import IntegralKernel
+
+
+def _segments(rng, n, dim=2, box=5.0, max_length=4.0, point_fraction=0.3):
+    start = rng.uniform(0, box, (n, dim))
+    direction = rng.normal(size=(n, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    length = rng.uniform(0, max_length, n)
+    length[rng.random(n) < point_fraction] = 0.0
+    return np.hstack([start, start + length[:, None] * direction])
+
+
+def _fd_gradient(kernel, X, eps=1e-5):
+    theta = kernel.theta
+    out = []
+    for i in range(len(theta)):
+        step = np.zeros_like(theta)
+        step[i] = eps
+        plus = kernel.clone_with_theta(theta + step)(X)
+        minus = kernel.clone_with_theta(theta - step)(X)
+        out.append((plus - minus) / (2 * eps))
+    return np.stack(out, axis=-1)
+
+
+def test_repr_and_properties():
+    assert repr(IntegralKernel(0.5)) == "IntegralKernel(length_scale=0.5)"
+    assert repr(IntegralKernel([0.5, 2.0])) == "IntegralKernel(length_scale=[0.5, 2])"
+    kernel = IntegralKernel(0.5)
+    assert not kernel.is_stationary()
+    assert kernel.requires_vector_input
+    assert kernel.n_dims == 1
+    assert IntegralKernel([1.0, 2.0, 3.0]).n_dims == 3
+    assert IntegralKernel(1.0, length_scale_bounds="fixed").n_dims == 0
+    assert repr(C(2.0) * kernel + WhiteKernel(0.1)) == (
+        "1.41**2 * IntegralKernel(length_scale=0.5) + WhiteKernel(noise_level=0.1)"
+    )
+    np.testing.assert_allclose(kernel.theta, np.log([0.5]))
+    assert clone(kernel).get_params() == kernel.get_params()
+
+
+def test_value_is_the_average_of_the_rbf_kernel():
+    # One 2 m beam against a point, l = 0.5, against the quadrature of the RBF kernel itself.
+    beam = np.array([[0.0, 0.0, 2.0, 0.0]])
+    point = np.array([[1.3, 0.4, 1.3, 0.4]])
+    rbf = RBF(0.5)
+
+    def f(u):
+        return rbf(np.array([[2.0 * u, 0.0]]), point[:, :2])[0, 0]
+
+    expected = integrate.quad(f, 0, 1, points=[0.65], epsabs=1e-15, epsrel=1e-12)[0]
+    assert IntegralKernel(0.5)(beam, point)[0, 0] == pytest.approx(expected, rel=1e-10)
+
+
+@pytest.mark.parametrize("length_scale", [0.7, [0.5, 1.3]])
+def test_points_reduce_to_rbf(length_scale):
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(20, 2))
+    X = np.hstack([P, P])
+    K, G = IntegralKernel(length_scale)(X, eval_gradient=True)
+    K_rbf, G_rbf = RBF(length_scale)(P, eval_gradient=True)
+    np.testing.assert_allclose(K, K_rbf, rtol=1e-13, atol=1e-300)
+    np.testing.assert_allclose(G, G_rbf, rtol=1e-12, atol=1e-300)
+
+
+@pytest.mark.parametrize(
+    "kernel",
+    [
+        IntegralKernel(0.6),
+        IntegralKernel([0.6, 1.1]),
+        C(2.0) * IntegralKernel(0.8) + WhiteKernel(0.1),
+        IntegralKernel(0.5) * IntegralKernel([1.0, 2.0]) + IntegralKernel(1.5) ** 2,
+    ],
+    ids=["iso", "aniso", "C*IK+White", "products-and-powers"],
+)
+def test_gradient_of_composed_kernels(kernel):
+    rng = np.random.default_rng(1)
+    X = _segments(rng, 20)
+    K, G = kernel(X, eval_gradient=True)
+    assert G.shape == (20, 20, kernel.n_dims)
+    np.testing.assert_allclose(G, _fd_gradient(kernel, X), rtol=1e-5, atol=1e-8)
+    np.testing.assert_allclose(kernel.diag(X), np.diag(K), rtol=1e-12)
+
+
+def test_fixed_length_scale_has_empty_gradient():
+    X = _segments(np.random.default_rng(2), 5)
+    K, G = IntegralKernel(1.0, length_scale_bounds="fixed")(X, eval_gradient=True)
+    assert G.shape == (5, 5, 0)
+    np.testing.assert_array_equal(K, IntegralKernel(1.0)(X))
+
+
+def test_cross_kernel_is_transpose_and_diag_is_closed_form():
+    rng = np.random.default_rng(3)
+    X, Y = _segments(rng, 12, dim=3), _segments(rng, 7, dim=3)
+    kernel = IntegralKernel([0.4, 0.9, 1.5])
+    np.testing.assert_allclose(kernel(X, Y), kernel(Y, X).T, rtol=1e-12, atol=1e-16)
+    np.testing.assert_allclose(kernel.diag(X), np.diag(kernel(X)), rtol=1e-14)
+    lengths = np.linalg.norm((X[:, 3:] - X[:, :3]) / [0.4, 0.9, 1.5], axis=1)
+    assert np.all(kernel.diag(X)[lengths > 0] < 1.0)
+    assert np.all(kernel.diag(X)[lengths == 0] == 1.0)
+
+
+@pytest.mark.parametrize(
+    "X, match",
+    [
+        (np.zeros((3, 3)), "even number of columns"),
+        (np.array([[0.0, np.nan, 1.0, 1.0]]), "NaN"),
+        (np.zeros(4), "2-D"),
+        (np.zeros((0, 4)), "no rows"),
+    ],
+    ids=["odd columns", "nan", "1-D", "empty"],
+)
+def test_bad_input_raises(X, match):
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(1.0)(X)
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(1.0).diag(X)
+
+
+def test_bad_arguments_raise():
+    X = np.zeros((2, 4))
+    with pytest.raises(ValueError, match="Y is None"):
+        IntegralKernel(1.0)(X, X, eval_gradient=True)
+    with pytest.raises(ValueError, match="columns"):
+        IntegralKernel(1.0)(X, np.zeros((2, 6)))
+    with pytest.raises(ValueError, match="3 entries"):
+        IntegralKernel([1.0, 1.0, 1.0])(X)
+    with pytest.raises(ValueError, match="positive"):
+        IntegralKernel(-1.0)(X)
+
+
+def _occupancy_data(rng, n_beams=40):
+    # Beams from the origin to hits on a wall at x = 3; hits are points, free space the beams.
+    angles = rng.uniform(-0.8, 0.8, n_beams)
+    hits = np.column_stack([np.full(n_beams, 3.0), 3.0 * np.tan(angles)])
+    ends = hits * 0.95
+    beams = np.hstack([np.zeros((n_beams, 2)), ends])
+    points = np.hstack([hits, hits])
+    X = np.vstack([beams, points])
+    y = np.r_[np.zeros(n_beams), np.ones(n_beams)]
+    return X, y
+
+
+def test_gaussian_process_regressor_fits_and_optimises():
+    X, y = _occupancy_data(np.random.default_rng(4))
+    kernel = C(1.0) * IntegralKernel(3.0) + WhiteKernel(0.05, noise_level_bounds="fixed")
+    gpr = GaussianProcessRegressor(kernel, random_state=0).fit(X, y)
+    learned = gpr.kernel_.k1.k2.length_scale
+    assert learned != pytest.approx(3.0)
+    # The optimum is a stationary point of the log marginal likelihood.
+    _, grad = gpr.log_marginal_likelihood(gpr.kernel_.theta, eval_gradient=True)
+    bounds = gpr.kernel_.bounds
+    theta = gpr.kernel_.theta
+    interior = (theta > bounds[:, 0] + 1e-3) & (theta < bounds[:, 1] - 1e-3)
+    assert np.all(np.abs(grad[interior]) < 1e-2)
+    # Queries on the wall look occupied, queries halfway along the beams look free.
+    wall = np.array([[3.0, 0.5, 3.0, 0.5]])
+    free = np.array([[1.5, 0.2, 1.5, 0.2]])
+    mean, std = gpr.predict(np.vstack([wall, free]), return_std=True)
+    assert mean[0] > 0.5 > mean[1]
+    assert np.all(std > 0)
+
+
+def test_log_marginal_likelihood_gradient_matches_finite_differences():
+    X, y = _occupancy_data(np.random.default_rng(5), n_beams=15)
+    gpr = GaussianProcessRegressor(C(1.0) * IntegralKernel(0.7) + WhiteKernel(0.1), optimizer=None)
+    gpr.fit(X, y)
+    theta = gpr.kernel_.theta
+    _, grad = gpr.log_marginal_likelihood(theta, eval_gradient=True)
+    eps = 1e-6
+    lml = gpr.log_marginal_likelihood
+    fd = [(lml(theta + eps * e) - lml(theta - eps * e)) / (2 * eps) for e in np.eye(len(theta))]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_gaussian_process_classifier_fits_and_optimises():
+    X, y = _occupancy_data(np.random.default_rng(6))
+    gpc = GaussianProcessClassifier(C(1.0) * IntegralKernel(3.0), random_state=0).fit(X, y)
+    assert gpc.kernel_.k2.length_scale != pytest.approx(3.0)
+    queries = np.array([[3.0, 0.5, 3.0, 0.5], [1.5, 0.2, 1.5, 0.2]])
+    proba = gpc.predict_proba(queries)
+    assert proba[0, 1] > 0.5 > proba[1, 1]
+    np.testing.assert_array_equal(gpc.predict(queries), [1.0, 0.0])
