@@ -1,0 +1,714 @@
+"""Dirichlet-process Gaussian mixture clustering by collapsed Gibbs sampling with split-merge."""
+
+import math
+import warnings
+from numbers import Integral, Real
+
+import numpy as np
+from scipy.special import gammaln, logsumexp
+from sklearn.base import BaseEstimator, ClusterMixin, _fit_context
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.utils import check_random_state
+from sklearn.utils._param_validation import Interval, StrOptions
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from ._niw import (
+    NIWPrior,
+    _log_marginal_from_posterior,
+    cholesky,
+    log_crp,
+    log_marginal_likelihood,
+    log_student_t,
+    posterior,
+    predictive,
+)
+
+__all__ = ["DPGMMClusterer"]
+
+# Rows of X evaluated at once in predict_proba: bounds the (rows, K, D) temporaries.
+_CHUNK = 8192
+
+
+def sufficient_statistics(X, labels, n_clusters):
+    """Per-cluster count, sum and sum of outer products, from scratch.
+
+    Parameters
+    ----------
+    X : ndarray of shape (n_samples, D)
+    labels : ndarray of shape (n_samples,), int in ``[0, n_clusters)``
+    n_clusters : int
+
+    Returns
+    -------
+    n : ndarray of shape (n_clusters,)
+    s : ndarray of shape (n_clusters, D)
+    S : ndarray of shape (n_clusters, D, D)
+    """
+    D = X.shape[1]
+    n = np.bincount(labels, minlength=n_clusters).astype(float)
+    s = np.empty((n_clusters, D))
+    S = np.empty((n_clusters, D, D))
+    for d in range(D):
+        s[:, d] = np.bincount(labels, weights=X[:, d], minlength=n_clusters)
+        for e in range(d, D):
+            S[:, d, e] = S[:, e, d] = np.bincount(
+                labels, weights=X[:, d] * X[:, e], minlength=n_clusters
+            )
+    return n, s, S
+
+
+def log_joint(n, s, S, prior, alpha):
+    """Log joint ``log p(X, z)`` of the partition with the given cluster statistics.
+
+    CRP prior on the partition times the product of the clusters' marginal likelihoods.
+    """
+    return log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum()
+
+
+def greedy_merge(n, s, S, prior, alpha):
+    """Merge cluster pairs greedily while the log joint increases.
+
+    Part of the initialisation only (it is not a Markov move): it removes the surplus clusters of
+    an over-split start, which single-site Gibbs would take many sweeps to empty.
+
+    Returns
+    -------
+    mapping : ndarray of shape (n_clusters,)
+        New label of each input cluster, in ``0..K'-1``.
+    """
+    K = len(n)
+    group = np.arange(K)
+    n, s, S = n.copy(), s.copy(), S.copy()
+    alive = list(range(K))
+    log_alpha = math.log(alpha)
+    while len(alive) > 1:
+        idx = np.array(alive)
+        a, b = np.triu_indices(len(idx), 1)
+        a, b = idx[a], idx[b]
+        own = np.zeros(K)
+        own[idx] = log_marginal_likelihood(n[idx], s[idx], S[idx], prior) + gammaln(n[idx])
+        nm = n[a] + n[b]
+        merged = log_marginal_likelihood(nm, s[a] + s[b], S[a] + S[b], prior) + gammaln(nm)
+        gain = merged - log_alpha - own[a] - own[b]
+        best = int(np.argmax(gain))
+        if gain[best] <= 0.0:
+            break
+        i, j = int(a[best]), int(b[best])
+        n[i] += n[j]
+        s[i] += s[j]
+        S[i] += S[j]
+        group[group == j] = i
+        alive.remove(j)
+    _, mapping = np.unique(group, return_inverse=True)
+    return mapping
+
+
+class _CollapsedGibbs:
+    """State of the collapsed Gibbs sampler: labels and cached per-cluster posteriors.
+
+    For each cluster the sufficient statistics ``(n, s, S)`` are kept and updated by one
+    rank-one term when a point moves; the Student-t predictive (location, inverse Cholesky
+    factor of ``Psi_n``, constants) is recomputed from them for the two clusters a move touches,
+    never from the points.
+    """
+
+    def __init__(self, X, labels, prior, alpha):
+        self.X = X
+        self.D = X.shape[1]
+        self.prior = prior
+        self.alpha = alpha
+        self.labels = labels.astype(np.intp)
+        self.K = int(labels.max()) + 1
+        cap = max(2 * self.K, 8)
+        D = self.D
+        self.n = np.zeros(cap)
+        self.s = np.zeros((cap, D))
+        self.S = np.zeros((cap, D, D))
+        self.loc = np.zeros((cap, D))
+        self.chol_inv = np.zeros((cap, D, D))
+        self.scale = np.zeros(cap)
+        self.dof = np.zeros(cap)
+        self.const = np.zeros(cap)
+        self.logdet = np.zeros(cap)
+        zero = np.zeros(1)
+        self.prior_t, _ = predictive(zero, np.zeros((1, D)), np.zeros((1, D, D)), prior)
+        self.recompute()
+
+    # -- cluster bookkeeping -------------------------------------------------------------
+    def recompute(self):
+        """Statistics of all clusters from the labels (clears accumulated rounding)."""
+        K = self.K
+        self.n[:K], self.s[:K], self.S[:K] = sufficient_statistics(self.X, self.labels, K)
+        self.refresh(np.arange(K))
+
+    def refresh(self, ks):
+        t, logdet = predictive(self.n[ks], self.s[ks], self.S[ks], self.prior)
+        self.loc[ks] = t.loc
+        self.chol_inv[ks] = t.chol_inv
+        self.scale[ks] = t.scale
+        self.dof[ks] = t.dof
+        self.const[ks] = t.const
+        self.logdet[ks] = logdet
+
+    def _grow(self):
+        for name in ("n", "s", "S", "loc", "chol_inv", "scale", "dof", "const", "logdet"):
+            arr = getattr(self, name)
+            setattr(self, name, np.concatenate([arr, np.zeros_like(arr)]))
+
+    def _new_cluster(self):
+        if self.K == len(self.n):
+            self._grow()
+        k = self.K
+        self.n[k] = 0.0
+        self.s[k] = 0.0
+        self.S[k] = 0.0
+        self.K += 1
+        return k
+
+    def _delete(self, k):
+        """Remove empty cluster ``k`` by moving the last cluster into its slot."""
+        last = self.K - 1
+        if k != last:
+            for name in ("n", "s", "S", "loc", "chol_inv", "scale", "dof", "const", "logdet"):
+                arr = getattr(self, name)
+                arr[k] = arr[last]
+            self.labels[self.labels == last] = k
+        self.K -= 1
+
+    def log_joint(self):
+        K = self.K
+        n = self.n[:K]
+        prior = self.prior
+        lml = _log_marginal_from_posterior(
+            n, prior.kappa + n, prior.nu + n, self.logdet[:K], prior
+        )
+        return log_crp(n, self.alpha) + lml.sum()
+
+    # -- Neal (2000), Algorithm 3 ----------------------------------------------------------
+    def gibbs_sweep(self, rng):
+        """One systematic-scan sweep of exact collapsed Gibbs (Neal 2000, Algorithm 3).
+
+        For point i in cluster a: p(z_i = k | z_-i, X) is proportional to n_k,-i t_k,-i(x_i)
+        for existing clusters and to alpha t_0(x_i) for a new one. The densities against all
+        clusters come from the cached predictives in one vectorised step; only the own
+        cluster needs the leave-one-out predictive, which follows from the cached one in closed
+        form (matrix determinant lemma and Sherman-Morrison), so a point that stays costs no
+        update at all.
+        """
+        X = self.X
+        D = self.D
+        n_samples = X.shape[0]
+        order = rng.permutation(n_samples)
+        uniforms = rng.random(n_samples)
+        log_alpha = math.log(self.alpha)
+        t0 = self.prior_t
+        loc0, ci0 = t0.loc[0], t0.chol_inv[0]
+        sc0, half0, const0 = t0.scale[0], 0.5 * (t0.dof[0] + D), t0.const[0]
+        kappa0 = self.prior.kappa
+        lg = math.lgamma
+        log = math.log
+        half_log_pi = 0.5 * D * math.log(math.pi)
+        for it, i in enumerate(order):
+            x = X[i]
+            a = self.labels[i]
+            K = self.K
+            n = self.n[:K]
+            diff = x - self.loc[:K]
+            z = np.matmul(self.chol_inv[:K], diff[:, :, None])
+            r = np.einsum("kij,kij->k", z, z)
+            with np.errstate(divide="ignore"):
+                lp = (
+                    self.const[:K]
+                    - 0.5 * (self.dof[:K] + D) * np.log1p(self.scale[:K] * r)
+                    + np.log(n)
+                )
+            na = n[a]
+            if na > 1:
+                # Leave-one-out predictive of the own cluster: removing x from (kappa, m, Psi)
+                # gives Psi' = Psi - c u u^T with u = x - m, c = kappa / (kappa - 1).
+                kappa = kappa0 + na
+                c = kappa / (kappa - 1.0)
+                one_minus = max(1.0 - c * r[a], 1e-300)
+                dof = self.dof[a] - 1.0
+                lp[a] = (
+                    lg(0.5 * (dof + D))
+                    - lg(0.5 * dof)
+                    - 0.5 * D * log(dof)
+                    - half_log_pi
+                    - 0.5 * self.logdet[a]
+                    - 0.5 * D * log(c / dof)
+                    + 0.5 * (dof + D - 1.0) * log(one_minus)
+                    + log(na - 1.0)
+                )
+            else:
+                lp[a] = -np.inf
+            d0 = ci0 @ (x - loc0)
+            lp_new = const0 - half0 * math.log1p(sc0 * float(d0 @ d0)) + log_alpha
+            top = max(lp.max(), lp_new)
+            cum = np.cumsum(np.exp(lp - top))
+            total = cum[-1] + math.exp(lp_new - top)
+            k = int(np.searchsorted(cum, uniforms[it] * total, side="right"))
+            if k == a or (k == K and na == 1):
+                continue
+            self.move(i, a, k)
+
+    def move(self, i, a, k):
+        """Move point i from cluster a to cluster k (k == K opens a new cluster)."""
+        x = self.X[i]
+        xx = np.outer(x, x)
+        if k == self.K:
+            k = self._new_cluster()
+        self.n[a] -= 1.0
+        self.s[a] -= x
+        self.S[a] -= xx
+        self.n[k] += 1.0
+        self.s[k] += x
+        self.S[k] += xx
+        self.labels[i] = k
+        self.refresh(np.array([a, k]))
+        if self.n[a] == 0:
+            self._delete(a)
+
+    # -- Jain & Neal (2004) split-merge ---------------------------------------------------
+    def split_merge(self, rng):
+        """One split-merge Metropolis-Hastings proposal (Jain & Neal 2004, with one final scan).
+
+        Two distinct points i, j are drawn uniformly. The launch state of the points S of their
+        cluster(s) depends only on S, i and j: seeds x_i and x_j, then a few restricted
+        classification steps between the two sub-clusters. The split proposal allocates each
+        point of S independently with the launch state's restricted conditional probabilities
+        (a parallel final scan), so its probability q is a product and the merge move can
+        evaluate the reverse split exactly. Returns True when the proposal is accepted.
+        """
+        X = self.X
+        n_samples = X.shape[0]
+        i, j = rng.choice(n_samples, 2, replace=False)
+        a, b = self.labels[i], self.labels[j]
+        members = np.flatnonzero((self.labels == a) | (self.labels == b))
+        XS = X[members]
+        pos_i = np.searchsorted(members, i)
+        pos_j = np.searchsorted(members, j)
+        log_q_left, log_q_right = _launch(XS, pos_i, pos_j, self.prior)
+        fixed = np.zeros(len(members), dtype=bool)
+        fixed[[pos_i, pos_j]] = True
+        if a == b:
+            right = rng.random(len(members)) < np.exp(log_q_right)
+            right[pos_i], right[pos_j] = False, True
+        else:
+            right = self.labels[members] == b
+        log_q = np.where(right, log_q_right, log_q_left)[~fixed].sum()
+        parts = sufficient_statistics(XS, right.astype(np.intp), 2)
+        whole = (np.array([len(members)], float), XS.sum(0)[None], (XS.T @ XS)[None])
+        delta = (
+            math.log(self.alpha)
+            + gammaln(parts[0]).sum()
+            - gammaln(whole[0]).sum()
+            + log_marginal_likelihood(*parts, self.prior).sum()
+            - log_marginal_likelihood(*whole, self.prior).sum()
+        )
+        # delta = log p(split) - log p(merged); the split proposal has probability q.
+        log_accept = delta - log_q if a == b else log_q - delta
+        if math.log(rng.random()) >= log_accept:
+            return False
+        if a == b:
+            k = self._new_cluster()
+            self.labels[members[right]] = k
+            self.recompute_clusters([a, k], members, right)
+        else:
+            self.labels[members] = a
+            self.n[b] = 0.0
+            self.recompute_clusters([a], members, np.zeros(len(members), dtype=bool))
+            self._delete(b)
+        return True
+
+    def recompute_clusters(self, ks, members, right):
+        XS = self.X[members]
+        n, s, S = sufficient_statistics(XS, right.astype(np.intp), 2)
+        for slot, k in enumerate(ks):
+            self.n[k], self.s[k], self.S[k] = n[slot], s[slot], S[slot]
+        self.refresh(np.array(ks))
+
+
+def _launch(XS, pos_i, pos_j, prior, n_steps=3):
+    """Launch state of a split-merge proposal: log P(left), log P(right) of each point.
+
+    Depends only on the points, the two anchor positions and the prior, so that the split
+    proposal and the reverse of a merge see the same distribution. The anchors start the two
+    sub-clusters; each point joins the nearer anchor (in the metric of the prior scale matrix),
+    then ``n_steps`` restricted classification steps reassign each point to the sub-cluster
+    with the larger ``n_l t_l(x)``.
+    """
+    chol0, _ = cholesky(prior.psi[None])
+    white = np.linalg.solve(chol0[0], (XS - XS[pos_i]).T)
+    d_left = np.einsum("ij,ij->j", white, white)
+    white = np.linalg.solve(chol0[0], (XS - XS[pos_j]).T)
+    right = np.einsum("ij,ij->j", white, white) < d_left
+    for step in range(n_steps + 1):
+        right[pos_i], right[pos_j] = False, True
+        n, s, S = sufficient_statistics(XS, right.astype(np.intp), 2)
+        t, _ = predictive(n, s, S, prior)
+        lp = log_student_t(XS, t) + np.log(n)
+        if step == n_steps:
+            norm = np.logaddexp(lp[:, 0], lp[:, 1])
+            return lp[:, 0] - norm, lp[:, 1] - norm
+        right = lp[:, 1] > lp[:, 0]
+
+
+class DPGMMClusterer(ClusterMixin, BaseEstimator):
+    """Dirichlet-process Gaussian mixture clustering by collapsed Gibbs sampling.
+
+    The number of clusters is inferred: the partition has a Chinese-restaurant-process prior with
+    concentration ``alpha``, each cluster is Gaussian with a conjugate Normal-inverse-Wishart
+    prior on its mean and covariance, and the means and covariances are integrated out. The
+    sampler alternates
+
+    - sweeps of exact collapsed Gibbs sampling (Neal 2000, Algorithm 3): each point is
+      reassigned from its conditional given all others, which is proportional to
+      ``n_k t_k(x)`` for an existing cluster and ``alpha t_0(x)`` for a new one, where
+      ``t_k`` is the cluster's posterior predictive multivariate Student-t;
+    - split-merge Metropolis-Hastings moves (Jain & Neal 2004) that split or merge whole
+      clusters, which single-site moves cannot do on large data.
+
+    The state is initialised by k-means (or as given by ``init``), after which clusters are
+    merged greedily while the log joint rises. The fitted state is the sample with the highest
+    log joint ``log p(X, z)`` seen after burn-in.
+
+    Parameters
+    ----------
+    alpha : float, default=1.0
+        Concentration of the Dirichlet process.
+    mean_prior : array-like of shape (n_features,), default=None
+        Prior mean ``m0`` of the cluster means. None: the mean of ``X``.
+    mean_precision_prior : float, default=None
+        ``kappa0``: the prior on a cluster mean is ``N(m0, Sigma / kappa0)``. None: 1.
+    covariance_prior : float or array-like of shape (n_features, n_features), default=None
+        Scale matrix ``Psi0`` of the inverse-Wishart prior on the cluster covariances (a float
+        is a multiple of the identity). None: the empirical covariance of ``X``, plus
+        ``1e-6`` times its mean variance (or ``1e-6`` for constant data) on the diagonal so that
+        it is positive definite.
+    degrees_of_freedom_prior : float, default=None
+        ``nu0`` of the inverse-Wishart prior; must exceed ``n_features - 1``. None:
+        ``n_features``.
+    init : {"kmeans", "one", "random"}, default="kmeans"
+        Starting partition: k-means with ``ceil(2 alpha log(1 + n / alpha))`` clusters (at most
+        50), all points in one cluster, or uniformly random labels over that many clusters.
+        Either way clusters are then merged greedily while the log joint rises.
+    n_split_merge : int, default=20
+        Split-merge proposals after each Gibbs sweep.
+    burn_in : int, default=5
+        Sweeps before samples become candidates for the final state (capped at
+        ``max_iter - 1``).
+    max_iter : int, default=200
+        Maximum number of sweeps.
+    tol : float, default=1e-3
+        Convergence threshold per sample: sampling stops once the highest log joint seen after
+        burn-in has not risen by more than ``tol * n_samples`` for ``n_iter_no_change`` sweeps.
+    n_iter_no_change : int, default=5
+        Patience of the stopping rule, in sweeps.
+    random_state : int, RandomState instance or None, default=None
+        Seed of the sampler (initialisation, sweep order, proposals).
+    verbose : int, default=0
+        Print the log joint and the number of clusters after each sweep when positive.
+
+    Attributes
+    ----------
+    labels_ : ndarray of shape (n_samples,)
+        Cluster of each training point, in ``0..n_clusters_-1`` (largest cluster first).
+    n_clusters_ : int
+        Number of clusters of the final state.
+    means_ : ndarray of shape (n_clusters_, n_features)
+        Posterior mean ``m_n`` of each cluster mean.
+    covariances_ : ndarray of shape (n_clusters_, n_features, n_features)
+        ``Psi_n / nu_n``, the inverse of the posterior mean precision (as
+        ``BayesianGaussianMixture.covariances_``).
+    weights_ : ndarray of shape (n_clusters_,)
+        ``n_k / n_samples``. The mass ``alpha / (n_samples + alpha)`` of a new cluster is not
+        included.
+    n_iter_ : int
+        Number of sweeps run.
+    log_joint_ : ndarray of shape (n_iter_,)
+        Log joint ``log p(X, z)`` after each sweep.
+    best_log_joint_ : float
+        Log joint of the final state.
+    converged_ : bool
+        Whether the stopping rule was met before ``max_iter``.
+    mean_prior_, mean_precision_prior_, covariance_prior_, degrees_of_freedom_prior_
+        The resolved prior.
+    n_features_in_ : int
+        Number of features seen during fit.
+
+    See Also
+    --------
+    sklearn.mixture.BayesianGaussianMixture : Variational inference for the same model,
+        truncated at ``n_components``.
+
+    Notes
+    -----
+    Prior mapping to ``BayesianGaussianMixture(weight_concentration_prior_type=
+    "dirichlet_process")``: ``weight_concentration_prior=alpha``, ``mean_prior=mean_prior_``,
+    ``mean_precision_prior=mean_precision_prior_``, ``covariance_prior=covariance_prior_``,
+    ``degrees_of_freedom_prior=degrees_of_freedom_prior_``. Its Wishart prior on the precision
+    with inverse scale ``covariance_prior`` is exactly our inverse-Wishart prior on the covariance
+    with scale matrix ``Psi0``. The defaults here are its defaults except ``alpha`` (it uses
+    ``1 / n_components``) and the small diagonal term added to the default ``Psi0``.
+
+    ``predict_proba`` returns posterior-predictive responsibilities
+    ``w_k t_k(x) / sum_j w_j t_j(x)`` over the ``n_clusters_`` clusters of the final state;
+    the new-cluster option is left out so that the columns are exactly the clusters.
+
+    The split-merge proposal uses a deterministic launch state and one parallel restricted
+    scan in which the points of the split cluster are allocated independently, so that the
+    proposal probability is a product and every move is a valid Metropolis-Hastings step.
+
+    References
+    ----------
+    R. M. Neal (2000), "Markov chain sampling methods for Dirichlet process mixture models",
+    J. Comp. Graph. Stat. 9(2). S. Jain and R. M. Neal (2004), "A split-merge Markov chain Monte
+    Carlo procedure for the Dirichlet process mixture model", J. Comp. Graph. Stat. 13(1).
+    K. P. Murphy (2007), "Conjugate Bayesian analysis of the Gaussian distribution".
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap import DPGMMClusterer
+    >>> rng = np.random.default_rng(0)
+    >>> X = np.vstack([rng.normal(c, 0.3, size=(100, 2)) for c in ([0, 0], [4, 0], [0, 4])])
+    >>> model = DPGMMClusterer(random_state=0).fit(X)
+    >>> model.n_clusters_
+    3
+    >>> model.predict_proba([[4.0, 0.1]]).round(3).max()
+    np.float64(1.0)
+    """
+
+    _parameter_constraints: dict = {
+        "alpha": [Interval(Real, 0, None, closed="neither")],
+        "mean_prior": ["array-like", None],
+        "mean_precision_prior": [Interval(Real, 0, None, closed="neither"), None],
+        "covariance_prior": ["array-like", Interval(Real, 0, None, closed="neither"), None],
+        "degrees_of_freedom_prior": [Interval(Real, 0, None, closed="neither"), None],
+        "init": [StrOptions({"kmeans", "one", "random"})],
+        "n_split_merge": [Interval(Integral, 0, None, closed="left")],
+        "burn_in": [Interval(Integral, 0, None, closed="left")],
+        "max_iter": [Interval(Integral, 1, None, closed="left")],
+        "tol": [Interval(Real, 0, None, closed="left")],
+        "n_iter_no_change": [Interval(Integral, 1, None, closed="left")],
+        "random_state": ["random_state"],
+        "verbose": ["verbose"],
+    }
+
+    def __init__(
+        self,
+        alpha=1.0,
+        *,
+        mean_prior=None,
+        mean_precision_prior=None,
+        covariance_prior=None,
+        degrees_of_freedom_prior=None,
+        init="kmeans",
+        n_split_merge=20,
+        burn_in=5,
+        max_iter=200,
+        tol=1e-3,
+        n_iter_no_change=5,
+        random_state=None,
+        verbose=0,
+    ):
+        self.alpha = alpha
+        self.mean_prior = mean_prior
+        self.mean_precision_prior = mean_precision_prior
+        self.covariance_prior = covariance_prior
+        self.degrees_of_freedom_prior = degrees_of_freedom_prior
+        self.init = init
+        self.n_split_merge = n_split_merge
+        self.burn_in = burn_in
+        self.max_iter = max_iter
+        self.tol = tol
+        self.n_iter_no_change = n_iter_no_change
+        self.random_state = random_state
+        self.verbose = verbose
+
+    def _resolve_prior(self, X):
+        D = X.shape[1]
+        if self.mean_prior is None:
+            mean = X.mean(0)
+        else:
+            mean = np.asarray(self.mean_prior, dtype=float).reshape(-1)
+            if mean.shape != (D,) or not np.all(np.isfinite(mean)):
+                raise ValueError(
+                    f"mean_prior must be a finite array of shape ({D},), got shape {mean.shape}."
+                )
+        kappa = 1.0 if self.mean_precision_prior is None else float(self.mean_precision_prior)
+        nu = float(D) if self.degrees_of_freedom_prior is None else float(
+            self.degrees_of_freedom_prior
+        )
+        if nu <= D - 1:
+            raise ValueError(
+                f"degrees_of_freedom_prior must be greater than n_features - 1 = {D - 1}, "
+                f"got {nu}."
+            )
+        if self.covariance_prior is None:
+            psi = np.atleast_2d(np.cov(X.T))
+            mean_var = np.trace(psi) / D
+            psi = psi + 1e-6 * (mean_var if mean_var > 0 else 1.0) * np.eye(D)
+        elif np.isscalar(self.covariance_prior):
+            psi = float(self.covariance_prior) * np.eye(D)
+        else:
+            psi = np.asarray(self.covariance_prior, dtype=float)
+            if psi.shape != (D, D):
+                raise ValueError(
+                    f"covariance_prior must have shape ({D}, {D}), got {psi.shape}."
+                )
+            if not np.allclose(psi, psi.T) or np.any(np.linalg.eigvalsh(psi) <= 0):
+                raise ValueError("covariance_prior must be symmetric positive definite.")
+        return mean, kappa, nu, psi
+
+    def _initial_labels(self, X, rng, prior):
+        n_samples = X.shape[0]
+        if self.init == "one":
+            labels = np.zeros(n_samples, dtype=np.intp)
+        else:
+            k0 = math.ceil(2.0 * self.alpha * math.log1p(n_samples / self.alpha))
+            k0 = int(min(max(k0, 2), 50, n_samples))
+            if self.init == "random":
+                labels = rng.integers(k0, size=n_samples)
+            else:
+                labels = _kmeans(X, k0, rng)
+        _, labels = np.unique(labels, return_inverse=True)
+        K = int(labels.max()) + 1
+        mapping = greedy_merge(*sufficient_statistics(X, labels, K), prior, self.alpha)
+        return mapping[labels]
+
+    @_fit_context(prefer_skip_nested_validation=True)
+    def fit(self, X, y=None):
+        """Sample cluster assignments of ``X``.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+            Points (not segments).
+        y : Ignored
+            Not used, present for API consistency.
+
+        Returns
+        -------
+        self : DPGMMClusterer
+            Fitted estimator.
+        """
+        X = validate_data(self, X, dtype=np.float64, ensure_min_samples=2)
+        rng = np.random.default_rng(check_random_state(self.random_state).randint(2**31))
+        mean, kappa, nu, psi = self._resolve_prior(X)
+        self.mean_prior_ = mean
+        self.mean_precision_prior_ = kappa
+        self.degrees_of_freedom_prior_ = nu
+        self.covariance_prior_ = psi
+        # Work in coordinates centred on the data mean: the raw-moment statistics then lose no
+        # precision to data far from the origin.
+        self._shift = X.mean(0)
+        Xc = X - self._shift
+        prior = NIWPrior(mean - self._shift, kappa, nu, psi)
+
+        state = _CollapsedGibbs(Xc, self._initial_labels(Xc, rng, prior), prior, self.alpha)
+        n_samples = X.shape[0]
+        burn_in = min(self.burn_in, self.max_iter - 1)
+        trace = []
+        best, best_labels, stale = -np.inf, None, 0
+        self.converged_ = False
+        for sweep in range(self.max_iter):
+            state.gibbs_sweep(rng)
+            for _ in range(self.n_split_merge):
+                state.split_merge(rng)
+            state.recompute()
+            current = float(state.log_joint())
+            trace.append(current)
+            if self.verbose:
+                print(f"sweep {sweep + 1}: log joint {current:.3f}, {state.K} clusters")
+            if sweep < burn_in:
+                continue
+            if current > best + self.tol * n_samples:
+                stale = 0
+            else:
+                stale += 1
+            if current > best:
+                best, best_labels = current, state.labels.copy()
+            if stale >= self.n_iter_no_change:
+                self.converged_ = True
+                break
+        self.n_iter_ = sweep + 1
+        self.log_joint_ = np.array(trace)
+        self.best_log_joint_ = best
+        if not self.converged_:
+            warnings.warn(
+                f"Sampling stopped at max_iter={self.max_iter} sweeps while the log joint was "
+                "still rising; increase max_iter.",
+                ConvergenceWarning,
+                stacklevel=2,
+            )
+        self._set_final_state(Xc, best_labels, prior)
+        return self
+
+    def _set_final_state(self, Xc, labels, prior):
+        # Largest cluster first, so that labels do not depend on slot bookkeeping.
+        counts = np.bincount(labels)
+        present = np.flatnonzero(counts)
+        order = present[np.argsort(-counts[present], kind="stable")]
+        relabel = np.empty(len(counts), dtype=np.intp)
+        relabel[order] = np.arange(len(order))
+        self.labels_ = relabel[labels]
+        K = len(order)
+        n, s, S = sufficient_statistics(Xc, self.labels_, K)
+        _, nu, mean, psi = posterior(n, s, S, prior)
+        self.n_clusters_ = K
+        self.means_ = mean + self._shift
+        self.covariances_ = psi / nu[:, None, None]
+        self.weights_ = n / n.sum()
+        self._predictive, _ = predictive(n, s, S, prior)
+
+    def predict_proba(self, X):
+        """Posterior-predictive responsibilities of the clusters for new points.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+
+        Returns
+        -------
+        proba : ndarray of shape (n_samples, n_clusters_)
+            ``w_k t_k(x)`` normalised over the clusters; rows sum to 1.
+        """
+        log_resp = self._log_weighted_density(X)
+        return np.exp(log_resp - logsumexp(log_resp, axis=1, keepdims=True))
+
+    def predict(self, X):
+        """Most probable cluster of each point under the posterior predictive.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+
+        Returns
+        -------
+        labels : ndarray of shape (n_samples,)
+        """
+        return np.argmax(self._log_weighted_density(X), axis=1)
+
+    def _log_weighted_density(self, X):
+        check_is_fitted(self)
+        X = validate_data(self, X, dtype=np.float64, reset=False) - self._shift
+        log_w = np.log(self.weights_)
+        out = np.empty((X.shape[0], self.n_clusters_))
+        for start in range(0, X.shape[0], _CHUNK):
+            rows = slice(start, start + _CHUNK)
+            out[rows] = log_student_t(X[rows], self._predictive) + log_w
+        return out
+
+
+def _kmeans(X, n_clusters, rng):
+    """Labels of a short k-means run (k-means++ seeding, a few Lloyd iterations)."""
+    from sklearn.cluster import KMeans
+
+    seed = int(rng.integers(2**31))
+    model = KMeans(n_clusters=n_clusters, n_init=1, max_iter=20, random_state=seed)
+    with warnings.catch_warnings():
+        # Duplicate points may leave fewer distinct clusters than asked; that is fine here.
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return model.fit_predict(X)
