@@ -1,0 +1,234 @@
+import numpy as np
+import pytest
+
+from skoccmap import OccupancyGrid
+from skoccmap.baselines import OccupancyGridMap
+
+
+class _ProbaOnly:
+    """An estimator without predict_var."""
+
+    def predict_proba(self, X):
+        return _FieldEstimator().predict_proba(X)
+
+
+class _FieldEstimator:
+    """P(occupied) and variance as known functions of the query point; records batch sizes."""
+
+    def __init__(self):
+        self.batches = []
+
+    @staticmethod
+    def proba_at(points):
+        return 1.0 / (1.0 + np.exp(-(points[:, 0] - 2.0 * points[:, 1])))
+
+    @staticmethod
+    def var_at(points):
+        return np.hypot(points[:, 0], points[:, 1])
+
+    def predict_proba(self, X):
+        X = np.asarray(X)
+        self.batches.append(len(X))
+        n_dims = X.shape[1] // 2
+        assert np.array_equal(X[:, :n_dims], X[:, n_dims:]), "queries must be points"
+        p = self.proba_at(X[:, :n_dims])
+        return np.column_stack([1 - p, p])
+
+    def predict_var(self, X):
+        X = np.asarray(X)
+        return self.var_at(X[:, : X.shape[1] // 2])
+
+
+def test_from_estimator_matches_direct_evaluation():
+    est = _FieldEstimator()
+    grid = OccupancyGrid.from_estimator(
+        est, extent=(-1.0, 2.0, 0.5, 1.5), resolution=0.25, chunk_size=5, unknown_variance=None
+    )
+    assert grid.shape == (4, 12)
+    xs = -1.0 + 0.25 * (np.arange(12) + 0.5)
+    ys = 0.5 + 0.25 * (np.arange(4) + 0.5)
+    gx, gy = np.meshgrid(xs, ys)  # row j <-> y_j, column i <-> x_i
+    points = np.column_stack([gx.ravel(), gy.ravel()])
+    np.testing.assert_allclose(grid.probability, est.proba_at(points).reshape(4, 12))
+    np.testing.assert_allclose(grid.variance, est.var_at(points).reshape(4, 12))
+    assert max(est.batches) <= 5 and sum(est.batches) == 48
+    assert grid.unknown is None
+    assert grid.extent == (-1.0, 2.0, 0.5, 1.5)
+    np.testing.assert_allclose(grid.cell_centers(), points)
+
+
+def test_extent_from_data_is_snapped_and_covers_it():
+    points = np.array([[0.23, -0.61], [1.07, 0.44]])
+    grid = OccupancyGrid.from_estimator(_FieldEstimator(), points, resolution=0.2)
+    np.testing.assert_allclose(grid.origin, [0.2, -0.8])
+    xmin, xmax, ymin, ymax = grid.extent
+    assert xmin <= 0.23 and xmax > 1.07 and ymin <= -0.61 and ymax > 0.44
+    assert grid.shape == (7, 5)
+    # segment rows: both end points are covered
+    segments = np.array([[0.0, 0.0, 1.0, 1.0]])
+    grid = OccupancyGrid.from_estimator(_FieldEstimator(), segments, resolution=0.5)
+    assert grid.shape == (3, 3)
+
+
+def test_extent_from_estimator_attribute():
+    X = np.array([[0.0, 0.0, 0.95, 0.0], [1.0, 0.0, 1.0, 0.0]])
+    est = OccupancyGridMap(resolution=0.5).fit(X, [0, 1])
+    grid = OccupancyGrid.from_estimator(est, resolution=0.5)
+    assert grid.extent == tuple(est.extent_)
+    np.testing.assert_allclose(grid.probability, [[0.4013, 0.5, 0.7006]], atol=1e-4)
+    with pytest.raises(ValueError, match="extent_"):
+        OccupancyGrid.from_estimator(_FieldEstimator(), resolution=0.5)
+
+
+def test_unknown_variance_rules():
+    est = _FieldEstimator()
+    extent = (0.0, 4.0, 0.0, 4.0)
+    auto = OccupancyGrid.from_estimator(est, extent, 1.0)
+    np.testing.assert_array_equal(auto.unknown, auto.variance > 0.5 * auto.variance.max())
+    fixed = OccupancyGrid.from_estimator(est, extent, 1.0, unknown_variance=2.0)
+    np.testing.assert_array_equal(fixed.unknown, fixed.variance > 2.0)
+    assert 0 < fixed.unknown.sum() < fixed.unknown.size
+    no_var = OccupancyGrid.from_estimator(_ProbaOnly(), extent, 1.0)
+    assert no_var.variance is None and no_var.unknown is None
+
+
+def test_verbose_reports_progress(capsys):
+    OccupancyGrid.from_estimator(_FieldEstimator(), (0, 1, 0, 1), 0.1, chunk_size=10, verbose=1)
+    err = capsys.readouterr().err
+    assert "100/100 cells (100%)" in err and err.count("[OccupancyGrid]") >= 5
+
+
+def test_ros_layout_starts_at_origin_row():
+    probability = np.array([[0.0, 0.1, 0.2], [0.9, 0.95, 1.0]])  # row 0 = lowest y
+    unknown = np.array([[False, False, True], [False, False, False]])
+    grid = OccupancyGrid(probability, origin=(1.0, -2.0), resolution=0.5, unknown=unknown)
+    msg = grid.to_ros_occupancy_grid()
+    assert msg["info"]["width"] == 3 and msg["info"]["height"] == 2
+    assert msg["info"]["origin"]["position"] == {"x": 1.0, "y": -2.0, "z": 0.0}
+    assert msg["data"].dtype == np.int8
+    np.testing.assert_array_equal(msg["data"], [0, 10, -1, 90, 95, 100])
+    tri = grid.to_ros_occupancy_grid(trinary=True)["data"]
+    np.testing.assert_array_equal(tri, [0, 0, -1, 100, 100, 100])
+
+
+def _read_pgm_independently(path):
+    """Minimal reader for the header this package writes: 'P5\\nW H\\n255\\n' + bytes."""
+    raw = path.read_bytes()
+    magic, size, maxval, rest = raw.split(b"\n", 3)
+    width, height = map(int, size.split())
+    assert magic == b"P5" and maxval == b"255"
+    return np.frombuffer(rest, dtype=np.uint8).reshape(height, width)
+
+
+def test_map_server_round_trip_reproduces_trinary_map(tmp_path):
+    rng = np.random.default_rng(0)
+    probability = rng.uniform(size=(37, 53))
+    unknown = rng.uniform(size=(37, 53)) < 0.1
+    grid = OccupancyGrid(probability, origin=(-3.2, 7.5), resolution=0.05, unknown=unknown)
+    yaml_path, pgm_path = grid.save_map_server(tmp_path / "map")
+    text = yaml_path.read_text()
+    for line in (
+        "image: map.pgm",
+        "negate: 0",
+        "free_thresh: 0.196",
+        "occupied_thresh: 0.65",
+        "mode: trinary",
+        "origin: [-3.2, 7.5, 0.0]",
+        "resolution: 0.05",
+    ):
+        assert line in text.splitlines()
+    pixels = _read_pgm_independently(pgm_path)
+    assert pixels.shape == (37, 53)
+    assert set(np.unique(pixels)) <= {0, 205, 254}
+    # Image rows run top (largest y) to bottom: the last image row is grid row 0.
+    expected = np.where(probability > 0.65, 0, np.where(probability < 0.196, 254, 205))
+    expected[unknown] = 205
+    np.testing.assert_array_equal(pixels[::-1], expected)
+    # map_server's reading of trinary pixels with the YAML thresholds
+    occ = (255.0 - pixels[::-1]) / 255.0
+    as_ros = np.where(occ > 0.65, 100, np.where(occ < 0.196, 0, -1))
+    np.testing.assert_array_equal(as_ros, grid.trinary())
+    back = OccupancyGrid.load_map_server(yaml_path)
+    np.testing.assert_array_equal(back.trinary(), grid.trinary())
+    np.testing.assert_allclose(back.origin, grid.origin)
+    assert back.resolution == grid.resolution
+
+
+def test_free_thresh_025_would_lose_unknown_cells():
+    # Why the YAML says 0.196: the unknown pixel 205 reads as p = 0.196 < 0.25 -> free.
+    assert (255 - 205) / 255 < 0.25
+    assert not (255 - 205) / 255 < 0.196
+
+
+def test_npz_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    grid = OccupancyGrid(
+        rng.uniform(size=(4, 5)),
+        (0.5, -0.5),
+        0.2,
+        variance=rng.uniform(size=(4, 5)),
+        unknown=rng.uniform(size=(4, 5)) < 0.5,
+    )
+    grid.save(tmp_path / "grid.npz")
+    back = OccupancyGrid.load(tmp_path / "grid.npz")
+    for name in ("probability", "variance", "unknown", "origin"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(grid, name))
+    assert back.resolution == grid.resolution
+    bare = OccupancyGrid(grid.probability, grid.origin, grid.resolution)
+    bare.save(tmp_path / "bare.npz")
+    back = OccupancyGrid.load(tmp_path / "bare.npz")
+    assert back.variance is None and back.unknown is None
+
+
+def test_3d_grid_points_and_voxels():
+    est = _FieldEstimator()
+    grid = OccupancyGrid.from_estimator(est, (0, 1, 0, 2, -1, 1), 0.5, unknown_variance=None)
+    assert grid.shape == (4, 4, 2) and grid.n_dims == 3
+    centers = grid.cell_centers()
+    np.testing.assert_allclose(grid.probability.ravel(), est.proba_at(centers))
+    points = grid.to_points(occupied_threshold=0.3)
+    np.testing.assert_allclose(points, centers[est.proba_at(centers) > 0.3])
+    voxels = grid.trinary()
+    assert voxels.shape == grid.shape
+    with pytest.raises(ValueError, match="2-D"):
+        grid.to_ros_occupancy_grid()
+    with pytest.raises(ValueError, match="2-D"):
+        grid.save_map_server("unused")
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(probability=[[0.5, 1.5]]), "probability must lie in"),
+        (dict(probability=[[0.5, np.nan]]), "probability must lie in"),
+        (dict(probability=[0.5, 0.5]), "probability must be a non-empty 2-D"),
+        (dict(origin=(0.0,)), "origin"),
+        (dict(resolution=0.0), "resolution"),
+        (dict(variance=[[1.0]]), "variance has shape"),
+        (dict(variance=[[1.0, -1.0]]), "non-negative"),
+        (dict(unknown=[[0, 1]]), "unknown must be a boolean"),
+    ],
+)
+def test_bad_grid_arguments(kwargs, match):
+    args = dict(probability=[[0.5, 0.5]], origin=(0.0, 0.0), resolution=0.1) | kwargs
+    with pytest.raises(ValueError, match=match):
+        OccupancyGrid(**args)
+
+
+def test_bad_from_estimator_arguments():
+    est = _FieldEstimator()
+    with pytest.raises(ValueError, match="extent must be"):
+        OccupancyGrid.from_estimator(est, (0, 1, 2), 0.1)
+    with pytest.raises(ValueError, match="max > min"):
+        OccupancyGrid.from_estimator(est, (1, 0, 0, 1), 0.1)
+    with pytest.raises(ValueError, match="NaN"):
+        OccupancyGrid.from_estimator(est, np.array([[np.nan, 0.0]]), 0.1)
+    with pytest.raises(ValueError, match="resolution"):
+        OccupancyGrid.from_estimator(est, (0, 1, 0, 1), -0.1)
+    with pytest.raises(ValueError, match="chunk_size"):
+        OccupancyGrid.from_estimator(est, (0, 1, 0, 1), 0.1, chunk_size=0)
+    with pytest.raises(ValueError, match="predict_proba"):
+        OccupancyGrid.from_estimator(object(), (0, 1, 0, 1), 0.1)
+    grid = OccupancyGrid([[0.5]], (0, 0), 1.0)
+    with pytest.raises(ValueError, match="free_threshold"):
+        grid.trinary(free_threshold=0.8, occupied_threshold=0.6)
