@@ -121,6 +121,17 @@ def _positive_proba(estimator, X):
     return proba[:, column]
 
 
+def _check_both_classes(labels, what):
+    # Before any prediction: a one-class truth makes the AUC undefined whatever the map says.
+    if labels.size == 0:
+        raise ValueError(f"there is no {what} to score.")
+    if labels.min() == labels.max():
+        raise ValueError(
+            f"every {what} is {'occupied' if labels[0] else 'free'}: the AUC is undefined. "
+            "Score a region holding both free and occupied space."
+        )
+
+
 def _auc(labels, proba, what):
     proba = np.asarray(proba, dtype=np.float64)
     if proba.shape != labels.shape:
@@ -131,11 +142,6 @@ def _auc(labels, proba, what):
         raise ValueError(
             f"the predicted probabilities contain {np.count_nonzero(~np.isfinite(proba))} NaN "
             "or infinite value(s); the map cannot be scored."
-        )
-    if labels.min() == labels.max():
-        raise ValueError(
-            f"every {what} is {'occupied' if labels[0] else 'free'}: the AUC is undefined. "
-            "Score a region holding both free and occupied space."
         )
     return float(roc_auc_score(labels, proba))
 
@@ -174,6 +180,7 @@ def heldout_auc(estimator, scans, *, n_free_per_beam=1, free_margin=0.05, random
     points, labels = heldout_points(
         scans, n_free_per_beam=n_free_per_beam, free_margin=free_margin, random_state=random_state
     )
+    _check_both_classes(labels, "held-out point")
     return _auc(labels, _positive_proba(estimator, as_segments(points)), "held-out point")
 
 
@@ -185,7 +192,7 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
     estimator_or_proba : fitted classifier or array-like of shape (n_cells,)
         A classifier whose ``predict_proba`` is evaluated at the cell centres (as zero-length
         segments), or P(occupied) per cell of ``environment.ground_truth_grid(resolution,
-        extent)`` in its order.
+        extent)`` in its order (or, with ``scans``, per observed cell only).
     environment : Environment2D or Room3D
         The simulated world.
     resolution : float, default=0.2
@@ -215,13 +222,14 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
     1.0
     """
     grid = environment.ground_truth_grid(resolution, extent, scans=scans)
+    scored = np.ones(len(grid.points), bool) if scans is None else grid.observed
+    what = "grid cell" if scans is None else "observed grid cell"
+    labels = grid.occupied[scored]
+    _check_both_classes(labels, what)
     if hasattr(estimator_or_proba, "predict_proba"):
-        proba = _positive_proba(estimator_or_proba, as_segments(grid.points))
+        proba = _positive_proba(estimator_or_proba, as_segments(grid.points[scored]))
     else:
         proba = np.asarray(estimator_or_proba, dtype=np.float64)
-    labels, what = grid.occupied, "grid cell"
-    if scans is not None:
-        if np.shape(proba) == labels.shape:
-            proba = np.asarray(proba)[grid.observed]
-        labels, what = labels[grid.observed], "observed grid cell"
+        if proba.shape == scored.shape:  # one per cell of the grid: keep the scored ones
+            proba = proba[scored]
     return _auc(labels, proba, what)
