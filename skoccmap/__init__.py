@@ -25,6 +25,7 @@ _LAZY = {
     "OccupancyGrid": "grid",
     "scans_to_observations": "observations",
     "as_segments": "observations",
+    "Scans": "observations",
 }
 
 __all__ = sorted(_LAZY) + ["__version__"]
