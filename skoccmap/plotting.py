@@ -1,0 +1,262 @@
+"""Pictures of occupancy maps, in scikit-learn's Display style.
+
+matplotlib is imported only when something is drawn; install it with
+``pip install "skoccmap[plot]"``.
+"""
+
+import numpy as np
+
+from .grid import OccupancyGrid
+
+__all__ = ["OccupancyMapDisplay"]
+
+_KINDS = ("probability", "variance", "both")
+
+
+def _import_pyplot():
+    try:
+        import matplotlib.pyplot as plt
+    except ImportError as exc:  # pragma: no cover - exercised with matplotlib hidden
+        raise ImportError(
+            'Plotting needs matplotlib: pip install "skoccmap[plot]" (or pip install matplotlib).'
+        ) from exc
+    return plt
+
+
+class OccupancyMapDisplay:
+    """Occupancy probability and uncertainty panels of a 2-D map.
+
+    Build it with :meth:`from_estimator` or :meth:`from_grid` (which also plot), or construct
+    it from arrays and call :meth:`plot`.
+
+    Parameters
+    ----------
+    probability : ndarray of shape (ny, nx)
+        P(occupied) per cell; row 0 is the lowest y (the layout of :class:`OccupancyGrid`).
+    extent : tuple of 4 floats
+        ``(xmin, xmax, ymin, ymax)`` of the map in metres.
+    variance : ndarray of shape (ny, nx), default=None
+        Predictive variance per cell; needed for the uncertainty panel.
+    unknown : ndarray of bool of shape (ny, nx), default=None
+        Cells drawn in the ``unknown_color`` of :meth:`plot` on the probability panel.
+
+    Attributes
+    ----------
+    ax_ : matplotlib Axes
+        The probability panel (or the only panel drawn).
+    axes_ : ndarray of matplotlib Axes
+        All panels drawn, probability first.
+    im_ : matplotlib AxesImage
+        The image of ``ax_``.
+    images_ : list of matplotlib AxesImage
+        The images of ``axes_``.
+    figure_ : matplotlib Figure
+        The figure holding the panels.
+
+    Examples
+    --------
+    >>> import matplotlib
+    >>> matplotlib.use("Agg")
+    >>> import numpy as np
+    >>> from skoccmap.baselines import OccupancyGridMap
+    >>> from skoccmap.plotting import OccupancyMapDisplay
+    >>> X = np.array([[0.0, 0.0, 0.95, 0.0], [1.0, 0.0, 1.0, 0.0]])
+    >>> est = OccupancyGridMap(resolution=0.25).fit(X, [0, 1])
+    >>> disp = OccupancyMapDisplay.from_estimator(est, extent=(0, 1.5, -0.5, 0.5),
+    ...                                           resolution=0.25)
+    >>> disp.im_.get_array().shape
+    (4, 6)
+    """
+
+    def __init__(self, probability, *, extent, variance=None, unknown=None):
+        self.probability = probability
+        self.extent = extent
+        self.variance = variance
+        self.unknown = unknown
+
+    @classmethod
+    def from_grid(cls, grid, *, kind=None, z=None, ax=None, **plot_kwargs):
+        """Draw an :class:`~skoccmap.OccupancyGrid`.
+
+        Parameters
+        ----------
+        grid : OccupancyGrid
+            A 2-D grid, or a 3-D grid of which the horizontal slice at height ``z`` is drawn.
+        kind : {"probability", "variance", "both"} or None, default=None
+            Panels to draw; ``None``: both when the grid has a variance, else probability.
+        z : float or None, default=None
+            Height of the slice of a 3-D grid (``None``: the middle slice).
+        ax : matplotlib Axes, sequence of two Axes or None, default=None
+            Where to draw; ``None`` makes a new figure.
+        **plot_kwargs
+            Passed to :meth:`plot`.
+
+        Returns
+        -------
+        display : OccupancyMapDisplay
+        """
+        if not isinstance(grid, OccupancyGrid):
+            raise ValueError(f"grid must be an OccupancyGrid, got {type(grid).__name__}.")
+        probability, variance, unknown = grid.probability, grid.variance, grid.unknown
+        if grid.n_dims == 3:
+            zmin = grid.origin[2]
+            k = grid.shape[0] // 2 if z is None else int((z - zmin) // grid.resolution)
+            if not 0 <= k < grid.shape[0]:
+                raise ValueError(f"z={z} is outside the grid's height range {grid.extent[4:]}.")
+            probability = probability[k]
+            variance = None if variance is None else variance[k]
+            unknown = None if unknown is None else unknown[k]
+        display = cls(probability, extent=grid.extent[:4], variance=variance, unknown=unknown)
+        return display.plot(ax=ax, kind=kind, **plot_kwargs)
+
+    @classmethod
+    def from_estimator(
+        cls,
+        estimator,
+        extent=None,
+        resolution=0.1,
+        *,
+        kind=None,
+        unknown_variance="auto",
+        chunk_size=65_536,
+        verbose=0,
+        ax=None,
+        **plot_kwargs,
+    ):
+        """Evaluate an estimator on a grid (:meth:`OccupancyGrid.from_estimator`) and draw it.
+
+        Parameters
+        ----------
+        estimator : fitted estimator with ``predict_proba`` (``predict_var`` optional)
+        extent, resolution, unknown_variance, chunk_size, verbose
+            See :meth:`skoccmap.OccupancyGrid.from_estimator`.
+        kind : {"probability", "variance", "both"} or None, default=None
+            Panels; ``None``: both when the estimator has ``predict_var``.
+        ax : matplotlib Axes, sequence of two Axes or None, default=None
+            Where to draw; ``None`` makes a new figure.
+        **plot_kwargs
+            Passed to :meth:`plot`.
+
+        Returns
+        -------
+        display : OccupancyMapDisplay
+        """
+        grid = OccupancyGrid.from_estimator(
+            estimator,
+            extent,
+            resolution,
+            unknown_variance=unknown_variance,
+            chunk_size=chunk_size,
+            verbose=verbose,
+        )
+        return cls.from_grid(grid, kind=kind, ax=ax, **plot_kwargs)
+
+    def plot(
+        self,
+        ax=None,
+        *,
+        kind=None,
+        cmap="gray_r",
+        variance_cmap="viridis",
+        unknown_color="#9ecae1",
+        colorbar=True,
+        points=None,
+        point_kwargs=None,
+    ):
+        """Draw the panels.
+
+        Parameters
+        ----------
+        ax : matplotlib Axes, sequence of two Axes or None, default=None
+            A single Axes for one panel, two for ``kind="both"``; ``None`` makes a new figure.
+        kind : {"probability", "variance", "both"} or None, default=None
+            ``None``: both when a variance is available, else probability.
+        cmap : str, default="gray_r"
+            Colour map of the probability (occupied dark, free light, as printed maps are).
+        variance_cmap : str, default="viridis"
+            Colour map of the variance.
+        unknown_color : color, default="#9ecae1"
+            Colour of unknown cells on the probability panel.
+        colorbar : bool, default=True
+            Add a colour bar to each panel.
+        points : array-like of shape (m, 2), default=None
+            Points to overlay on every panel (e.g. the training hits or the robot's path).
+        point_kwargs : dict, default=None
+            Passed to ``Axes.scatter`` for ``points``.
+
+        Returns
+        -------
+        display : OccupancyMapDisplay
+            ``self``, with ``ax_``, ``axes_``, ``im_``, ``images_`` and ``figure_`` set.
+        """
+        plt = _import_pyplot()
+        probability = np.asarray(self.probability, dtype=np.float64)
+        if probability.ndim != 2:
+            raise ValueError(f"probability must be 2-D (ny, nx), got shape {probability.shape}.")
+        if kind is None:
+            kind = "both" if self.variance is not None else "probability"
+        if kind not in _KINDS:
+            raise ValueError(f"kind must be one of {_KINDS} or None, got {kind!r}.")
+        if kind != "probability" and self.variance is None:
+            raise ValueError(
+                f"kind={kind!r} needs a variance; the estimator or grid has none (no "
+                "predict_var). Use kind='probability'."
+            )
+        panels = ["probability", "variance"] if kind == "both" else [kind]
+        axes = self._axes(plt, ax, len(panels))
+        images = []
+        for panel, panel_ax in zip(panels, axes, strict=True):
+            if panel == "probability":
+                image = self._draw_probability(plt, panel_ax, probability, cmap, unknown_color)
+                label = "P(occupied)"
+            else:
+                image = panel_ax.imshow(
+                    np.asarray(self.variance, dtype=np.float64),
+                    origin="lower",
+                    extent=self.extent,
+                    cmap=variance_cmap,
+                    interpolation="nearest",
+                )
+                label = "predictive variance"
+            panel_ax.set_title(label)
+            panel_ax.set_xlabel("x [m]")
+            panel_ax.set_ylabel("y [m]")
+            panel_ax.set_aspect("equal")
+            if colorbar:
+                panel_ax.figure.colorbar(image, ax=panel_ax, shrink=0.8, label=label)
+            if points is not None:
+                pts = np.asarray(points, dtype=np.float64)
+                style = {"s": 1, "c": "tab:red", "linewidths": 0} | (point_kwargs or {})
+                panel_ax.scatter(pts[:, 0], pts[:, 1], **style)
+            images.append(image)
+        self.axes_ = np.array(axes, dtype=object)
+        self.ax_ = axes[0]
+        self.images_ = images
+        self.im_ = images[0]
+        self.figure_ = axes[0].figure
+        return self
+
+    @staticmethod
+    def _axes(plt, ax, n_panels):
+        if ax is None:
+            fig, axes = plt.subplots(1, n_panels, figsize=(6 * n_panels, 5), squeeze=False)
+            return list(axes[0])
+        axes = list(np.ravel(np.asarray(ax, dtype=object)))
+        if len(axes) != n_panels:
+            raise ValueError(f"ax must hold {n_panels} Axes for this kind, got {len(axes)}.")
+        return axes
+
+    def _draw_probability(self, plt, ax, probability, cmap, unknown_color):
+        colormap = plt.get_cmap(cmap).with_extremes(bad=unknown_color)
+        shown = probability
+        if self.unknown is not None:
+            shown = np.ma.masked_array(probability, mask=np.asarray(self.unknown, dtype=bool))
+        return ax.imshow(
+            shown,
+            origin="lower",
+            extent=self.extent,
+            cmap=colormap,
+            vmin=0.0,
+            vmax=1.0,
+            interpolation="nearest",
+        )

@@ -1,0 +1,113 @@
+import sys
+
+import numpy as np
+import pytest
+
+from skoccmap import OccupancyGrid
+from skoccmap.baselines import OccupancyGridMap
+from skoccmap.plotting import OccupancyMapDisplay
+
+matplotlib = pytest.importorskip("matplotlib")
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():
+    yield
+    plt.close("all")
+
+
+class _WithVar:
+    def predict_proba(self, X):
+        p = 1.0 / (1.0 + np.exp(-X[:, 0]))
+        return np.column_stack([1 - p, p])
+
+    def predict_var(self, X):
+        return np.abs(X[:, 1])
+
+
+def _grid():
+    rng = np.random.default_rng(0)
+    return OccupancyGrid(
+        rng.uniform(size=(3, 4)),
+        (1.0, -1.0),
+        0.5,
+        variance=rng.uniform(size=(3, 4)),
+        unknown=np.eye(3, 4, dtype=bool),
+    )
+
+
+def test_from_grid_both_panels():
+    grid = _grid()
+    disp = OccupancyMapDisplay.from_grid(grid)
+    assert len(disp.axes_) == 2 and disp.ax_ is disp.axes_[0]
+    assert disp.figure_ is disp.ax_.figure
+    shown = disp.im_.get_array()
+    # row 0 is drawn at the bottom (origin="lower") over the grid's extent
+    assert disp.im_.origin == "lower"
+    np.testing.assert_allclose(disp.im_.get_extent(), grid.extent)
+    np.testing.assert_array_equal(np.ma.getmaskarray(shown), grid.unknown)
+    np.testing.assert_allclose(shown.data, grid.probability)
+    np.testing.assert_allclose(disp.images_[1].get_array(), grid.variance)
+    assert disp.axes_[1].get_title() == "predictive variance"
+
+
+def test_from_estimator_and_user_axes():
+    fig, (a, b) = plt.subplots(1, 2)
+    disp = OccupancyMapDisplay.from_estimator(
+        _WithVar(), (-1.0, 1.0, -1.0, 1.0), 0.5, ax=[a, b], colorbar=False, points=[[0, 0]]
+    )
+    assert disp.ax_ is a and disp.axes_[1] is b and disp.figure_ is fig
+    centers_x = -1.0 + 0.5 * (np.arange(4) + 0.5)
+    expected = np.tile(1.0 / (1.0 + np.exp(-centers_x)), (4, 1))
+    np.testing.assert_allclose(np.ma.getdata(disp.im_.get_array()), expected)
+    assert len(a.collections) == 1  # the overlaid points
+
+
+def test_probability_only_for_estimators_without_variance():
+    X = np.array([[0.0, 0.0, 0.95, 0.0], [1.0, 0.0, 1.0, 0.0]])
+    est = OccupancyGridMap(resolution=0.5).fit(X, [0, 1])
+    disp = OccupancyMapDisplay.from_estimator(est)
+    assert len(disp.axes_) == 1
+    with pytest.raises(ValueError, match="needs a variance"):
+        OccupancyMapDisplay.from_estimator(est, kind="variance")
+
+
+def test_plot_on_constructed_display_and_errors():
+    grid = _grid()
+    disp = OccupancyMapDisplay(grid.probability, extent=grid.extent)
+    _, ax = plt.subplots()
+    assert disp.plot(ax=ax).ax_ is ax
+    with pytest.raises(ValueError, match="kind"):
+        disp.plot(kind="heat")
+    with pytest.raises(ValueError, match="2 Axes"):
+        OccupancyMapDisplay.from_grid(grid, ax=ax)
+    with pytest.raises(ValueError, match="OccupancyGrid"):
+        OccupancyMapDisplay.from_grid(grid.probability)
+
+
+def test_3d_grid_draws_a_slice():
+    rng = np.random.default_rng(1)
+    grid = OccupancyGrid(rng.uniform(size=(3, 2, 4)), (0.0, 0.0, 0.0), 1.0)
+    disp = OccupancyMapDisplay.from_grid(grid, z=2.5)
+    np.testing.assert_allclose(disp.im_.get_array(), grid.probability[2])
+    with pytest.raises(ValueError, match="outside"):
+        OccupancyMapDisplay.from_grid(grid, z=7.0)
+
+
+def test_clear_error_without_matplotlib(monkeypatch):
+    grid = _grid()
+    disp = OccupancyMapDisplay(grid.probability, extent=grid.extent)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.setitem(sys.modules, "matplotlib.pyplot", None)
+    with pytest.raises(ImportError, match=r"skoccmap\[plot\]"):
+        disp.plot()
+
+
+def test_import_does_not_load_matplotlib():
+    import subprocess
+
+    code = "import sys, skoccmap.plotting, skoccmap.grid; print('matplotlib' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
