@@ -387,3 +387,16 @@ def test_demo_command_without_matplotlib(tmp_path, capsys, monkeypatch):
     assert main(["demo", "--out", str(tmp_path)]) == 0
     assert 'pip install "skoccmap[plot]"' in capsys.readouterr().out
     assert not list(tmp_path.iterdir())
+
+
+def test_paper_scans_scale_up():
+    data = make_paper_scans(n_beams=34, n_poses_per_piece=26)
+    assert (len(data.scans), data.scans.n_beams) == (52, 34)
+    counts = np.bincount(data.kind, minlength=3)
+    # four times the beams of the same world: about four times the paper's counts
+    base = np.bincount(make_paper_scans().kind, minlength=3)
+    assert_allclose(counts / base, 4.0, rtol=0.15)
+    with pytest.raises(ValueError, match="n_beams"):
+        make_paper_scans(n_beams=0)
+    with pytest.raises(ValueError, match="n_poses_per_piece"):
+        make_paper_scans(n_poses_per_piece=1.5)

@@ -6,6 +6,8 @@ beams over 180 degrees, 8 m maximum range -- and was laid out so that the observ
 come close to the paper's (254 hits, 254 return beams, 188 no-return beams).
 """
 
+import numbers
+
 import numpy as np
 from sklearn.utils import Bunch
 
@@ -64,8 +66,8 @@ def make_paper_environment(wall_thickness=0.1):
     return Environment2D(walls, wall_thickness=wall_thickness)
 
 
-def _paper_poses():
-    s = np.linspace(0.0, 1.0, PAPER_POSES_PER_PIECE)
+def _paper_poses(n_per_piece):
+    s = np.linspace(0.0, 1.0, n_per_piece)
     # Piece 1: west to east across the hall.
     piece1 = np.column_stack([6.5 + 12.5 * s, np.full_like(s, 6.0)])
     # Piece 2: out of the south corridor, bending west then back, towards the north rooms.
@@ -78,7 +80,14 @@ def _paper_poses():
     return np.vstack(poses)
 
 
-def make_paper_scans(*, noise_std=0.0, random_state=None, free_margin=0.05):
+def make_paper_scans(
+    *,
+    noise_std=0.0,
+    random_state=None,
+    free_margin=0.05,
+    n_beams=PAPER_N_BEAMS,
+    n_poses_per_piece=PAPER_POSES_PER_PIECE,
+):
     """Simulated laser scans of the paper's experiment: about 700 observations.
 
     26 poses on two trajectory pieces of 13 poses each in :func:`make_paper_environment`;
@@ -95,6 +104,11 @@ def make_paper_scans(*, noise_std=0.0, random_state=None, free_margin=0.05):
     free_margin : float, default=0.05
         Gap between return beams and their hits, see
         :func:`~skoccmap.observations.scans_to_observations`.
+    n_beams : int, default=17
+        Beams per scan over the same 180 degrees; raise it (with ``n_poses_per_piece``) for a
+        larger data set of the same world (observations grow with their product).
+    n_poses_per_piece : int, default=13
+        Poses along each of the two trajectory pieces.
 
     Returns
     -------
@@ -112,18 +126,24 @@ def make_paper_scans(*, noise_std=0.0, random_state=None, free_margin=0.05):
     >>> data.X.shape, np.bincount(data.kind).tolist()
     ((701, 4), [259, 259, 183])
     """
+    for name, value, least in (
+        ("n_beams", n_beams, 1),
+        ("n_poses_per_piece", n_poses_per_piece, 2),
+    ):
+        if not isinstance(value, numbers.Integral) or value < least:
+            raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
     environment = make_paper_environment()
-    angles = np.linspace(-np.pi / 2, np.pi / 2, PAPER_N_BEAMS)
+    angles = np.linspace(-np.pi / 2, np.pi / 2, n_beams)
     scans = simulate_scans(
         environment,
-        _paper_poses(),
+        _paper_poses(n_poses_per_piece),
         angles,
         PAPER_MAX_RANGE,
         noise_std=noise_std,
         random_state=random_state,
     )
     X, y, kind, scan_index = scans.to_observations(free_margin, return_scan_index=True)
-    piece = np.repeat([0, 1], PAPER_POSES_PER_PIECE)
+    piece = np.repeat([0, 1], n_poses_per_piece)
     return Bunch(
         X=X,
         y=y,
