@@ -34,7 +34,7 @@ _NO_RETURN_BLOCK = 128
 # below exp(-4.5^2 / 2) ~ 4e-5 of its peak: not a candidate for "most similar".
 _SIMILARITY_CUTOFF = 4.5
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
-_GATING_GPC_MAX_SAMPLES = 600
+_GATING_GPC_MAX_SAMPLES = 300
 
 
 def _check_segment_columns(X, name="X"):
@@ -279,7 +279,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``"clusterer"``: the clusterer's posterior responsibilities at the query's
         midpoint. ``"gpc"``: a GP classifier over the expert labels of the training
         observations' midpoints (the paper's gate; sklearn's
-        ``GaussianProcessClassifier`` with an RBF kernel, on at most 600 points).
+        ``GaussianProcessClassifier`` with a fixed RBF kernel, on at most 300 points).
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
         Merging rule, see :mod:`skoccmap.combine`.
     max_expert_size : int or None, default=400
@@ -452,15 +452,20 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         occupied = y_enc == 1
         expert = self._make_expert()
         labels = self._cluster_and_assign(X, occupied, expert, rng)
-        _log(self.verbose, f"clustering done: {self.cluster_ids_.size} cluster(s) "
-             f"({time.perf_counter() - start:.1f} s)")
+        _log(
+            self.verbose,
+            f"clustering done: {self.cluster_ids_.size} cluster(s) "
+            f"({time.perf_counter() - start:.1f} s)",
+        )
         labels = self._split_clusters(X, labels)
         self.cluster_labels_ = labels
         self.n_experts_ = int(self.expert_cluster_.size)
 
         self.experts_ = self._fit_experts(X, y_enc, labels, expert, rng)
-        _log(self.verbose, f"{self.n_experts_} expert(s) fitted "
-             f"({time.perf_counter() - start:.1f} s)")
+        _log(
+            self.verbose,
+            f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
+        )
         self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
         return self
 
@@ -539,8 +544,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.expert_cluster_ = np.asarray(expert_cluster, dtype=np.intp)
         self._piece_gates = piece_gates
         if any(g is not None for g in piece_gates):
-            _log(self.verbose, f"split big clusters into {len(expert_cluster)} pieces of at "
-                 f"most {self.max_expert_size} observations")
+            _log(
+                self.verbose,
+                f"split big clusters into {len(expert_cluster)} pieces of at "
+                f"most {self.max_expert_size} observations",
+            )
         return expert_labels
 
     def _fit_experts(self, X, y, labels, expert, rng):
@@ -586,8 +594,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             return expert, fitted, todo
         # The largest two-class piece: a spatially coherent sample of the map.
         k0 = max(two_class, key=lambda k: rows[k].size)
-        _log(self.verbose, f"learning shared hyperparameters on expert {k0} "
-             f"({rows[k0].size} observations)")
+        _log(
+            self.verbose,
+            f"learning shared hyperparameters on expert {k0} ({rows[k0].size} observations)",
+        )
         fitted[k0] = _fit_expert(prepared(k0, expert), X[rows[k0]], y[rows[k0]])
         self.shared_kernel_ = fitted[k0].kernel_
         base = clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
@@ -595,23 +605,27 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         return base, fitted, todo
 
     def _fit_gpc_gate(self, X, labels, rng):
+        """GP classifier over the expert labels of the observations' midpoints.
+
+        Hyperparameters are fixed rather than learned (learning them for a one-vs-rest GP
+        per expert took minutes on the paper's data): a signal variance of 4 lets the gate
+        become confident, and the length scale is the mean spread of the pieces.
+        """
         if self.n_experts_ == 1:
             return None
         from sklearn.gaussian_process import GaussianProcessClassifier
         from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
         mids = _midpoints(X)
-        idx = np.arange(X.shape[0])
-        if idx.size > _GATING_GPC_MAX_SAMPLES:
-            # Stratified, so that every expert keeps some training points.
-            per = max(_GATING_GPC_MAX_SAMPLES // self.n_experts_, 1)
-            idx = np.concatenate([
-                rng.permutation(np.flatnonzero(labels == k))[:per]
-                for k in range(self.n_experts_)
-            ])
-        scale = float(np.mean(np.std(mids[idx], axis=0))) or 1.0
+        groups = [np.flatnonzero(labels == k) for k in range(self.n_experts_)]
+        # Stratified sample, so that every expert keeps some training points.
+        per = max(_GATING_GPC_MAX_SAMPLES // self.n_experts_, 1)
+        idx = np.concatenate([rng.permutation(g)[:per] for g in groups])
+        spread = np.mean([np.sqrt(np.mean(np.var(mids[g], axis=0))) for g in groups])
+        length_scale = float(spread) if spread > 0 else 1.0
         gate = GaussianProcessClassifier(
-            kernel=ConstantKernel(1.0) * RBF(scale),
+            kernel=ConstantKernel(4.0, "fixed") * RBF(length_scale, "fixed"),
+            optimizer=None,
             random_state=rng.randint(np.iinfo(np.int32).max),
         )
         _log(self.verbose, f"fitting the gpc gate on {idx.size} point(s)")
@@ -669,8 +683,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         keep[np.arange(X.shape[0]), best] = True
         weights = np.where(keep, weights, 0.0)
         # A row of tiny weights (all below threshold) still has its best expert.
-        weights[np.arange(X.shape[0]), best] = np.maximum(weights[np.arange(X.shape[0]), best],
-                                                          np.finfo(np.float64).tiny)
+        weights[np.arange(X.shape[0]), best] = np.maximum(
+            weights[np.arange(X.shape[0]), best], np.finfo(np.float64).tiny
+        )
         return weights
 
     # -- prediction ------------------------------------------------------------------

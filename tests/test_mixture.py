@@ -1,0 +1,339 @@
+"""MixtureGPOccupancyMap: assignment rules, experts, gating, merging, sklearn integration.
+
+Structural tests use fast stand-ins passed explicitly (sklearn's KMeans / GaussianMixture as
+clusterer, sklearn's GaussianProcessClassifier with fixed hyperparameters as expert): the
+mixture must work with any clusterer with fit/predict and any expert with
+``latent_mean_and_variance``. The paper-level claims use the package's defaults.
+"""
+
+import pickle
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+from sklearn.base import clone
+from sklearn.cluster import KMeans
+from sklearn.gaussian_process import GaussianProcessClassifier
+from sklearn.gaussian_process.kernels import RBF
+from sklearn.gaussian_process.kernels import ConstantKernel as C
+from sklearn.metrics import roc_auc_score
+from sklearn.mixture import GaussianMixture
+from sklearn.model_selection import GridSearchCV
+from sklearn.pipeline import make_pipeline
+from sklearn.preprocessing import FunctionTransformer
+
+from skoccmap.combine import COMBINERS, combine
+from skoccmap.datasets import make_paper_scans
+from skoccmap.mixture import MixtureGPOccupancyMap, _assign_no_return, _ConstantExpert
+from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
+
+
+def _fast_expert(length_scale=1.5):
+    return GaussianProcessClassifier(C(2.0) * RBF(length_scale), optimizer=None)
+
+
+def _mixture(**params):
+    params.setdefault("clusterer", GaussianMixture(5, random_state=0))
+    params.setdefault("expert", _fast_expert())
+    params.setdefault("random_state", 0)
+    return MixtureGPOccupancyMap(**params)
+
+
+@pytest.fixture(scope="module")
+def paper():
+    return make_paper_scans(random_state=0)
+
+
+@pytest.fixture(scope="module")
+def grid(paper):
+    # The cells a map can know about, at a coarse resolution to keep the tests fast.
+    g = paper.environment.ground_truth_grid(0.5, scans=paper.scans)
+    return g.occupied[g.observed], as_segments(g.points[g.observed])
+
+
+# --- assignment ------------------------------------------------------------------------
+
+
+def test_observation_kinds_recovered_from_geometry(paper):
+    model = _mixture().fit(paper.X, paper.y)
+    np.testing.assert_array_equal(model.observation_kind_, paper.kind)
+
+
+def test_hits_and_return_beams_follow_their_hit(paper):
+    model = _mixture().fit(paper.X, paper.y)
+    X, labels = paper.X, model.cluster_labels_
+    hits = np.flatnonzero(paper.kind == HIT)
+    # Hits carry the clusterer's labels.
+    raw = model.clusterer_.predict(X[hits, :2])
+    _, expected = np.unique(raw, return_inverse=True)
+    np.testing.assert_array_equal(model.expert_cluster_[labels[hits]], expected)
+    # A return beam stops free_margin short of its hit: brute-force nearest hit to its end.
+    for row in np.flatnonzero(paper.kind == RETURN):
+        nearest = hits[np.argmin(np.linalg.norm(X[hits, :2] - X[row, 2:], axis=1))]
+        assert labels[row] == labels[nearest]
+
+
+@pytest.mark.parametrize("length_scale", [0.3, 1.0])
+def test_no_return_rule_matches_brute_force(paper, length_scale):
+    # The KD-tree pruning must not change the argmax of the kernel over all return beams.
+    X, kind = paper.X, paper.kind
+    rng = np.random.default_rng(0)
+    ret = np.flatnonzero(kind == RETURN)
+    ret_labels = rng.integers(0, 7, size=ret.size)
+    nr = X[kind == NO_RETURN]
+    kernel = RBF(length_scale)
+    got = _assign_no_return(nr, X[ret], ret_labels, kernel)
+    expected = ret_labels[np.argmax(kernel(nr, X[ret]), axis=1)]
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_no_return_beams_use_the_integral_kernel(paper):
+    kernels = pytest.importorskip("skoccmap.kernels")
+    X, kind = paper.X, paper.kind
+    ret = np.flatnonzero(kind == RETURN)
+    ret_labels = np.arange(ret.size)
+    nr = X[kind == NO_RETURN][:40]
+    kernel = kernels.IntegralKernel(length_scale=1.0)
+    got = _assign_no_return(nr, X[ret], ret_labels, kernel)
+    np.testing.assert_array_equal(got, np.argmax(kernel(nr, X[ret]), axis=1))
+
+
+def test_one_class_cluster_gets_constant_expert():
+    rng = np.random.default_rng(1)
+    # Left: a wall at x=0 seen by beams from x=3; right: hits at x=20 that no beam reaches.
+    wall = np.column_stack([np.zeros(30), np.linspace(-2, 2, 30)])
+    beams = np.column_stack([np.full(30, 3.0), wall[:, 1], wall + [0.05, 0.0]])
+    far = rng.normal([20.0, 0.0], 0.3, size=(12, 2))
+    X = np.vstack([as_segments(wall), beams, as_segments(far)])
+    y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
+    model = MixtureGPOccupancyMap(
+        KMeans(2, n_init=3, random_state=0), _fast_expert(), random_state=0
+    ).fit(X, y)
+    constant = [e for e in model.experts_ if isinstance(e, _ConstantExpert)]
+    assert len(constant) == 1
+    q = as_segments([[20.0, 0.0], [25.0, 3.0]])
+    mean, var = constant[0].latent_mean_and_variance(q)
+    # Prior variance of the expert's kernel, and smoothed frequency (12 + 1) / (12 + 2).
+    np.testing.assert_allclose(var, _fast_expert().kernel.diag(q))
+    np.testing.assert_allclose(ndtr(mean / np.sqrt(1 + var)), 13 / 14)
+    np.testing.assert_allclose(model.predict_proba(q)[:, 1], 13 / 14)
+
+
+# --- experts and splitting ----------------------------------------------------------------
+
+
+def test_single_cluster_mixture_equals_its_expert(paper, grid):
+    _, Q = grid
+    model = _mixture(clusterer=KMeans(1, n_init=1), max_expert_size=None).fit(paper.X, paper.y)
+    single = _fast_expert().fit(paper.X, paper.y)
+    mean, var = single.latent_mean_and_variance(Q)
+    for combiner in ["moe", "poe", "gpoe", "bcm"]:
+        model.set_params(combiner=combiner)
+        got_mean, got_var = model.latent_mean_and_variance(Q)
+        np.testing.assert_allclose(got_mean, mean, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(got_var, var, rtol=1e-10)
+
+
+def test_big_clusters_are_split_and_gated(paper, grid):
+    _, Q = grid
+    model = _mixture(clusterer=KMeans(2, n_init=3, random_state=0), max_expert_size=100)
+    model.fit(paper.X, paper.y)
+    sizes = np.bincount(model.cluster_labels_, minlength=model.n_experts_)
+    assert sizes.max() <= 100
+    assert model.n_experts_ >= int(np.ceil(paper.X.shape[0] / 100))
+    w = model.set_params(gating_threshold=0.0)._gating_weights(Q)
+    # Pieces share their cluster's weight: the split gate is a partition of unity.
+    np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-12)
+
+
+def test_gating_threshold_skips_experts(paper, grid):
+    _, Q = grid
+    model = _mixture(gating_threshold=0.05).fit(paper.X, paper.y)
+    calls = []
+    for k, expert in enumerate(model.experts_):
+        original = expert.latent_mean_and_variance
+
+        def spy(X, k=k, original=original):
+            calls.append((k, X.shape[0]))
+            return original(X)
+
+        expert.latent_mean_and_variance = spy
+    weights = model._gating_weights(Q)
+    proba = model.predict_proba(Q)[:, 1]
+    assert sum(n for _, n in calls) == int(np.count_nonzero(weights))
+    assert sum(n for _, n in calls) < Q.shape[0] * model.n_experts_
+    # The skipped weights are small, so MoE barely moves against using every expert.
+    full = clone(model).set_params(gating_threshold=0.0).fit(paper.X, paper.y)
+    assert np.max(np.abs(full.predict_proba(Q)[:, 1] - proba)) < 0.05 * model.n_experts_
+
+
+def test_merge_matches_combine_on_expert_outputs(paper, grid):
+    _, Q = grid
+    model = _mixture(combiner="bcm", gating_threshold=0.0).fit(paper.X, paper.y)
+    weights = model._gating_weights(Q)
+    means, variances = zip(*(e.latent_mean_and_variance(Q) for e in model.experts_), strict=True)
+    prior = np.column_stack([e.kernel_.diag(Q) for e in model.experts_])
+    for combiner in COMBINERS:
+        model.set_params(combiner=combiner)
+        expected = combine(
+            np.column_stack(means),
+            np.column_stack(variances),
+            weights,
+            method=combiner,
+            prior_variance=prior,
+        )
+        np.testing.assert_allclose(model.predict_proba(Q)[:, 1], expected.proba, rtol=1e-12)
+        np.testing.assert_allclose(model.predict_var(Q), expected.variance, rtol=1e-12)
+
+
+def test_share_hyperparameters_learns_once():
+    data = make_paper_scans(random_state=0)
+    expert = GaussianProcessClassifier(C(1.0) * RBF(1.0))
+    model = _mixture(expert=expert, share_hyperparameters=True).fit(data.X, data.y)
+    sizes = np.bincount(model.cluster_labels_)
+    largest = int(np.argmax(sizes))
+    learned = model.experts_[largest].kernel_
+    assert model.shared_kernel_ == learned
+    assert learned != expert.kernel  # it did learn
+    for k, e in enumerate(model.experts_):
+        if k != largest and not isinstance(e, _ConstantExpert):
+            assert e.kernel_ == learned
+            assert e.optimizer is None
+
+
+def test_share_hyperparameters_needs_kernel_param(paper):
+    model = _mixture(expert=_NoKernelExpert(), share_hyperparameters=True)
+    with pytest.raises(ValueError, match="share_hyperparameters"):
+        model.fit(paper.X, paper.y)
+
+
+class _NoKernelExpert(GaussianProcessClassifier):
+    def get_params(self, deep=True):
+        return {}
+
+
+# --- prediction -------------------------------------------------------------------------
+
+
+def test_chunked_prediction_equals_one_chunk(paper, grid):
+    from sklearn import config_context
+
+    _, Q = grid
+    model = _mixture().fit(paper.X, paper.y)
+    whole = model.predict_proba(Q)
+    with config_context(working_memory=0.05):  # a few hundred rows per chunk
+        chunked = model.predict_proba(Q)
+    # Equal up to the summation order of BLAS blocks.
+    np.testing.assert_allclose(whole, chunked, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("combiner", sorted(COMBINERS))
+@pytest.mark.parametrize("gating", ["clusterer", "gpc"])
+def test_every_combiner_gives_a_valid_map(paper, grid, combiner, gating):
+    occupied, Q = grid
+    model = _mixture(combiner=combiner, gating=gating).fit(paper.X, paper.y)
+    proba = model.predict_proba(Q)
+    mean, var = model.latent_mean_and_variance(Q)
+    assert np.all(np.isfinite(proba)) and np.all((proba >= 0) & (proba <= 1))
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+    assert np.all(np.isfinite(mean)) and np.all(var > 0)
+    np.testing.assert_array_equal(model.predict_var(Q), var)
+    auc = roc_auc_score(occupied, proba[:, 1])
+    assert auc > 0.8, auc
+
+
+def test_labels_are_any_two_classes(paper, grid):
+    _, Q = grid
+    label_names = np.array(["free", "occupied"])
+    model = _mixture().fit(paper.X, label_names[paper.y])
+    ref = _mixture().fit(paper.X, paper.y)
+    np.testing.assert_array_equal(model.classes_, label_names)
+    np.testing.assert_array_equal(model.predict(Q), label_names[ref.predict(Q)])
+    # Reversed meaning: the larger label is the occupied one, as documented.
+    flipped = _mixture().fit(paper.X, 5 - 4 * paper.y)  # hits -> 1, beams -> 5
+    assert flipped.classes_.tolist() == [1, 5]
+    assert np.all(flipped.observation_kind_[paper.y == 0] == HIT)
+
+
+def test_verbose_reports_progress(paper, capsys):
+    _mixture(verbose=2, max_expert_size=100).fit(paper.X, paper.y)
+    out = capsys.readouterr().out
+    assert "clustering" in out and "expert(s) fitted" in out and "split" in out
+
+
+# --- bad input ------------------------------------------------------------------------
+
+
+def test_bad_input_raises_clear_errors(paper):
+    model = _mixture()
+    with pytest.raises(ValueError, match="3 feature"):
+        model.fit(np.zeros((10, 3)), np.r_[np.zeros(5), np.ones(5)])
+    with pytest.raises(ValueError, match="2 classes"):
+        model.fit(paper.X, np.ones(paper.X.shape[0]))
+    with pytest.raises(ValueError, match="2 classes"):
+        model.fit(paper.X, np.arange(paper.X.shape[0]) % 3)
+    X = paper.X.copy()
+    X[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        model.fit(X, paper.y)
+    model.fit(paper.X, paper.y)
+    with pytest.raises(ValueError, match="features"):
+        model.predict(np.zeros((3, 6)))
+    with pytest.raises(ValueError, match="combiner"):
+        _mixture(combiner="mean").fit(paper.X, paper.y)
+
+
+# --- reproducibility and sklearn integration ----------------------------------------------
+
+
+def test_same_result_for_n_jobs_and_after_pickle(paper, grid):
+    _, Q = grid
+    one = _mixture(n_jobs=1).fit(paper.X, paper.y)
+    two = _mixture(n_jobs=2).fit(paper.X, paper.y)
+    p1 = one.predict_proba(Q)
+    np.testing.assert_array_equal(p1, two.predict_proba(Q))
+    np.testing.assert_array_equal(one.cluster_labels_, two.cluster_labels_)
+    again = pickle.loads(pickle.dumps(one))
+    np.testing.assert_array_equal(p1, again.predict_proba(Q))
+    np.testing.assert_array_equal(one.predict_var(Q), again.predict_var(Q))
+
+
+def test_pipeline_and_grid_search(paper):
+    pipe = make_pipeline(FunctionTransformer(), _mixture(max_expert_size=150))
+    search = GridSearchCV(
+        pipe,
+        {
+            "mixturegpoccupancymap__combiner": ["moe", "rbcm"],
+            "mixturegpoccupancymap__expert__kernel__k2__length_scale": [0.5, 2.0],
+        },
+        cv=3,
+        scoring="roc_auc",
+    )
+    search.fit(paper.X, paper.y)
+    assert len(search.cv_results_["params"]) == 4
+    assert np.all(np.isfinite(search.cv_results_["mean_test_score"]))
+    best = search.best_estimator_[-1]
+    assert (
+        best.expert.kernel.k2.length_scale
+        == search.best_params_["mixturegpoccupancymap__expert__kernel__k2__length_scale"]
+    )
+
+
+@pytest.mark.slow  # starting a LocalCluster of 2 processes takes ~15 s here
+def test_dask_backend_matches_local(paper, grid):
+    distributed = pytest.importorskip("distributed")
+    from joblib import parallel_config
+
+    _, Q = grid
+    local = _mixture(n_jobs=1).fit(paper.X, paper.y).predict_proba(Q)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        with distributed.get_task_stream(client) as stream, parallel_config(backend="dask"):
+            model = _mixture(n_jobs=2).fit(paper.X, paper.y)
+        # The experts ran as tasks on the workers.
+        assert len(stream.data) > 0
+    np.testing.assert_array_equal(model.predict_proba(Q), local)
