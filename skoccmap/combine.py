@@ -160,9 +160,7 @@ def mixture_of_experts(means, variances, weights=None):
     mean = np.sum(w * mu, axis=1)
     # Law of total variance: E[var] + Var[mean].
     variance = np.sum(w * (var + (mu - mean[:, None]) ** 2), axis=1)
-    return MergedPrediction(
-        np.clip(proba, 0.0, 1.0), mean, np.maximum(variance, _VARIANCE_FLOOR)
-    )
+    return MergedPrediction(np.clip(proba, 0.0, 1.0), mean, np.maximum(variance, _VARIANCE_FLOOR))
 
 
 def _gaussian_product(means, variances, betas, used, prior_precision=None):

@@ -34,9 +34,7 @@ def _moments(log_density, center, scale, density=None):
 
     z = integrate.quad(density, lo, hi, epsabs=0, epsrel=1e-11, limit=200)[0]
     m1 = integrate.quad(lambda f: f * density(f), lo, hi, epsabs=0, epsrel=1e-11, limit=200)[0]
-    m2 = integrate.quad(
-        lambda f: f * f * density(f), lo, hi, epsabs=0, epsrel=1e-11, limit=200
-    )[0]
+    m2 = integrate.quad(lambda f: f * f * density(f), lo, hi, epsabs=0, epsrel=1e-11, limit=200)[0]
     mean = m1 / z
     return mean, m2 / z - mean**2
 
@@ -120,8 +118,10 @@ def test_bcm_matches_product_over_prior_powers(experts):
     for i in range(means.shape[0]):
         # p(f | D) proportional to prod_k p_k(f | D_k) / p(f)^(M-1)   (Tresp 2000)
         mean, var = _moments(
-            lambda f, i=i: sum(_log_gauss(f, means[i, k], variances[i, k]) for k in range(m))
-            - (m - 1) * _log_gauss(f, 0.0, prior[i]),
+            lambda f, i=i: (
+                sum(_log_gauss(f, means[i, k], variances[i, k]) for k in range(m))
+                - (m - 1) * _log_gauss(f, 0.0, prior[i])
+            ),
             means[i].mean(),
             1.0,
         )
@@ -141,10 +141,10 @@ def test_rbcm_matches_entropy_weighted_product(experts):
             for k in range(m)
         ]
         mean, var = _moments(
-            lambda f, i=i, b=betas: sum(
-                b[k] * _log_gauss(f, means[i, k], variances[i, k]) for k in range(m)
-            )
-            + (1 - sum(b)) * _log_gauss(f, 0.0, prior[i]),
+            lambda f, i=i, b=betas: (
+                sum(b[k] * _log_gauss(f, means[i, k], variances[i, k]) for k in range(m))
+                + (1 - sum(b)) * _log_gauss(f, 0.0, prior[i])
+            ),
             means[i].mean(),
             1.0,
         )
