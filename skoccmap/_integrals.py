@@ -37,9 +37,9 @@ _SQRT_HALF = np.sqrt(0.5)
 
 # Pairs of segments further apart than this (scaled) are set to zero: exp(-8**2 / 2) < 1.3e-14.
 _CUTOFF = 8.0
-# The outer window extends this far beyond the projections of the relevant part of the inner
-# segment; the neglected tails are below 2 * Phi(-5.75) < 1e-8 of the value.
-_WINDOW_MARGIN = 5.75
+# The outer window is where the integrand is within exp(-6**2 / 2) < 2e-8 of its largest value
+# (see _outer_windows).
+_WINDOW_MARGIN = 6.0
 # Below this scaled length the analytic inner integral loses more than ~1/_SHORT of its digits.
 _SHORT = 0.05
 # Gauss-Legendre order for pairs of short segments (error < 1e-12 for lengths below _SHORT).
@@ -265,49 +265,109 @@ def _short_pairs(s1, s2, dim, gradient):
     return k, np.einsum("pij,pijk->pk", kern, diff2)
 
 
+def _dot(x, y):
+    return np.einsum("pk,pk->p", x, y)
+
+
+def _point_segment_dist2(p, a, d, dd):
+    """Squared distance from points ``p`` to segments ``a + v d`` (``dd = |d|**2``)."""
+    w = p - a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = np.clip(np.where(dd > 0.0, _dot(w, d) / dd, 0.0), 0.0, 1.0)
+    r = w - v[:, None] * d
+    return _dot(r, r)
+
+
+def _segment_dist2(a1, d1, a2, d2):
+    """Squared distance between segments ``a1 + u d1`` and ``a2 + v d2``, u, v in [0, 1].
+
+    The squared distance is a convex quadratic on the unit square: its minimum is at the lines'
+    closest approach when that lies inside, else on an edge (an endpoint against a segment).
+    """
+    dd1, dd2 = _dot(d1, d1), _dot(d2, d2)
+    best = np.minimum.reduce([
+        _point_segment_dist2(a1, a2, d2, dd2),
+        _point_segment_dist2(a1 + d1, a2, d2, dd2),
+        _point_segment_dist2(a2, a1, d1, dd1),
+        _point_segment_dist2(a2 + d2, a1, d1, dd1),
+    ])
+    r = a1 - a2
+    b, e, f = _dot(d1, d2), _dot(d1, r), _dot(d2, r)
+    den = dd1 * dd2 - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (b * f - dd2 * e) / den
+        v = (dd1 * f - b * e) / den
+    inside = (den > 1e-12 * dd1 * dd2) & (u > 0.0) & (u < 1.0) & (v > 0.0) & (v < 1.0)
+    if np.any(inside):
+        i = np.flatnonzero(inside)
+        diff = r[i] + u[i, None] * d1[i] - v[i, None] * d2[i]
+        best[i] = np.minimum(best[i], _dot(diff, diff))
+    return best
+
+
+def _sublevel(qa, qb, qc):
+    """Interval ``{s : qa s**2 + qb s + qc <= 0}`` for ``qa >= 0`` (empty when lo > hi)."""
+    disc = qb * qb - 4.0 * qa * qc
+    sq = np.sqrt(np.maximum(disc, 0.0))
+    # Stable roots: q / qa and qc / q, with no cancellation in q; qa -> 0 sends one root to inf.
+    q = -0.5 * (qb + np.copysign(sq, qb))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r1 = np.where(qa > 0.0, q / qa, np.copysign(np.inf, q))
+        r2 = np.where(q != 0.0, qc / q, -np.copysign(np.inf, qb))
+    lo, hi = np.minimum(r1, r2), np.maximum(r1, r2)
+    constant = (qa == 0.0) & (qb == 0.0)
+    lo = np.where(constant, np.where(qc <= 0.0, -np.inf, np.inf), np.where(disc >= 0, lo, np.inf))
+    hi = np.where(constant, np.where(qc <= 0.0, np.inf, -np.inf), np.where(disc >= 0, hi, -np.inf))
+    return lo, hi
+
+
 def _outer_windows(a1, d1, len1, a2, d2):
     """Window ``[lo, hi]`` (in u) on the outer segment where the integrand matters.
 
-    Only the part of the inner segment within ``_CUTOFF`` of the outer segment's line matters;
-    its projections onto that line, widened by ``_WINDOW_MARGIN`` and clipped to the segment,
-    give the window. Returns (lo, hi, keep) with ``keep`` False for pairs further apart than
-    ``_CUTOFF`` (their value is below exp(-_CUTOFF**2 / 2)).
+    Along the outer segment (arc length s), the integrand is at most ``exp(-dist(s)**2 / 2)``
+    with ``dist(s)`` the distance from ``a1 + s e1`` to the inner segment, a convex function.
+    The window is where ``dist(s)**2 <= dmin**2 + _WINDOW_MARGIN**2`` (``dmin`` the segments'
+    distance): outside it the integrand is below ``exp(-_WINDOW_MARGIN**2 / 2)`` times its peak
+    and decays at least exponentially, so the neglected part is about that fraction of the value.
+    ``dist(s)**2`` is the distance to an end of the inner segment or to its line (where the
+    closest point is inside), so the window is the hull of three quadratic sublevel sets.
+
+    Returns (lo, hi, keep) with ``keep`` False for pairs further apart than ``_CUTOFF``.
     """
+    dmin2 = _segment_dist2(a1, d1, a2, d2)
+    keep = dmin2 <= _CUTOFF**2
+    thresh = dmin2 + _WINDOW_MARGIN**2
     with np.errstate(divide="ignore", invalid="ignore"):
         inv1 = np.where(len1 > 0.0, 1.0 / len1, 0.0)
         e1 = d1 * inv1[:, None]
-        c = a2 - a1
-        tau0 = np.einsum("pk,pk->p", c, e1)
-        tau1 = np.einsum("pk,pk->p", d2, e1)
-        r0 = c - tau0[:, None] * e1
-        r1 = d2 - tau1[:, None] * e1
-        # |r0 + v r1|^2 <= CUTOFF^2: quadratic alpha v^2 + 2 beta v + gamma <= 0.
-        alpha = np.einsum("pk,pk->p", r1, r1)
-        beta = np.einsum("pk,pk->p", r0, r1)
-        gamma = np.einsum("pk,pk->p", r0, r0) - _CUTOFF**2
-        disc = beta * beta - alpha * gamma
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        # Stable roots of the quadratic (no cancellation between -beta and sq).
-        q = -(beta + np.copysign(sq, beta))
-        root_a = np.where(q != 0.0, gamma / q, 0.0)
-        root_b = np.where(alpha > 0.0, q / alpha, 0.0)
-        flat = alpha <= 1e-300
-        va = np.where(flat, 0.0, np.minimum(root_a, root_b))
-        vb = np.where(flat, 1.0, np.maximum(root_a, root_b))
-        keep = np.where(flat, gamma <= 0.0, disc >= 0.0)
-        va = np.clip(va, 0.0, 1.0)
-        vb = np.clip(vb, 0.0, 1.0)
-        keep &= vb >= va
-        t_a = tau0 + va * tau1
-        t_b = tau0 + vb * tau1
-        t_lo = np.minimum(t_a, t_b)
-        t_hi = np.maximum(t_a, t_b)
-        keep &= (t_lo <= len1 + _CUTOFF) & (t_hi >= -_CUTOFF)
-        # Keep at least min(margin, length) of the segment so a window is never empty.
-        lo = np.clip(t_lo - _WINDOW_MARGIN, 0.0, np.maximum(len1 - _WINDOW_MARGIN, 0.0))
-        hi = np.clip(t_hi + _WINDOW_MARGIN, np.minimum(_WINDOW_MARGIN, len1), len1)
-        lo = np.where(len1 > 0.0, lo * inv1, 0.0)
-        hi = np.where(len1 > 0.0, hi * inv1, 1.0)
+        dd2 = _dot(d2, d2)
+        w0 = a1 - a2
+        lo = np.full(len1.shape, np.inf)
+        hi = np.full(len1.shape, -np.inf)
+        for end in (w0, w0 - d2):  # |a1 + s e1 - q|^2 for the inner segment's ends q
+            b = _dot(end, e1)
+            l_, h_ = _sublevel(np.ones_like(b), 2.0 * b, _dot(end, end) - thresh)
+            lo, hi = np.minimum(lo, l_), np.maximum(hi, h_)
+        # Distance to the inner line, where the closest point v0(s) lies in [0, 1].
+        ed, wd = _dot(e1, d2), _dot(w0, d2)
+        l_, h_ = _sublevel(
+            np.maximum(1.0 - ed * ed / dd2, 0.0),
+            2.0 * (_dot(w0, e1) - wd * ed / dd2),
+            _dot(w0, w0) - wd * wd / dd2 - thresh,
+        )
+        # v0(s) = (wd + s ed) / dd2 in [0, 1]
+        j1 = np.where(ed != 0.0, -wd / ed, np.where(wd <= 0.0, -np.inf, np.inf))
+        j2 = np.where(ed != 0.0, (dd2 - wd) / ed, np.where(wd <= dd2, np.inf, -np.inf))
+        l_ = np.maximum(l_, np.minimum(j1, j2))
+        h_ = np.minimum(h_, np.maximum(j1, j2))
+        valid = l_ <= h_
+        lo = np.where(valid, np.minimum(lo, l_), lo)
+        hi = np.where(valid, np.maximum(hi, h_), hi)
+        lo = np.clip(lo, 0.0, len1) * inv1
+        hi = np.clip(hi, 0.0, len1) * inv1
+    # Points (len1 == 0) need a single node anywhere.
+    hi = np.where(len1 > 0.0, np.maximum(hi, lo), 1.0)
+    lo = np.where(len1 > 0.0, lo, 0.0)
     return lo, hi, keep
 
 
