@@ -1,0 +1,198 @@
+"""``skoccmap map``: fit the mixture of GP experts to a CARMEN log and write the map.
+
+Writes, into ``--out``: ``<name>.pgm`` + ``<name>.yaml`` (ROS map_server, trinary),
+``<name>.npz`` (probability, variance, unknown mask; :meth:`skoccmap.OccupancyGrid.load`) and,
+when matplotlib is installed, ``<name>.png`` (probability and uncertainty panels).
+"""
+
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser):
+    parser.add_argument("log", metavar="LOG", help="CARMEN log (plain text or gzip)")
+    add_model_arguments(parser)
+    parser.add_argument(
+        "--every-nth-scan",
+        type=int,
+        default=1,
+        metavar="N",
+        help="train on every N-th scan only (default 1: all scans)",
+    )
+    parser.add_argument(
+        "--resolution", type=float, default=0.1, help="map cell size in metres (default 0.1)"
+    )
+    parser.add_argument(
+        "--out", metavar="DIR", default=None, help="output folder (default: ./<log name>_map)"
+    )
+    parser.add_argument(
+        "--unknown-variance",
+        default="auto",
+        help="cells with a larger predictive variance are unknown; 'auto' (default): half the "
+        "largest variance on the map; 'none': no unknown cells",
+    )
+
+
+def add_model_arguments(parser):
+    """Options shared by ``map`` and ``evaluate``: reading the log and the mixture."""
+    parser.add_argument(
+        "--max-range",
+        type=float,
+        default=None,
+        help="readings at or above this are no-return beams (default: the log's sentinel)",
+    )
+    parser.add_argument(
+        "--max-expert-size",
+        type=int,
+        default=400,
+        help="largest number of observations per GP expert (default 400)",
+    )
+    parser.add_argument(
+        "--combiner",
+        default="moe",
+        choices=["moe", "poe", "gpoe", "bcm", "rbcm"],
+        help="rule merging the experts (default moe)",
+    )
+    parser.add_argument(
+        "--learn-all-hyperparameters",
+        action="store_true",
+        help="learn kernel hyperparameters per expert (slow) instead of once, shared",
+    )
+    parser.add_argument(
+        "--n-jobs", type=int, default=1, help="parallel expert fits (default 1; -1: all cores)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages")
+
+
+def make_mixture(args):
+    from .mixture import MixtureGPOccupancyMap
+
+    return MixtureGPOccupancyMap(
+        combiner=args.combiner,
+        max_expert_size=args.max_expert_size,
+        share_hyperparameters=not args.learn_all_hyperparameters,
+        n_jobs=args.n_jobs,
+        random_state=args.seed,
+        verbose=0 if args.quiet else 1,
+    )
+
+
+def load_scans(args):
+    """Read the log, printing what was read; ValueError on a bad log or option."""
+    from .datasets import load_carmen
+
+    scans = load_carmen(args.log, max_range=args.max_range)
+    print(
+        f"{args.log}: {len(scans)} scans x {scans.n_beams} beams, max range {scans.max_range:g} m"
+    )
+    return scans
+
+
+class Stopwatch:
+    """Named wall-clock timings, printed as a table at the end."""
+
+    def __init__(self):
+        self.rows = []
+
+    def __call__(self, name, func, *args, **kwargs):
+        tic = time.perf_counter()
+        result = func(*args, **kwargs)
+        self.rows.append((name, time.perf_counter() - tic))
+        return result
+
+    def table(self):
+        lines = ["| step | seconds |", "|---|---|"]
+        lines += [f"| {name} | {seconds:.1f} |" for name, seconds in self.rows]
+        total = sum(seconds for _, seconds in self.rows)
+        return "\n".join(lines + [f"| total | {total:.1f} |"])
+
+
+def _unknown_variance(text):
+    if text.lower() == "none":
+        return None
+    if text == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"--unknown-variance must be auto, none or a number: {text!r}") from None
+    if not value > 0:
+        raise ValueError(f"--unknown-variance must be positive, got {value}")
+    return value
+
+
+def run(args):
+    try:
+        if args.every_nth_scan < 1:
+            raise ValueError(f"--every-nth-scan must be >= 1, got {args.every_nth_scan}")
+        if not args.resolution > 0:
+            raise ValueError(f"--resolution must be positive, got {args.resolution}")
+        unknown_variance = _unknown_variance(args.unknown_variance)
+        return _run(args, unknown_variance)
+    except (ValueError, OSError) as exc:
+        print(f"skoccmap map: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args, unknown_variance):
+    import numpy as np
+
+    from .grid import OccupancyGrid
+
+    watch = Stopwatch()
+    scans = watch("read log", load_scans, args)
+    train = scans[:: args.every_nth_scan]
+    X, y, kind = watch("observations", train.to_observations)
+    counts = np.bincount(kind, minlength=3)
+    print(
+        f"training on {len(train)} scans: {len(X)} observations ({counts[0]} hits, "
+        f"{counts[1]} return beams, {counts[2]} no-return beams)"
+    )
+    model = watch("fit mixture", make_mixture(args).fit, X, y)
+    print(f"fitted {model.n_experts_} experts")
+    # Cover the hit points: no-return beams reach far outside the building.
+    extent = train.hit_points()
+    grid = watch(
+        "predict grid",
+        OccupancyGrid.from_estimator,
+        model,
+        extent,
+        args.resolution,
+        unknown_variance=unknown_variance,
+        verbose=0 if args.quiet else 1,
+    )
+    print(f"map: {grid.shape[1]} x {grid.shape[0]} cells at {grid.resolution:g} m")
+    out = Path(args.out) if args.out else Path(f"{Path(args.log).name.split('.')[0]}_map")
+    out.mkdir(parents=True, exist_ok=True)
+    stem = out / Path(args.log).name.split(".")[0]
+    written = watch("write map files", _write, grid, stem)
+    print(watch.table())
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+def _write(grid, stem):
+    written = list(grid.save_map_server(stem))
+    grid.save(stem.with_suffix(".npz"))
+    written.append(stem.with_suffix(".npz"))
+    png = _save_png(grid, stem.with_suffix(".png"))
+    return written if png is None else written + [png]
+
+
+def _save_png(grid, path):
+    try:
+        from matplotlib.figure import Figure
+    except ImportError:
+        print('matplotlib is not installed: pip install "skoccmap[plot]" for the PNG.')
+        return None
+    from .plotting import OccupancyMapDisplay
+
+    n_panels = 2 if grid.variance is not None else 1
+    fig = Figure(figsize=(7 * n_panels, 6.5), layout="constrained")
+    axes = fig.subplots(1, n_panels, squeeze=False)[0]
+    OccupancyMapDisplay.from_grid(grid, ax=list(axes))
+    fig.savefig(path, dpi=150)
+    return path
