@@ -61,7 +61,7 @@ class EPPosterior(NamedTuple):
     L : ndarray of shape (n, n) or None
         Lower Cholesky factor of ``B = I + S^1/2 K S^1/2`` (Cholesky form), else None.
     lu : tuple or None
-        LU factors of ``I + S K`` (general form, some ``tau < 0``), else None.
+        LU factors of ``I + K S`` (general form, some ``tau < 0``), else None.
     tau : ndarray of shape (n,)
         The site precisions this posterior was computed from.
     """
@@ -158,7 +158,7 @@ def ep_posterior(K, tau, nu):
     Uses the numerically stable ``B = I + S^1/2 K S^1/2`` form of R&W Algorithm 3.5 when every
     site precision is non-negative. Negative precisions (which EP with a probit likelihood never
     proposes, but which warm starts or other likelihoods can bring) make ``S^1/2`` complex; then
-    the general form ``Sigma = (I + S K)^-1 K`` is solved by LU, which works whenever the
+    the general form ``Sigma = (I + K S)^-1 K`` is solved by LU, which works whenever the
     approximation is a proper Gaussian.
 
     Parameters
@@ -201,16 +201,17 @@ def _posterior_cholesky(K, tau, nu):
     if not np.any(tau > 0.0):
         # All sites flat: the posterior is the prior (B = I).
         return EPPosterior(K @ nu, diag_K, nu.copy(), 0.0, sqrt_tau, np.eye(n), None, tau)
-    B = sqrt_tau[:, None] * K * sqrt_tau[None, :]
+    B = np.multiply(K, sqrt_tau[:, None])
+    B *= sqrt_tau[None, :]
     B.flat[:: n + 1] += 1.0
     L = cholesky(B, lower=True, overwrite_a=True, check_finite=False)
     # Sigma = S^-1/2 (I - B^-1) S^-1/2 (from K = S^-1/2 (B - I) S^-1/2), so the marginal
     # variances need only diag(B^-1), the column norms of L^-1: n^3/3 flops, not the n^3 of
     # V = L^-1 S^1/2 K (R&W Alg. 3.5 line 8). Columns where 1 - [B^-1]_ii cancels are redone.
+    # (L's strict upper triangle is zero and dtrtri leaves it untouched.)
     L_inv, info = dtrtri(L, lower=1)
     if info != 0:
         raise np.linalg.LinAlgError("Cholesky factor of B is singular.")
-    L_inv = np.tril(L_inv)
     one_minus = 1.0 - np.einsum("ij,ij->j", L_inv, L_inv)
     var = np.empty(n)
     good = one_minus > _CANCELLATION_THRESHOLD
@@ -228,7 +229,7 @@ def _posterior_cholesky(K, tau, nu):
 
 def _posterior_lu(K, tau, nu):
     n = tau.shape[0]
-    M = tau[:, None] * K
+    M = K * tau[None, :]  # I + K S, so that Sigma = (I + K S)^-1 K and (I + S K) = M^T
     M.flat[:: n + 1] += 1.0
     lu = lu_factor(M, check_finite=False)
     diag_U = np.diagonal(lu[0])
@@ -236,7 +237,7 @@ def _posterior_lu(K, tau, nu):
     sign = (-1.0) ** n_swaps * np.prod(np.sign(diag_U))
     if sign <= 0.0:
         raise np.linalg.LinAlgError(
-            "The EP sites do not define a proper Gaussian: det(I + S K) <= 0 with negative site "
+            "The EP sites do not define a proper Gaussian: det(I + K S) <= 0 with negative site "
             "precisions."
         )
     var = np.diagonal(lu_solve(lu, K, check_finite=False)).copy()
@@ -244,7 +245,7 @@ def _posterior_lu(K, tau, nu):
         raise np.linalg.LinAlgError(
             "The EP sites do not define a proper Gaussian: non-positive posterior variance."
         )
-    alpha = lu_solve(lu, nu, check_finite=False)
+    alpha = lu_solve(lu, nu, trans=1, check_finite=False)
     mean = K @ alpha
     log_det_B = float(np.sum(np.log(np.abs(diag_U))))
     return EPPosterior(mean, var, alpha, log_det_B, None, None, lu, tau)
@@ -265,7 +266,7 @@ def _r_matrix(posterior):
         B_inv = np.tril(B_inv) + np.tril(B_inv, -1).T
         s = posterior.sqrt_tau
         return s[:, None] * B_inv * s[None, :]
-    return lu_solve(posterior.lu, np.diag(posterior.tau), check_finite=False)
+    return lu_solve(posterior.lu, np.diag(posterior.tau), trans=1, check_finite=False)
 
 
 def _check_inputs(K, y, tau, nu, mean):
@@ -304,6 +305,7 @@ def expectation_propagation(
     damping=0.5,
     max_iter=200,
     tol=1e-6,
+    acceleration=5,
 ):
     """Run EP for a probit GP classifier to a fixed point (R&W Algorithm 3.5).
 
@@ -330,6 +332,12 @@ def expectation_propagation(
     tol : float, default=1e-6
         Stop when every site residual ``|proposed - current| / (1 + |current|)`` (for both
         tau and nu) is at most ``tol``.
+    acceleration : int, default=5
+        Parallel updates only: number of past sweeps that Anderson acceleration combines
+        (0 turns it off). Parallel EP is a fixed-point iteration that converges linearly;
+        Anderson mixing of the last few (damped) steps needs about half the sweeps. Steps that
+        would make a site precision negative or the posterior improper fall back to the plain
+        damped step, so the fixed point is that of EP.
 
     Returns
     -------
@@ -352,15 +360,19 @@ def expectation_propagation(
         raise ValueError(f"update must be 'parallel' or 'sequential', got {update!r}.")
     if not 0.0 <= damping < 1.0:
         raise ValueError(f"damping must be in [0, 1), got {damping}.")
-    sweep = _parallel_sweep if update == "parallel" else _sequential_sweep
+    if acceleration < 0:
+        raise ValueError(f"acceleration must be >= 0, got {acceleration}.")
     posterior = ep_posterior(K, tau, nu)
-    residual = np.inf
-    n_iter = 0
-    for n_iter in range(1, max_iter + 1):  # noqa: B007 - n_iter is reported after the loop
-        tau, nu, posterior, residual = sweep(K, y, mean, tau, nu, posterior, damping)
-        if residual <= tol:
-            return EPResult(tau, nu, posterior, n_iter, True, residual)
-    return EPResult(tau, nu, posterior, n_iter, False, residual)
+    if update == "sequential":
+        residual = np.inf
+        for n_iter in range(1, max_iter + 1):
+            tau, nu, posterior, residual = _sequential_sweep(
+                K, y, mean, tau, nu, posterior, damping
+            )
+            if residual <= tol:
+                return EPResult(tau, nu, posterior, n_iter, True, residual)
+        return EPResult(tau, nu, posterior, max_iter, False, residual)
+    return _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, acceleration)
 
 
 def _residual(tau, nu, tau_new, nu_new):
@@ -370,17 +382,56 @@ def _residual(tau, nu, tau_new, nu_new):
     )
 
 
-def _parallel_sweep(K, y, mean, tau, nu, posterior, damping):
+def _proposed_sites(y, mean, tau, nu, posterior):
+    """Sites that match the tilted moments, all at once (R&W Alg. 3.5 lines 5-9)."""
     tau_cav, nu_cav = _cavity(posterior, tau, nu)
     # A non-positive cavity precision (rounding when a site dominates its marginal) leaves
-    # the tilted distribution undefined: keep that site as it is for this sweep.
+    # the tilted distribution undefined: that site stays as it is.
     ok = tau_cav > 0.0
     tau_prop, nu_prop = tau.copy(), nu.copy()
     tau_prop[ok], nu_prop[ok], _ = probit_site_update(y[ok], tau_cav[ok], nu_cav[ok], mean[ok])
-    residual = _residual(tau, nu, tau_prop, nu_prop)
-    tau = damping * tau + (1.0 - damping) * tau_prop
-    nu = damping * nu + (1.0 - damping) * nu_prop
-    return tau, nu, ep_posterior(K, tau, nu), residual
+    return tau_prop, nu_prop
+
+
+def _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, memory):
+    """Damped parallel EP, with Anderson acceleration of the damped fixed-point map."""
+    n = tau.shape[0]
+    xs, fs = [], []  # past iterates and their damped steps, for Anderson mixing
+    best = np.inf
+    residual = np.inf
+    for n_iter in range(1, max_iter + 1):
+        tau_prop, nu_prop = _proposed_sites(y, mean, tau, nu, posterior)
+        residual = _residual(tau, nu, tau_prop, nu_prop)
+        if residual <= tol:
+            return EPResult(tau, nu, posterior, n_iter, True, residual)
+        if residual > 10.0 * best:
+            xs, fs = [], []  # acceleration is leading away: restart it from here
+        best = min(best, residual)
+        x = np.concatenate([tau, nu])
+        step = (1.0 - damping) * np.concatenate([tau_prop - tau, nu_prop - nu])
+        x_new = x + step
+        if memory:
+            xs.append(x)
+            fs.append(step)
+            del xs[: -memory - 1], fs[: -memory - 1]
+            if len(xs) > 1:
+                d_x = np.diff(np.asarray(xs), axis=0).T
+                d_f = np.diff(np.asarray(fs), axis=0).T
+                gamma = np.linalg.lstsq(d_f, step, rcond=None)[0]
+                x_new = x_new - (d_x + d_f) @ gamma
+        posterior_new = None
+        if np.all(x_new[:n] >= 0.0):
+            try:
+                posterior_new = ep_posterior(K, x_new[:n], x_new[n:])
+            except np.linalg.LinAlgError:
+                pass
+        if posterior_new is None or not np.all(posterior_new.var > 0.0):
+            # The accelerated step left the valid region: take the plain damped step.
+            xs, fs = [], []
+            x_new = x + step
+            posterior_new = ep_posterior(K, x_new[:n], x_new[n:])
+        tau, nu, posterior = x_new[:n].copy(), x_new[n:].copy(), posterior_new
+    return EPResult(tau, nu, posterior, max_iter, False, residual)
 
 
 def _sequential_sweep(K, y, mean, tau, nu, posterior, damping):
@@ -547,6 +598,8 @@ def ep_latent_predictive(K_star, k_star_diag, posterior):
         )
         var = k_star_diag - np.einsum("ij,ij->j", V, V)
     else:
-        RK = lu_solve(posterior.lu, posterior.tau[:, None] * K_star.T, check_finite=False)
-        var = k_star_diag - np.einsum("ji,ij->i", K_star, RK)
+        RK = lu_solve(
+            posterior.lu, posterior.tau[:, None] * K_star.T, trans=1, check_finite=False
+        )
+        var = k_star_diag - np.einsum("ij,ji->i", K_star, RK)
     return mean, var

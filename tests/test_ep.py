@@ -1,0 +1,305 @@
+"""Reference tests for the EP functions in skoccmap.ep.
+
+References are computed independently: quadrature of the tilted distributions, dense inverses of
+small matrices, the defining product form of the EP evidence, the exact probit evidence as a
+Gaussian orthant probability, and finite differences.
+"""
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.stats import multivariate_normal, norm
+from sklearn.gaussian_process.kernels import RBF
+from sklearn.gaussian_process.kernels import ConstantKernel as C
+
+from skoccmap.ep import (
+    ep_latent_predictive,
+    ep_log_marginal_likelihood,
+    ep_log_marginal_likelihood_gradient,
+    ep_posterior,
+    expectation_propagation,
+    probit_site_update,
+)
+
+
+def _problem(n=12, signal=2.0, length_scale=0.7, noise=0.4, seed=0, ard=False):
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-2, 2, size=(n, 2))
+    y = np.where(np.sin(2 * X[:, 0]) + X[:, 1] + noise * rng.standard_normal(n) > 0, 1.0, -1.0)
+    ls = [length_scale, 1.3 * length_scale] if ard else length_scale
+    kernel = C(signal) * RBF(ls)
+    return kernel, X, y
+
+
+def _tilted_moments(y, mu_cav, s2_cav, m=0.0):
+    """Moments of Phi(y (g + m)) N(g | mu_cav, s2_cav) by quadrature."""
+    sd = np.sqrt(s2_cav)
+    lo, hi = mu_cav - 12 * sd, mu_cav + 12 * sd
+
+    def w(g):
+        return norm.cdf(y * (g + m)) * norm.pdf(g, mu_cav, sd)
+
+    z0 = quad(w, lo, hi, epsabs=0, epsrel=1e-12, limit=200)[0]
+    z1 = quad(lambda g: g * w(g), lo, hi, epsabs=0, epsrel=1e-12, limit=200)[0]
+    z2 = quad(lambda g: g * g * w(g), lo, hi, epsabs=0, epsrel=1e-12, limit=200)[0]
+    mean = z1 / z0
+    return z0, mean, z2 / z0 - mean**2
+
+
+@pytest.mark.parametrize("y", [-1.0, 1.0])
+@pytest.mark.parametrize("k", [0.3, 4.0])
+@pytest.mark.parametrize("m", [-0.8, 0.0, 1.1])
+def test_single_observation_is_exact(y, k, m):
+    # One site sees the exact likelihood: EP is exact for n = 1 (R&W section 3.6).
+    K = np.array([[k]])
+    res = expectation_propagation(K, [y], mean=m, tol=1e-13, damping=0.0)
+    assert res.converged
+    lml = ep_log_marginal_likelihood(K, [y], res.site_precision, res.site_nu, mean=m)
+    np.testing.assert_allclose(lml, norm.logcdf(y * m / np.sqrt(1 + k)), rtol=1e-10)
+    z0, mean, var = _tilted_moments(y, 0.0, k, m)
+    np.testing.assert_allclose(res.posterior.mean[0], mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(res.posterior.var[0], var, rtol=1e-8)
+
+
+@pytest.mark.parametrize(
+    "y, tau_cav, nu_cav, m",
+    [(1.0, 1.0, 0.0, 0.0), (-1.0, 0.2, 1.5, 0.3), (1.0, 5.0, -10.0, 0.0), (-1.0, 0.05, 0.4, -2.0)],
+)
+def test_site_update_matches_tilted_moments(y, tau_cav, nu_cav, m):
+    # New site = tilted moments divided by the cavity, in natural parameters (R&W eq. 3.59).
+    tau, nu, log_Z = probit_site_update(
+        np.array([y]), np.array([tau_cav]), np.array([nu_cav]), np.array([m])
+    )
+    z0, mean, var = _tilted_moments(y, nu_cav / tau_cav, 1 / tau_cav, m)
+    np.testing.assert_allclose(np.exp(log_Z[0]), z0, rtol=1e-9)
+    np.testing.assert_allclose(tau[0], 1 / var - tau_cav, rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(nu[0], mean / var - nu_cav, rtol=1e-7, atol=1e-12)
+
+
+def test_site_update_far_tail_is_finite_and_nonnegative():
+    # z -> -inf (a confidently wrong cavity) must not overflow; z -> +inf gives a flat site.
+    tau, nu, log_Z = probit_site_update(
+        np.array([1.0, 1.0, -1.0]), np.array([1.0, 1.0, 1.0]), np.array([-60.0, 60.0, 60.0])
+    )
+    assert np.all(np.isfinite(tau)) and np.all(np.isfinite(nu)) and np.all(np.isfinite(log_Z))
+    assert np.all(tau >= 0)
+    assert tau[1] < 1e-100
+
+
+def test_fixed_point_marginals_match_tilted_moments():
+    # At an EP fixed point each posterior marginal has the moments of its tilted distribution.
+    kernel, X, y = _problem(n=6)
+    res = expectation_propagation(kernel(X), y, tol=1e-12)
+    assert res.converged
+    post = res.posterior
+    tau_cav = 1 / post.var - res.site_precision
+    mu_cav = (post.mean / post.var - res.site_nu) / tau_cav
+    for i in range(len(y)):
+        _, mean, var = _tilted_moments(y[i], mu_cav[i], 1 / tau_cav[i])
+        np.testing.assert_allclose(post.mean[i], mean, rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(post.var[i], var, rtol=1e-7)
+
+
+def _dense_posterior(K, tau, nu):
+    Sigma = np.linalg.inv(np.linalg.inv(K) + np.diag(tau))
+    return Sigma @ nu, Sigma
+
+
+@pytest.mark.parametrize(
+    "tau",
+    [
+        np.array([0.5, 2.0, 0.0, 1e-9, 3.0, 1e-14, 0.7, 10.0]),  # flat and vanishing sites
+        np.array([0.5, -0.3, 1.0, 2.0, -0.2, 0.4, 1.5, 0.8]),  # negative precisions (LU path)
+    ],
+)
+def test_posterior_matches_dense_inverse(tau):
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((8, 8))
+    K = A @ A.T / 8 + 0.8 * np.eye(8)  # well conditioned, so the dense inverse is a reference
+    nu = rng.standard_normal(8)
+    post = ep_posterior(K, tau, nu)
+    mean, Sigma = _dense_posterior(K, tau, nu)
+    assert np.all(np.isfinite(post.var))
+    np.testing.assert_allclose(post.var, np.diag(Sigma), rtol=1e-10)
+    np.testing.assert_allclose(post.mean, mean, rtol=1e-10, atol=1e-12)
+    # Predictions at new points from the joint Gaussian of (f, f_*).
+    B = rng.standard_normal((3, 8))
+    K_star = B @ A.T / 8
+    k_ss = np.einsum("ij,ij->i", B, B) / 8 + 0.8
+    m_star, v_star = ep_latent_predictive(K_star, k_ss, post)
+    K_inv_Ks = np.linalg.solve(K, K_star.T)
+    np.testing.assert_allclose(m_star, K_inv_Ks.T @ mean, rtol=1e-9, atol=1e-12)
+    v_ref = k_ss - np.einsum("ij,ji->i", K_star, K_inv_Ks)
+    v_ref += np.einsum("ji,jk,ki->i", K_inv_Ks, Sigma, K_inv_Ks)
+    np.testing.assert_allclose(v_star, v_ref, rtol=1e-9)
+
+
+def test_improper_sites_raise_linalg_error():
+    K = np.eye(3)
+    with pytest.raises(np.linalg.LinAlgError, match="proper Gaussian"):
+        ep_posterior(K, np.array([1.0, -2.0, 1.0]), np.zeros(3))
+
+
+def test_negative_initial_sites_reach_the_same_fixed_point():
+    kernel, X, y = _problem(n=15, seed=3)
+    K = kernel(X)
+    ref = expectation_propagation(K, y, tol=1e-12)
+    start_tau = np.full(15, 0.3)
+    start_tau[[2, 7]] = -0.2
+    res = expectation_propagation(
+        K, y, site_precision=start_tau, site_nu=np.zeros(15), tol=1e-12, max_iter=500
+    )
+    assert res.converged and np.all(res.site_precision >= 0)
+    np.testing.assert_allclose(res.site_precision, ref.site_precision, rtol=1e-6, atol=1e-8)
+    np.testing.assert_allclose(res.site_nu, ref.site_nu, rtol=1e-6, atol=1e-8)
+
+
+def test_large_signal_variance_with_label_noise_stays_finite():
+    # Flipped labels inside a strongly varying latent: sites become very precise next to
+    # nearly flat ones, the regime where cavity precisions cancel.
+    rng = np.random.default_rng(4)
+    X = rng.uniform(0, 5, size=(80, 1))
+    y = np.where(X[:, 0] > 2.5, 1.0, -1.0)
+    flip = rng.choice(80, size=12, replace=False)
+    y[flip] *= -1
+    K = (C(1e4) * RBF(0.3))(X)
+    for update in ("parallel", "sequential"):
+        res = expectation_propagation(K, y, update=update, tol=1e-9, max_iter=500)
+        assert res.converged
+        assert np.all(np.isfinite(res.site_precision)) and np.all(res.site_precision >= 0)
+        assert np.all(res.posterior.var > 0)
+        lml = ep_log_marginal_likelihood(K, y, res.site_precision, res.site_nu)
+        assert np.isfinite(lml)
+
+
+def test_evidence_matches_product_form():
+    # R&W eq. 3.65 before simplification: log N(mu~ | 0, K + S~^-1) + sum log Z~_i, with the
+    # site normalisers Z~_i of eq. 3.59.
+    kernel, X, y = _problem(n=12, seed=5)
+    K = kernel(X)
+    res = expectation_propagation(K, y, tol=1e-12)
+    tau, nu = res.site_precision, res.site_nu
+    post = res.posterior
+    tau_cav = 1 / post.var - tau
+    mu_cav = (post.mean / post.var - nu) / tau_cav
+    s2_cav, s2_site, mu_site = 1 / tau_cav, 1 / tau, nu / tau
+    log_Z_hat = norm.logcdf(y * mu_cav / np.sqrt(1 + s2_cav))
+    log_Z_site = (
+        log_Z_hat
+        + 0.5 * np.log(2 * np.pi * (s2_cav + s2_site))
+        + (mu_cav - mu_site) ** 2 / (2 * (s2_cav + s2_site))
+    )
+    direct = multivariate_normal(np.zeros(12), K + np.diag(s2_site)).logpdf(mu_site)
+    direct += log_Z_site.sum()
+    lml = ep_log_marginal_likelihood(K, y, tau, nu)
+    np.testing.assert_allclose(lml, direct, rtol=1e-10)
+
+
+def _laplace_probit_log_evidence(K, y):
+    """Laplace approximation with the probit likelihood (R&W Algorithm 3.1 and eq. 3.32)."""
+    n = len(y)
+    f = np.zeros(n)
+    for _ in range(100):
+        z = y * f
+        ratio = np.exp(norm.logpdf(z) - norm.logcdf(z))
+        grad = y * ratio
+        W = ratio**2 + z * ratio
+        sW = np.sqrt(W)
+        L = np.linalg.cholesky(np.eye(n) + sW[:, None] * K * sW[None, :])
+        b = W * f + grad
+        a = b - sW * np.linalg.solve(L.T, np.linalg.solve(L, sW * (K @ b)))
+        f_new = K @ a
+        if np.max(np.abs(f_new - f)) < 1e-12:
+            f = f_new
+            break
+        f = f_new
+    return -0.5 * a @ f + norm.logcdf(y * f).sum() - np.log(np.diag(L)).sum()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_evidence_close_to_exact_orthant_probability(seed):
+    # For probit, Z = P(y_i (f_i + eps_i) > 0 for all i), a Gaussian orthant probability.
+    # EP approximates it closely and better than Laplace.
+    kernel, X, y = _problem(n=4, signal=3.0, length_scale=1.0, seed=seed)
+    K = kernel(X)
+    res = expectation_propagation(K, y, tol=1e-12)
+    lml = ep_log_marginal_likelihood(K, y, res.site_precision, res.site_nu)
+    # u = Y (f + eps) ~ N(0, Y (K + I) Y); P(u > 0) = P(-u <= 0) = its cdf at 0 by symmetry.
+    cov = (K + np.eye(4)) * np.outer(y, y)
+    mvn = multivariate_normal(np.zeros(4), cov, abseps=1e-10, releps=1e-10, maxpts=10**6)
+    exact = np.log(mvn.cdf(np.zeros(4)))
+    laplace = _laplace_probit_log_evidence(K, y)
+    assert abs(lml - exact) < abs(laplace - exact)
+    assert abs(lml - exact) < 0.02
+
+
+def test_sequential_and_parallel_reach_the_same_fixed_point():
+    kernel, X, y = _problem(n=25, signal=5.0, seed=6)
+    K = kernel(X)
+    runs = [
+        expectation_propagation(K, y, update="sequential", damping=0.0, tol=1e-12),
+        expectation_propagation(K, y, update="sequential", damping=0.5, tol=1e-12),
+        expectation_propagation(K, y, damping=0.5, acceleration=0, tol=1e-12, max_iter=1000),
+        expectation_propagation(K, y, damping=0.5, tol=1e-12),
+        expectation_propagation(K, y, damping=0.0, tol=1e-12),
+    ]
+    ref = runs[0]
+    ref_lml = ep_log_marginal_likelihood(K, y, ref.site_precision, ref.site_nu)
+    for res in runs:
+        assert res.converged
+        np.testing.assert_allclose(res.site_precision, ref.site_precision, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(res.site_nu, ref.site_nu, rtol=1e-6, atol=1e-9)
+        lml = ep_log_marginal_likelihood(K, y, res.site_precision, res.site_nu)
+        np.testing.assert_allclose(lml, ref_lml, rtol=1e-6)
+
+
+@pytest.mark.parametrize("ard", [False, True])
+def test_gradient_matches_finite_differences(ard):
+    kernel, X, y = _problem(n=20, signal=2.5, seed=7, ard=ard)
+
+    def lml(theta):
+        K = kernel.clone_with_theta(theta)(X)
+        res = expectation_propagation(K, y, tol=1e-13, max_iter=1000)
+        assert res.converged
+        return ep_log_marginal_likelihood(K, y, res.site_precision, res.site_nu)
+
+    theta = kernel.theta
+    K, dK = kernel(X, eval_gradient=True)
+    res = expectation_propagation(K, y, tol=1e-13, max_iter=1000)
+    grad = ep_log_marginal_likelihood_gradient(dK, res.posterior)
+    h = 1e-5
+    fd = np.array(
+        [(lml(theta + h * e) - lml(theta - h * e)) / (2 * h) for e in np.eye(len(theta))]
+    )
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
+
+
+def test_not_converged_is_reported():
+    kernel, X, y = _problem(n=15)
+    res = expectation_propagation(kernel(X), y, max_iter=2)
+    assert not res.converged and res.n_iter == 2 and res.residual > 1e-6
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"K": np.ones((2, 3)), "y": [1, 1]}, "K must be a square"),
+        ({"K": np.eye(2), "y": [1, 1, 1]}, "y must have shape"),
+        ({"K": np.eye(2), "y": [0, 1]}, r"y must hold labels in \{-1, \+1\}"),
+        ({"K": np.array([[np.nan, 0], [0, 1]]), "y": [1, -1]}, "K contains NaN"),
+        ({"K": np.zeros((0, 0)), "y": []}, "K has no rows"),
+        ({"K": np.eye(2), "y": [1, -1], "damping": 1.0}, "damping"),
+        ({"K": np.eye(2), "y": [1, -1], "update": "async"}, "update"),
+        ({"K": np.eye(2), "y": [1, -1], "site_precision": [1.0]}, "site_precision"),
+        ({"K": np.eye(2), "y": [1, -1], "mean": [0.0, np.inf]}, "mean"),
+    ],
+)
+def test_bad_input_raises(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        expectation_propagation(**kwargs)
+
+
+def test_gradient_shape_is_checked():
+    res = expectation_propagation(np.eye(3), [1, -1, 1])
+    with pytest.raises(ValueError, match="K_gradient must have shape"):
+        ep_log_marginal_likelihood_gradient(np.zeros((2, 2, 1)), res.posterior)
