@@ -23,6 +23,7 @@ _LAZY = {
     "EPGaussianProcessClassifier": "classifier",
     "MixtureGPOccupancyMap": "mixture",
     "OccupancyGrid": "grid",
+    "OccupancyGridMap": "baselines",
     "scans_to_observations": "observations",
     "as_segments": "observations",
     "Scans": "observations",
