@@ -232,3 +232,38 @@ def test_bad_from_estimator_arguments():
     grid = OccupancyGrid([[0.5]], (0, 0), 1.0)
     with pytest.raises(ValueError, match="free_threshold"):
         grid.trinary(free_threshold=0.8, occupied_threshold=0.6)
+
+
+def _room3d_pipeline(estimator, resolution=0.5):
+    """Simulated 3-D scans -> estimator -> 3-D grid -> points and voxels; AUC on seen cells."""
+    from sklearn.metrics import roc_auc_score
+
+    from skoccmap.datasets import make_room3d_scans
+
+    data = make_room3d_scans(random_state=0)
+    estimator.fit(data.X, data.y)
+    extent = data.environment.extent
+    grid = OccupancyGrid.from_estimator(estimator, extent, resolution, unknown_variance=None)
+    truth = data.environment.ground_truth_grid(resolution, extent=extent, scans=data.scans)
+    assert tuple(truth.shape) == grid.shape
+    np.testing.assert_allclose(truth.points, grid.cell_centers())
+    seen = truth.observed
+    auc = roc_auc_score(truth.occupied[seen], grid.probability.ravel()[seen])
+    points = grid.to_points()
+    voxels = grid.trinary()
+    assert points.shape[1] == 3 and len(points) == (voxels == 100).sum() > 0
+    # exported occupied voxels mostly overlap true obstacles
+    assert truth.occupied[voxels.ravel() == 100].mean() > 0.7
+    return auc
+
+
+def test_3d_scans_mapped_end_to_end_with_counting_grid():
+    assert _room3d_pipeline(OccupancyGridMap(resolution=0.5)) > 0.75
+
+
+@pytest.mark.slow
+def test_3d_scans_mapped_end_to_end_with_mixture():
+    from skoccmap import MixtureGPOccupancyMap
+
+    model = MixtureGPOccupancyMap(share_hyperparameters=True, random_state=0)
+    assert _room3d_pipeline(model) > 0.75
