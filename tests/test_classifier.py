@@ -1,0 +1,345 @@
+"""Tests for EPGaussianProcessClassifier against independent dense computations."""
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+from scipy.stats import norm
+from sklearn.base import clone
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.gaussian_process.kernels import RBF, WhiteKernel
+from sklearn.gaussian_process.kernels import ConstantKernel as C
+
+from skoccmap.classifier import EPGaussianProcessClassifier
+
+
+def _data(n=40, seed=0, noise=0.3, dim=2):
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-2, 2, size=(n, dim))
+    y = (np.sin(2 * X[:, 0]) + X[:, -1] + noise * rng.standard_normal(n) > 0).astype(int)
+    return X, y
+
+
+def _laplace_probit(K, y):
+    """Laplace approximation with a probit likelihood (R&W Algorithms 3.1, 3.2, eq. 3.32).
+
+    Returns the mode-based quantities needed for predictions and the approximate evidence.
+    """
+    n = len(y)
+    f = np.zeros(n)
+    for _ in range(200):
+        z = y * f
+        ratio = np.exp(norm.logpdf(z) - norm.logcdf(z))
+        grad = y * ratio
+        W = ratio**2 + z * ratio
+        sW = np.sqrt(W)
+        L = np.linalg.cholesky(np.eye(n) + sW[:, None] * K * sW[None, :])
+        b = W * f + grad
+        a = b - sW * np.linalg.solve(L.T, np.linalg.solve(L, sW * (K @ b)))
+        f_new = K @ a
+        done = np.max(np.abs(f_new - f)) < 1e-12
+        f = f_new
+        if done:
+            break
+    z = y * f
+    ratio = np.exp(norm.logpdf(z) - norm.logcdf(z))
+    W = ratio**2 + z * ratio
+    log_Z = -0.5 * a @ f + norm.logcdf(z).sum() - np.log(np.diag(L)).sum()
+    return f, y * ratio, W, log_Z
+
+
+def _laplace_predict(K, K_star, k_ss, f, grad, W):
+    mean = K_star @ grad
+    Sigma_inv = np.linalg.inv(K + np.diag(1 / W))
+    var = k_ss - np.einsum("ij,jk,ik->i", K_star, Sigma_inv, K_star)
+    return mean, var
+
+
+def test_predictive_moments_match_dense_computation():
+    X, y = _data(n=25, seed=1)
+    kernel = C(2.0) * RBF(0.8) + WhiteKernel(0.05)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-12).fit(X, y)
+    K = kernel(X)
+    tau, nu = clf.site_precision_, clf.site_nu_
+    # q(f) = N(Sigma nu, Sigma), Sigma = (K^-1 + S~)^-1 (R&W eq. 3.53); f_* | f by conditioning.
+    Sigma = np.linalg.inv(np.linalg.inv(K) + np.diag(tau))
+    mu = Sigma @ nu
+    X_test = np.random.default_rng(2).uniform(-3, 3, size=(7, 2))
+    K_star = kernel(X_test, X)
+    A = np.linalg.solve(K, K_star.T)
+    mean_ref = A.T @ mu
+    var_ref = kernel.diag(X_test) - np.einsum("ji,ji->i", K_star.T, A)
+    var_ref += np.einsum("ji,jk,ki->i", A, Sigma, A)
+    mean, var = clf.latent_mean_and_variance(X_test)
+    np.testing.assert_allclose(mean, mean_ref, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(var, var_ref, rtol=1e-8)
+    np.testing.assert_allclose(clf.predict_var(X_test), var_ref, rtol=1e-8)
+    # P(y_* = 1) = integral of Phi(f) N(f | mean, var) (R&W eq. 3.25), by quadrature.
+    p_ref = [
+        quad(lambda f, m=m, s=s: norm.cdf(f) * norm.pdf(f, m, s), m - 12 * s, m + 12 * s)[0]
+        for m, s in zip(mean_ref, np.sqrt(var_ref), strict=True)
+    ]
+    proba = clf.predict_proba(X_test)
+    np.testing.assert_allclose(proba[:, 1], p_ref, rtol=1e-7)
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+    np.testing.assert_array_equal(clf.predict(X_test), (np.asarray(p_ref) > 0.5).astype(int))
+
+
+def test_weak_signal_agrees_with_laplace():
+    # With a small signal variance the posterior is nearly Gaussian: EP and Laplace (same
+    # probit likelihood) must give nearly the same latent predictions.
+    X, y = _data(n=40, seed=3)
+    kernel = C(0.05) * RBF(1.0)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    K = kernel(X)
+    yy = np.where(y == 1, 1.0, -1.0)
+    f, grad, W, _ = _laplace_probit(K, yy)
+    X_test = np.random.default_rng(4).uniform(-2, 2, size=(10, 2))
+    mean_l, var_l = _laplace_predict(K, kernel(X_test, X), kernel.diag(X_test), f, grad, W)
+    mean, var = clf.latent_mean_and_variance(X_test)
+    np.testing.assert_allclose(mean, mean_l, rtol=0.02, atol=1e-3)
+    np.testing.assert_allclose(var, var_l, rtol=0.005)
+
+
+@pytest.mark.parametrize("signal, seed", [(0.5, 0), (3.0, 1), (20.0, 2), (100.0, 3)])
+def test_ep_evidence_not_below_laplace(signal, seed):
+    # Laplace underestimates the probit marginal likelihood (Kuss & Rasmussen, JMLR 2005).
+    X, y = _data(n=40, seed=seed)
+    kernel = C(signal) * RBF(0.7)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    _, _, _, laplace = _laplace_probit(kernel(X), np.where(y == 1, 1.0, -1.0))
+    assert clf.log_marginal_likelihood_value_ >= laplace - 1e-6 * abs(laplace)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_restarts_never_worse_than_single_start(seed):
+    X, y = _data(n=30, seed=seed, noise=0.8)
+    kernel = C(1.0, (1e-2, 1e2)) * RBF(1.0, (1e-2, 1e2))
+    single = EPGaussianProcessClassifier(kernel).fit(X, y)
+    multi = EPGaussianProcessClassifier(kernel, n_restarts_optimizer=3, random_state=seed)
+    multi.fit(X, y)
+    lml_single = single.log_marginal_likelihood_value_
+    assert multi.log_marginal_likelihood_value_ >= lml_single - 1e-8 * abs(lml_single)
+
+
+def test_restart_starts_are_drawn_in_log_space_within_bounds():
+    X, y = _data(n=20)
+    starts = []
+
+    def optimizer(obj_func, initial_theta, bounds):
+        starts.append(np.array(initial_theta))
+        return initial_theta, obj_func(initial_theta, eval_gradient=False)
+
+    kernel = C(1.0, (1e-3, 1e3)) * RBF(1.0, (1e-3, 1e3))
+    clf = EPGaussianProcessClassifier(
+        kernel, optimizer=optimizer, n_restarts_optimizer=40, random_state=0
+    ).fit(X, y)
+    starts = np.array(starts)
+    np.testing.assert_array_equal(starts[0], kernel.theta)
+    bounds = clf.kernel_.bounds
+    assert np.all(starts >= bounds[:, 0]) and np.all(starts <= bounds[:, 1])
+    # Uniform in log space over [-6.9, 6.9]: both halves are visited.
+    assert np.all((starts[1:] < 0).sum(axis=0) >= 5)
+    assert np.all((starts[1:] > 0).sum(axis=0) >= 5)
+    # The kept hyperparameters are the best of the runs.
+    values = [clf.log_marginal_likelihood(theta) for theta in starts]
+    np.testing.assert_allclose(clf.log_marginal_likelihood_value_, max(values), rtol=1e-6)
+
+
+def test_optimizer_none_keeps_hyperparameters():
+    X, y = _data(n=20)
+    kernel = C(3.0) * RBF(0.5)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+    np.testing.assert_array_equal(clf.kernel_.theta, kernel.theta)
+    lml = clf.log_marginal_likelihood(kernel.theta)
+    np.testing.assert_allclose(lml, clf.log_marginal_likelihood_value_, rtol=1e-8)
+
+
+def test_learning_raises_the_evidence_and_gradient_vanishes():
+    X, y = _data(n=40, seed=5)
+    clf = EPGaussianProcessClassifier().fit(X, y)
+    start = clf.log_marginal_likelihood(np.zeros(2))  # the default kernel's initial theta
+    assert clf.log_marginal_likelihood_value_ > start
+    lml, grad = clf.log_marginal_likelihood(clf.kernel_.theta, eval_gradient=True)
+    bounds = clf.kernel_.bounds
+    theta = clf.kernel_.theta
+    interior = (theta > bounds[:, 0] + 1e-3) & (theta < bounds[:, 1] - 1e-3)
+    assert np.all(np.abs(grad[interior]) < 1e-3 * max(1.0, abs(lml)))
+
+
+def test_log_marginal_likelihood_gradient_matches_finite_differences():
+    X, y = _data(n=25, seed=6)
+    clf = EPGaussianProcessClassifier(C(2.0) * RBF([0.7, 1.2]), optimizer=None, tol=1e-12)
+    clf.fit(X, y)
+    theta = clf.kernel_.theta + 0.1
+    _, grad = clf.log_marginal_likelihood(theta, eval_gradient=True)
+    h = 1e-5
+    fd = [
+        (clf.log_marginal_likelihood(theta + h * e) - clf.log_marginal_likelihood(theta - h * e))
+        / (2 * h)
+        for e in np.eye(len(theta))
+    ]
+    np.testing.assert_allclose(grad, fd, rtol=1e-5)
+    # clone_kernel=False sets kernel_.theta in place.
+    clf.log_marginal_likelihood(theta, clone_kernel=False)
+    np.testing.assert_allclose(clf.kernel_.theta, theta, rtol=1e-14)
+
+
+def test_log_marginal_likelihood_gradient_needs_theta():
+    X, y = _data(n=10)
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    with pytest.raises(ValueError, match="theta"):
+        clf.log_marginal_likelihood(eval_gradient=True)
+
+
+def test_sequential_and_parallel_estimators_agree():
+    X, y = _data(n=30, seed=7)
+    kernel = C(4.0) * RBF(0.6)
+    par = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    seq = EPGaussianProcessClassifier(
+        kernel, optimizer=None, ep_update="sequential", damping=0.0, tol=1e-10
+    ).fit(X, y)
+    np.testing.assert_allclose(par.site_precision_, seq.site_precision_, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(par.site_nu_, seq.site_nu_, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(
+        par.log_marginal_likelihood_value_, seq.log_marginal_likelihood_value_, rtol=1e-8
+    )
+
+
+def test_convergence_warning_at_max_iter():
+    X, y = _data(n=30)
+    clf = EPGaussianProcessClassifier(optimizer=None, max_iter=2)
+    with pytest.warns(ConvergenceWarning, match="max_iter=2.*Increase max_iter"):
+        clf.fit(X, y)
+    assert clf.n_iter_ == 2
+
+
+def test_no_warning_when_converged():
+    X, y = _data(n=30)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        clf = EPGaussianProcessClassifier().fit(X, y)
+    assert 1 <= clf.n_iter_ < clf.max_iter
+
+
+@pytest.mark.parametrize(
+    "labels", [(0, 1), (-1, 1), (3, 7), ("free", "occupied"), (False, True)]
+)
+def test_any_two_labels(labels):
+    X, y = _data(n=30)
+    ref = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    y_lab = np.asarray(labels, dtype=object if isinstance(labels[0], str) else None)[y]
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y_lab)
+    assert list(clf.classes_) == sorted(labels)
+    np.testing.assert_allclose(clf.predict_proba(X), ref.predict_proba(X))
+    np.testing.assert_array_equal(clf.predict(X), np.asarray(labels)[ref.predict(X)])
+
+
+def test_one_class_raises():
+    X, _ = _data(n=10)
+    with pytest.raises(ValueError, match="one class"):
+        EPGaussianProcessClassifier().fit(X, np.ones(10))
+
+
+def test_three_classes_raise():
+    X, _ = _data(n=9)
+    with pytest.raises(ValueError, match="Only binary classification"):
+        EPGaussianProcessClassifier().fit(X, np.arange(9) % 3)
+
+
+@pytest.mark.parametrize(
+    "X, y, match",
+    [
+        (np.array([[0.0, np.nan], [1.0, 1.0]]), [0, 1], "NaN"),
+        (np.zeros((0, 2)), [], "0 sample"),
+        (np.zeros((3, 2)), [0, 1], "inconsistent numbers of samples"),
+        (np.zeros(4), [0, 1, 0, 1], "2D array"),
+    ],
+)
+def test_bad_training_input(X, y, match):
+    with pytest.raises(ValueError, match=match):
+        EPGaussianProcessClassifier().fit(X, y)
+
+
+def test_bad_query_input():
+    X, y = _data(n=20)
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    with pytest.raises(ValueError, match="features"):
+        clf.latent_mean_and_variance(np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="NaN"):
+        clf.predict_proba([[0.0, np.nan]])
+
+
+def test_variance_positive_and_bounded_by_prior():
+    X, y = _data(n=30)
+    clf = EPGaussianProcessClassifier(C(50.0) * RBF(0.3), optimizer=None).fit(X, y)
+    Q = np.vstack([X, np.random.default_rng(0).uniform(-6, 6, size=(200, 2))])
+    mean, var = clf.latent_mean_and_variance(Q)
+    prior = clf.kernel_.diag(Q)
+    assert np.all(var > 0) and np.all(var <= prior * (1 + 1e-12))
+    far = np.array([[100.0, 100.0]])
+    np.testing.assert_allclose(clf.predict_var(far), clf.kernel_.diag(far))
+    np.testing.assert_allclose(clf.predict_proba(far), [[0.5, 0.5]], atol=1e-12)
+
+
+def test_large_signal_variance_with_label_noise():
+    rng = np.random.default_rng(8)
+    X = rng.uniform(0, 5, size=(100, 1))
+    y = (X[:, 0] > 2.5).astype(int)
+    y[rng.choice(100, size=15, replace=False)] ^= 1
+    clf = EPGaussianProcessClassifier(C(1e3) * RBF(0.2), optimizer=None).fit(X, y)
+    assert np.all(clf.site_precision_ >= 0) and np.isfinite(clf.log_marginal_likelihood_value_)
+    mean, var = clf.latent_mean_and_variance(np.linspace(-1, 6, 50)[:, None])
+    assert np.all(np.isfinite(mean)) and np.all(var > 0)
+    learned = EPGaussianProcessClassifier(n_restarts_optimizer=2, random_state=0).fit(X, y)
+    assert np.isfinite(learned.log_marginal_likelihood_value_)
+
+
+def test_shared_hyperparameters_clone():
+    # The mixture of experts clones a fitted expert with its kernel_ and optimizer=None.
+    X, y = _data(n=30)
+    first = EPGaussianProcessClassifier().fit(X, y)
+    expert = clone(first).set_params(kernel=first.kernel_, optimizer=None).fit(X, y)
+    np.testing.assert_array_equal(expert.kernel_.theta, first.kernel_.theta)
+    np.testing.assert_allclose(expert.predict_proba(X), first.predict_proba(X), rtol=1e-5)
+
+
+def test_predictions_in_blocks_equal_one_block(monkeypatch):
+    import skoccmap.classifier as module
+
+    X, y = _data(n=30)
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    Q = np.random.default_rng(1).uniform(-2, 2, size=(50, 2))
+    mean, var = clf.latent_mean_and_variance(Q)
+    monkeypatch.setattr(module, "_PREDICT_BLOCK_ELEMENTS", 30 * 7)
+    mean_b, var_b = clf.latent_mean_and_variance(Q)
+    np.testing.assert_allclose(mean_b, mean, rtol=1e-12)
+    np.testing.assert_allclose(var_b, var, rtol=1e-12)
+
+
+def test_no_decision_function():
+    assert not hasattr(EPGaussianProcessClassifier(), "decision_function")
+
+
+def test_integral_kernel_works_unchanged():
+    kernels = pytest.importorskip("skoccmap.kernels")
+    rng = np.random.default_rng(9)
+    starts = rng.uniform(0, 4, size=(30, 2))
+    ends = starts + rng.uniform(-0.5, 0.5, size=(30, 2))
+    X = np.hstack([starts, ends])
+    y = (X[:, 0] + X[:, 2] > 4).astype(int)
+    kernel = C(1.0) * kernels.IntegralKernel(1.0)
+    clf = EPGaussianProcessClassifier(kernel, tol=1e-12).fit(X, y)
+    mean, var = clf.latent_mean_and_variance(X)
+    assert np.all(var > 0) and np.all(np.isfinite(mean))
+    assert clf.score(X, y) > 0.8
+    _, grad = clf.log_marginal_likelihood(clf.kernel_.theta + 0.2, eval_gradient=True)
+    h = 1e-5
+    theta = clf.kernel_.theta + 0.2
+    fd = [
+        (clf.log_marginal_likelihood(theta + h * e) - clf.log_marginal_likelihood(theta - h * e))
+        / (2 * h)
+        for e in np.eye(len(theta))
+    ]
+    np.testing.assert_allclose(grad, fd, rtol=1e-4)
