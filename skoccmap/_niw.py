@@ -154,9 +154,56 @@ def _student_t(kappa, nu, mean, chol, logdet):
     return StudentT(mean, inverse_cholesky(chol), kappa / (kappa + 1.0), dof, const)
 
 
-def log_student_t(X, t):
-    """Log predictive densities of points ``X`` (N, D) under each cluster: (N, K)."""
-    diff = X[:, None, :] - t.loc[None, :, :]
-    z = np.einsum("kij,nkj->nki", t.chol_inv, diff)
-    r = np.einsum("nki,nki->nk", z, z)
+def mahalanobis_sq(X, t):
+    """Squared distances ``|chol_inv_k (x - loc_k)|^2`` of points (N, D) to each cluster: (N, K).
+
+    One matrix product for all clusters: ``chol_inv_k x - chol_inv_k loc_k``.
+    """
+    K, D = t.loc.shape
+    shifted = np.einsum("kij,kj->ki", t.chol_inv, t.loc)
+    z = (X @ t.chol_inv.reshape(K * D, D).T).reshape(len(X), K, D) - shifted
+    return np.einsum("nki,nki->nk", z, z)
+
+
+def log_student_t(X, t, r=None):
+    """Log predictive densities of points ``X`` (N, D) under each cluster: (N, K).
+
+    ``r`` are the precomputed :func:`mahalanobis_sq` distances, if at hand.
+    """
+    if r is None:
+        r = mahalanobis_sq(X, t)
     return t.const - 0.5 * (t.dof + X.shape[1]) * np.log1p(t.scale * r)
+
+
+def leave_one_out_log_student_t(r, n, logdet, dof, prior):
+    """Log predictive density of a cluster's own point ``x`` with ``x`` left out.
+
+    Removing ``x`` from a cluster with posterior ``(kappa, m, Psi)`` gives
+    ``Psi' = Psi - c u u^T`` with ``u = x - m`` and ``c = kappa / (kappa - 1)``, so by the matrix
+    determinant lemma and Sherman-Morrison the leave-one-out Student-t needs only
+    ``r = u^T Psi^{-1} u``: no refactorisation. Arrays broadcast; ``n >= 2``.
+
+    Parameters
+    ----------
+    r : ndarray
+        ``u^T Psi^{-1} u`` (the :func:`mahalanobis_sq` distance to the cluster with ``x``).
+    n : ndarray
+        Cluster sizes including ``x``.
+    logdet : ndarray
+        ``log |Psi|`` of the clusters with ``x``.
+    dof : ndarray
+        Student-t degrees of freedom ``nu - D + 1`` of the clusters with ``x``.
+    prior : NIWPrior
+    """
+    D = prior.psi.shape[0]
+    kappa = prior.kappa + n
+    c = kappa / (kappa - 1.0)
+    one_minus = np.maximum(1.0 - c * r, 1e-300)
+    dof = dof - 1.0
+    return (
+        gammaln(0.5 * (dof + D))
+        - gammaln(0.5 * dof)
+        - 0.5 * D * np.log(np.pi * c)
+        - 0.5 * logdet
+        + 0.5 * (dof + D - 1.0) * np.log(one_minus)
+    )

@@ -14,11 +14,14 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._niw import (
     NIWPrior,
+    StudentT,
     _log_marginal_from_posterior,
     cholesky,
+    leave_one_out_log_student_t,
     log_crp,
     log_marginal_likelihood,
     log_student_t,
+    mahalanobis_sq,
     posterior,
     predictive,
 )
@@ -103,6 +106,45 @@ def greedy_merge(n, s, S, prior, alpha):
     return mapping
 
 
+def greedy_split(X, labels, prior, alpha, max_rounds=50):
+    """Bisect clusters greedily while the log joint increases (initialisation only).
+
+    Each cluster is tried once per round with the split-merge launch split anchored at its
+    point farthest from its mean and the point farthest from that one.
+    """
+    labels = labels.copy()
+    log_alpha = math.log(alpha)
+    for _ in range(max_rounds):
+        grew = False
+        for k in range(int(labels.max()) + 1):
+            members = np.flatnonzero(labels == k)
+            if len(members) < 4:
+                continue
+            XS = X[members]
+            far = int(np.argmax(((XS - XS.mean(0)) ** 2).sum(1)))
+            other = int(np.argmax(((XS - XS[far]) ** 2).sum(1)))
+            if other == far:
+                continue
+            log_left, log_right = _launch(XS, far, other, prior)
+            right = log_right > log_left
+            right[far], right[other] = False, True
+            parts = sufficient_statistics(XS, right.astype(np.intp), 2)
+            whole = (np.array([len(members)], float), XS.sum(0)[None], (XS.T @ XS)[None])
+            gain = (
+                log_alpha
+                + gammaln(parts[0]).sum()
+                - gammaln(whole[0]).sum()
+                + log_marginal_likelihood(*parts, prior).sum()
+                - log_marginal_likelihood(*whole, prior).sum()
+            )
+            if gain > 0:
+                labels[members[right]] = labels.max() + 1
+                grew = True
+        if not grew:
+            break
+    return labels
+
+
 class _CollapsedGibbs:
     """State of the collapsed Gibbs sampler: labels and cached per-cluster posteriors.
 
@@ -185,72 +227,113 @@ class _CollapsedGibbs:
         return log_crp(n, self.alpha) + lml.sum()
 
     # -- Neal (2000), Algorithm 3 ----------------------------------------------------------
-    def gibbs_sweep(self, rng):
-        """One systematic-scan sweep of exact collapsed Gibbs (Neal 2000, Algorithm 3).
+    def conditional_draws(self, idx, uniforms):
+        """Draws from the Gibbs conditionals of points ``idx``, each given all other points.
 
-        For point i in cluster a: p(z_i = k | z_-i, X) is proportional to n_k,-i t_k,-i(x_i)
-        for existing clusters and to alpha t_0(x_i) for a new one. The densities against all
-        clusters come from the cached predictives in one vectorised step; only the own
-        cluster needs the leave-one-out predictive, which follows from the cached one in closed
-        form (matrix determinant lemma and Sherman-Morrison), so a point that stays costs no
-        update at all.
+        p(z_i = k | z_-i, X) is proportional to n_k,-i t_k,-i(x_i) for existing clusters and to
+        alpha t_0(x_i) for a new one (index K). All the densities come from the cached
+        predictives in one vectorised step; the own cluster needs the leave-one-out predictive,
+        which follows from the cached one in closed form. Each draw is exact for the current
+        state, i.e. as long as no other point has moved.
         """
-        X = self.X
-        D = self.D
-        n_samples = X.shape[0]
+        K = self.K
+        Xb = self.X[idx]
+        own = self.labels[idx]
+        t = self.cached_t()
+        r = mahalanobis_sq(Xb, t)
+        n = self.n[:K]
+        lp = np.empty((len(idx), K + 1))
+        lp[:, :K] = log_student_t(Xb, t, r) + np.log(n)
+        rows = np.arange(len(idx))
+        n_own = n[own]
+        with np.errstate(divide="ignore"):
+            loo = leave_one_out_log_student_t(
+                r[rows, own], n_own, self.logdet[own], self.dof[own], self.prior
+            ) + np.log(n_own - 1.0)
+        # A singleton's own cluster disappears without it: staying is the "new cluster" option.
+        lp[rows, own] = np.where(n_own > 1, loo, -np.inf)
+        lp[:, K] = log_student_t(Xb, self.prior_t)[:, 0] + math.log(self.alpha)
+        cum = np.cumsum(np.exp(lp - lp.max(1, keepdims=True)), axis=1)
+        draws = (cum < uniforms[:, None] * cum[:, -1:]).sum(1)
+        stays = (draws == own) | ((draws == K) & (n_own == 1))
+        return draws, stays
+
+    def gibbs_sweep(self, rng):
+        """One random-scan sweep of exact collapsed Gibbs sampling (Neal 2000, Algorithm 3).
+
+        Points are visited one at a time in random order, but their conditionals are drawn in
+        blocks: the draws of a block stay exact up to its first point that moves, so that point
+        is moved (a rank-one update of two clusters' statistics) and the next block starts right
+        after it. Near convergence few points move and a sweep costs a few vectorised passes.
+        """
+        n_samples = self.X.shape[0]
         order = rng.permutation(n_samples)
         uniforms = rng.random(n_samples)
-        log_alpha = math.log(self.alpha)
-        t0 = self.prior_t
-        loc0, ci0 = t0.loc[0], t0.chol_inv[0]
-        sc0, half0, const0 = t0.scale[0], 0.5 * (t0.dof[0] + D), t0.const[0]
-        kappa0 = self.prior.kappa
-        lg = math.lgamma
-        log = math.log
-        half_log_pi = 0.5 * D * math.log(math.pi)
-        for it, i in enumerate(order):
-            x = X[i]
-            a = self.labels[i]
-            K = self.K
-            n = self.n[:K]
-            diff = x - self.loc[:K]
-            z = np.matmul(self.chol_inv[:K], diff[:, :, None])
-            r = np.einsum("kij,kij->k", z, z)
-            with np.errstate(divide="ignore"):
-                lp = (
-                    self.const[:K]
-                    - 0.5 * (self.dof[:K] + D) * np.log1p(self.scale[:K] * r)
-                    + np.log(n)
-                )
-            na = n[a]
-            if na > 1:
-                # Leave-one-out predictive of the own cluster: removing x from (kappa, m, Psi)
-                # gives Psi' = Psi - c u u^T with u = x - m, c = kappa / (kappa - 1).
-                kappa = kappa0 + na
-                c = kappa / (kappa - 1.0)
-                one_minus = max(1.0 - c * r[a], 1e-300)
-                dof = self.dof[a] - 1.0
-                lp[a] = (
-                    lg(0.5 * (dof + D))
-                    - lg(0.5 * dof)
-                    - 0.5 * D * log(dof)
-                    - half_log_pi
-                    - 0.5 * self.logdet[a]
-                    - 0.5 * D * log(c / dof)
-                    + 0.5 * (dof + D - 1.0) * log(one_minus)
-                    + log(na - 1.0)
-                )
-            else:
-                lp[a] = -np.inf
-            d0 = ci0 @ (x - loc0)
-            lp_new = const0 - half0 * math.log1p(sc0 * float(d0 @ d0)) + log_alpha
-            top = max(lp.max(), lp_new)
-            cum = np.cumsum(np.exp(lp - top))
-            total = cum[-1] + math.exp(lp_new - top)
-            k = int(np.searchsorted(cum, uniforms[it] * total, side="right"))
-            if k == a or (k == K and na == 1):
+        pos, block, n_moves = 0, 64, 0
+        while pos < n_samples:
+            idx = order[pos : pos + block]
+            draws, stays = self.conditional_draws(idx, uniforms[pos : pos + block])
+            moved = np.flatnonzero(~stays)
+            if moved.size == 0:
+                pos += len(idx)
+                block = min(2 * block, 8192)
                 continue
-            self.move(i, a, k)
+            first = moved[0]
+            i = idx[first]
+            self.move(i, self.labels[i], draws[first])
+            n_moves += 1
+            pos += first + 1
+            block = max(16, 2 * (first + 1))
+        return n_moves
+
+    def blocked_sweep(self, rng, block_size):
+        """One sweep of blocked, approximate collapsed Gibbs sampling.
+
+        Each block of ``block_size`` points (in random order) is drawn against the statistics
+        at the start of the block -- stale by the moves earlier in the same block -- and all its
+        moves are applied at once. Points that draw a new cluster are then redrawn one at a
+        time, exactly, so that a block opens new clusters one by one.
+        """
+        n_samples = self.X.shape[0]
+        order = rng.permutation(n_samples)
+        uniforms = rng.random(n_samples)
+        n_moves = 0
+        for pos in range(0, n_samples, block_size):
+            idx = order[pos : pos + block_size]
+            draws, stays = self.conditional_draws(idx, uniforms[pos : pos + block_size])
+            K = self.K
+            moving = ~stays & (draws < K)
+            if np.any(moving):
+                n_moves += self.move_many(idx[moving], draws[moving])
+            for i in idx[~stays & (draws >= K)]:
+                draw, stay = self.conditional_draws(np.array([i]), rng.random(1))
+                if not stay[0]:
+                    self.move(i, self.labels[i], draw[0])
+                    n_moves += 1
+        return n_moves
+
+    def move_many(self, points, targets):
+        """Move ``points`` to existing clusters ``targets`` in one update of the statistics."""
+        K = self.K
+        sources = self.labels[points]
+        Xp = self.X[points]
+        n_out, s_out, S_out = sufficient_statistics(Xp, sources, K)
+        n_in, s_in, S_in = sufficient_statistics(Xp, targets, K)
+        self.n[:K] += n_in - n_out
+        self.s[:K] += s_in - s_out
+        self.S[:K] += S_in - S_out
+        self.labels[points] = targets
+        touched = np.union1d(sources, targets)
+        self.refresh(touched)
+        for k in sorted(np.flatnonzero(self.n[:K] == 0), reverse=True):
+            self._delete(k)
+        return len(points)
+
+    def cached_t(self):
+        K = self.K
+        return StudentT(
+            self.loc[:K], self.chol_inv[:K], self.scale[:K], self.dof[:K], self.const[:K]
+        )
 
     def move(self, i, a, k):
         """Move point i from cluster a to cluster k (k == K opens a new cluster)."""
@@ -393,6 +476,11 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         Starting partition: k-means with ``ceil(2 alpha log(1 + n / alpha))`` clusters (at most
         50), all points in one cluster, or uniformly random labels over that many clusters.
         Either way clusters are then merged greedily while the log joint rises.
+    block_size : int, default=None
+        None: exact collapsed Gibbs. An int: approximate, blocked sweeps in which the points of
+        each block are drawn against the statistics at the start of the block (stale by the
+        moves earlier in that block) and moved together; faster when many points move per
+        sweep (overlapping clusters, large data). Split-merge moves stay exact.
     n_split_merge : int, default=20
         Split-merge proposals after each Gibbs sweep.
     burn_in : int, default=5
@@ -487,6 +575,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         "covariance_prior": ["array-like", Interval(Real, 0, None, closed="neither"), None],
         "degrees_of_freedom_prior": [Interval(Real, 0, None, closed="neither"), None],
         "init": [StrOptions({"kmeans", "one", "random"})],
+        "block_size": [Interval(Integral, 1, None, closed="left"), None],
         "n_split_merge": [Interval(Integral, 0, None, closed="left")],
         "burn_in": [Interval(Integral, 0, None, closed="left")],
         "max_iter": [Interval(Integral, 1, None, closed="left")],
@@ -505,6 +594,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         covariance_prior=None,
         degrees_of_freedom_prior=None,
         init="kmeans",
+        block_size=None,
         n_split_merge=20,
         burn_in=5,
         max_iter=200,
@@ -519,6 +609,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         self.covariance_prior = covariance_prior
         self.degrees_of_freedom_prior = degrees_of_freedom_prior
         self.init = init
+        self.block_size = block_size
         self.n_split_merge = n_split_merge
         self.burn_in = burn_in
         self.max_iter = max_iter
@@ -575,8 +666,10 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
                 labels = _kmeans(X, k0, rng)
         _, labels = np.unique(labels, return_inverse=True)
         K = int(labels.max()) + 1
-        mapping = greedy_merge(*sufficient_statistics(X, labels, K), prior, self.alpha)
-        return mapping[labels]
+        labels = greedy_merge(*sufficient_statistics(X, labels, K), prior, self.alpha)[labels]
+        labels = greedy_split(X, labels, prior, self.alpha)
+        K = int(labels.max()) + 1
+        return greedy_merge(*sufficient_statistics(X, labels, K), prior, self.alpha)[labels]
 
     @_fit_context(prefer_skip_nested_validation=True)
     def fit(self, X, y=None):
@@ -614,7 +707,10 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         best, best_labels, stale = -np.inf, None, 0
         self.converged_ = False
         for sweep in range(self.max_iter):
-            state.gibbs_sweep(rng)
+            if self.block_size is None:
+                state.gibbs_sweep(rng)
+            else:
+                state.blocked_sweep(rng, self.block_size)
             for _ in range(self.n_split_merge):
                 state.split_merge(rng)
             state.recompute()

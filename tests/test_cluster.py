@@ -1,0 +1,399 @@
+import warnings
+
+import numpy as np
+import pytest
+from scipy import stats
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.metrics import adjusted_rand_score
+
+from skoccmap._niw import (
+    NIWPrior,
+    leave_one_out_log_student_t,
+    log_crp,
+    log_marginal_likelihood,
+    log_student_t,
+    mahalanobis_sq,
+    predictive,
+)
+from skoccmap.cluster import DPGMMClusterer, _CollapsedGibbs, sufficient_statistics
+
+
+def blobs(n, D, K, seed, separation=7.0):
+    """Anisotropic Gaussian blobs whose centres are at least ``separation`` apart."""
+    rng = np.random.default_rng(seed)
+    centres = [rng.uniform(-12, 12, D)]
+    while len(centres) < K:
+        c = rng.uniform(-12, 12, D)
+        if min(np.linalg.norm(c - k) for k in centres) > separation:
+            centres.append(c)
+    centres = np.array(centres)
+    y = rng.integers(K, size=n)
+    A = rng.normal(size=(K, D, D)) * 0.3 + np.eye(D)
+    X = centres[y] + np.einsum("nij,nj->ni", A[y], rng.normal(size=(n, D)))
+    return X, y
+
+
+def random_prior(D, rng):
+    B = rng.normal(size=(D, D))
+    return NIWPrior(rng.normal(size=D), 0.7, D + 0.5, B @ B.T + D * np.eye(D))
+
+
+def stats_of(X):
+    return sufficient_statistics(X, np.zeros(len(X), dtype=np.intp), 1)
+
+
+# -- posterior formulas against direct computation ---------------------------------------
+
+
+def test_marginal_likelihood_of_one_point_is_prior_student_t():
+    # p(x) = int N(x | mu, Sigma) NIW(mu, Sigma) = t_{nu0-D+1}(m0, Psi0 (k0+1) / (k0 (nu0-D+1))).
+    rng = np.random.default_rng(0)
+    for D in (1, 2, 3):
+        prior = random_prior(D, rng)
+        x = rng.normal(size=(1, D))
+        dof = prior.nu - D + 1
+        shape = prior.psi * (prior.kappa + 1) / (prior.kappa * dof)
+        expected = stats.multivariate_t(prior.mean, shape, df=dof).logpdf(x[0])
+        assert log_marginal_likelihood(*stats_of(x), prior)[0] == pytest.approx(expected)
+
+
+def test_predictive_is_ratio_of_marginal_likelihoods():
+    # p(x | X) = p(X + x) / p(X): the Student-t predictive against two evidences.
+    rng = np.random.default_rng(1)
+    for D in (1, 2, 3):
+        prior = random_prior(D, rng)
+        X = rng.normal(size=(7, D)) * 2 + 1
+        x = rng.normal(size=(3, D))
+        t, _ = predictive(*stats_of(X), prior)
+        got = log_student_t(x, t)[:, 0]
+        base = log_marginal_likelihood(*stats_of(X), prior)[0]
+        expected = [
+            log_marginal_likelihood(*stats_of(np.vstack([X, xi])), prior)[0] - base for xi in x
+        ]
+        np.testing.assert_allclose(got, expected, rtol=1e-10)
+        # and against scipy's multivariate t with the textbook parameters
+        n = len(X)
+        kappa, nu = prior.kappa + n, prior.nu + n
+        xbar = X.mean(0)
+        mean = (prior.kappa * prior.mean + n * xbar) / kappa
+        scatter = (X - xbar).T @ (X - xbar)
+        dm = xbar - prior.mean
+        psi = prior.psi + scatter + prior.kappa * n / kappa * np.outer(dm, dm)
+        dof = nu - D + 1
+        ref = stats.multivariate_t(mean, psi * (kappa + 1) / (kappa * dof), df=dof)
+        np.testing.assert_allclose(got, ref.logpdf(x) if D > 1 else ref.logpdf(x[:, 0]))
+
+
+def test_marginal_likelihood_1d_by_quadrature():
+    # Direct double integral over (mu, sigma^2) of the likelihood times the NIW prior, D = 1:
+    # sigma^2 ~ InvGamma(nu0/2, psi0/2), mu | sigma^2 ~ N(m0, sigma^2/kappa0).
+    prior = NIWPrior(np.array([0.3]), 2.0, 3.0, np.array([[1.5]]))
+    X = np.array([[0.1], [0.9], [-0.4]])
+
+    def integrand(mu, log_var):
+        var = np.exp(log_var)
+        like = np.prod(stats.norm.pdf(X[:, 0, None, None], mu, np.sqrt(var)), axis=0)
+        p_var = stats.invgamma.pdf(var, prior.nu / 2, scale=prior.psi[0, 0] / 2)
+        p_mu = stats.norm.pdf(mu, prior.mean[0], np.sqrt(var / prior.kappa))
+        return like * p_var * p_mu * var  # d var = var d log_var
+
+    # tensor Gauss-Legendre rule on mu in [-6, 6], log var in [-12, 6]
+    nodes, weights = np.polynomial.legendre.leggauss(400)
+    mu, w_mu = 6.0 * nodes, 6.0 * weights
+    log_var, w_lv = -3.0 + 9.0 * nodes, 9.0 * weights
+    grid = integrand(mu[:, None], log_var[None, :])
+    value = w_mu @ grid @ w_lv
+    assert log_marginal_likelihood(*stats_of(X), prior)[0] == pytest.approx(np.log(value), 1e-6)
+
+
+def test_leave_one_out_predictive_matches_refit():
+    rng = np.random.default_rng(2)
+    for D in (1, 2, 3):
+        prior = random_prior(D, rng)
+        X = rng.normal(size=(6, D))
+        t, logdet = predictive(*stats_of(X), prior)
+        r = mahalanobis_sq(X, t)[:, 0]
+        got = leave_one_out_log_student_t(r, 6.0, logdet[0], t.dof[0], prior)
+        for i in range(6):
+            rest = np.delete(X, i, axis=0)
+            t_rest, _ = predictive(*stats_of(rest), prior)
+            assert got[i] == pytest.approx(log_student_t(X[i : i + 1], t_rest)[0, 0])
+
+
+def test_log_crp_against_sequential_seating():
+    alpha = 0.7
+    labels = [0, 0, 1, 0, 2, 1, 1]
+    log_p, counts = 0.0, []
+    for i, z in enumerate(labels):
+        if z == len(counts):
+            log_p += np.log(alpha / (i + alpha))
+            counts.append(1)
+        else:
+            log_p += np.log(counts[z] / (i + alpha))
+            counts[z] += 1
+    assert log_crp(np.array(counts), alpha) == pytest.approx(log_p)
+
+
+def test_gibbs_conditionals_match_brute_force_log_joint():
+    # The draws of the vectorised sweep use p(z_i = k | z_-i) proportional to the log joint
+    # with z_i = k; check the conditional against brute force on tiny data.
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(7, 2)) * 2
+    labels = np.array([0, 0, 1, 1, 1, 2, 0])
+    prior = random_prior(2, rng)
+    alpha = 1.3
+    state = _CollapsedGibbs(X, labels, prior, alpha)
+    for i in range(len(X)):
+        joint = []
+        for k in range(4):
+            z = labels.copy()
+            z[i] = k
+            _, z = np.unique(z, return_inverse=True)
+            n, s, S = sufficient_statistics(X, z, z.max() + 1)
+            joint.append(log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum())
+        joint = np.array(joint)
+        if np.sum(labels == labels[i]) == 1:
+            joint[labels[i]] = -np.inf  # a singleton staying is the new-cluster option
+        expected = np.exp(joint - np.logaddexp.reduce(joint))
+        # empirical draw frequencies from uniforms on a fine grid = the CDF of the conditional
+        u = (np.arange(20000) + 0.5) / 20000
+        draws, _ = state.conditional_draws(np.full(len(u), i), u)
+        freq = np.bincount(draws, minlength=4) / len(u)
+        np.testing.assert_allclose(freq, expected, atol=1e-4)
+
+
+def test_cached_statistics_stay_exact_after_sweeps():
+    X, _ = blobs(300, 2, 3, 4)
+    rng = np.random.default_rng(0)
+    prior = NIWPrior(np.zeros(2), 1.0, 2.0, np.cov(X.T))
+    state = _CollapsedGibbs(X, rng.integers(4, size=300), prior, 1.0)
+    for _ in range(3):
+        state.gibbs_sweep(rng)
+        for _ in range(5):
+            state.split_merge(rng)
+        state.blocked_sweep(rng, 50)
+    K = state.K
+    n, s, S = sufficient_statistics(X, state.labels, K)
+    np.testing.assert_array_equal(state.n[:K], n)
+    np.testing.assert_allclose(state.s[:K], s, atol=1e-9)
+    np.testing.assert_allclose(state.S[:K], S, atol=1e-8)
+    expected = log_crp(n, 1.0) + log_marginal_likelihood(n, s, S, prior).sum()
+    assert state.log_joint() == pytest.approx(expected)
+
+
+# -- clustering quality ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("init", ["kmeans", "one", "random"])
+@pytest.mark.parametrize("n, D, K", [(500, 2, 4), (2000, 3, 5)])
+def test_recovers_blobs(n, D, K, init):
+    X, y = blobs(n, D, K, seed=n + D)
+    model = DPGMMClusterer(init=init, random_state=0).fit(X)
+    assert abs(model.n_clusters_ - K) <= 1
+    assert adjusted_rand_score(y, model.labels_) >= 0.95
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("init", ["kmeans", "one", "random"])
+@pytest.mark.parametrize("D, K", [(2, 6), (3, 5)])
+@pytest.mark.parametrize("block_size", [None, 1024])
+def test_recovers_blobs_10k(D, K, init, block_size):
+    X, y = blobs(10000, D, K, seed=D)
+    model = DPGMMClusterer(init=init, block_size=block_size, random_state=1).fit(X)
+    assert abs(model.n_clusters_ - K) <= 1
+    assert adjusted_rand_score(y, model.labels_) >= 0.95
+
+
+def test_blocked_sweeps_recover_blobs():
+    X, y = blobs(1500, 2, 4, seed=11)
+    model = DPGMMClusterer(block_size=256, random_state=0).fit(X)
+    assert abs(model.n_clusters_ - 4) <= 1
+    assert adjusted_rand_score(y, model.labels_) >= 0.95
+
+
+def test_agrees_with_bayesian_gaussian_mixture():
+    from sklearn.mixture import BayesianGaussianMixture
+
+    X, y = blobs(1000, 2, 4, seed=5, separation=5.0)
+    ours = DPGMMClusterer(random_state=0).fit(X)
+    bgm = BayesianGaussianMixture(
+        n_components=12,
+        weight_concentration_prior_type="dirichlet_process",
+        weight_concentration_prior=1.0,
+        mean_prior=ours.mean_prior_,
+        mean_precision_prior=ours.mean_precision_prior_,
+        covariance_prior=ours.covariance_prior_,
+        degrees_of_freedom_prior=ours.degrees_of_freedom_prior_,
+        max_iter=1500,
+        n_init=2,
+        random_state=0,
+    ).fit(X)
+    bgm_labels = bgm.predict(X)
+    bgm_k = len(np.unique(bgm_labels))
+    assert abs(ours.n_clusters_ - bgm_k) <= 1
+    assert adjusted_rand_score(bgm_labels, ours.labels_) >= 0.9
+    # matched priors: the resolved defaults are BayesianGaussianMixture's own defaults
+    np.testing.assert_allclose(ours.mean_prior_, X.mean(0))
+    np.testing.assert_allclose(ours.covariance_prior_, np.cov(X.T), rtol=1e-5)
+    assert ours.degrees_of_freedom_prior_ == 2 and ours.mean_precision_prior_ == 1
+
+
+def test_paper_hit_points_form_a_handful_of_coherent_clusters():
+    datasets = pytest.importorskip("skoccmap.datasets")
+    if not hasattr(datasets, "make_paper_scans"):
+        pytest.skip("make_paper_scans not available")
+    data = datasets.make_paper_scans()
+    points = np.asarray(data.X)[np.asarray(data.y) == 1, :2]
+    model = DPGMMClusterer(random_state=0).fit(points)
+    assert 3 <= model.n_clusters_ <= 15
+    # spatially coherent: each point's nearest other hit point mostly shares its cluster
+    d = ((points[:, None] - points[None]) ** 2).sum(-1)
+    np.fill_diagonal(d, np.inf)
+    same = model.labels_[np.argmin(d, axis=1)] == model.labels_
+    assert same.mean() > 0.8
+
+
+# -- fitted attributes, prediction -------------------------------------------------------
+
+
+def test_fitted_attributes_and_predict_proba():
+    X, y = blobs(400, 2, 3, seed=7)
+    model = DPGMMClusterer(random_state=0).fit(X)
+    K = model.n_clusters_
+    assert model.labels_.dtype.kind == "i"
+    np.testing.assert_array_equal(np.unique(model.labels_), np.arange(K))
+    assert model.means_.shape == (K, 2) and model.covariances_.shape == (K, 2, 2)
+    np.testing.assert_allclose(model.weights_, np.bincount(model.labels_) / len(X))
+    for k in range(K):
+        Xk = X[model.labels_ == k]
+        k0 = model.mean_precision_prior_
+        expected = (k0 * model.mean_prior_ + Xk.sum(0)) / (k0 + len(Xk))
+        np.testing.assert_allclose(model.means_[k], expected)
+    assert len(model.log_joint_) == model.n_iter_
+    assert model.best_log_joint_ == pytest.approx(
+        np.max(model.log_joint_[min(model.burn_in, model.max_iter - 1) :])
+    )
+    proba = model.predict_proba(X)
+    assert proba.shape == (400, K)
+    np.testing.assert_allclose(proba.sum(1), 1.0)
+    np.testing.assert_array_equal(model.predict(X), proba.argmax(1))
+    # direct: w_k t_k(x) normalised, with the textbook predictive of each final cluster
+    x = X[:5]
+    dens = []
+    for k in range(K):
+        Xk = X[model.labels_ == k]
+        n = len(Xk)
+        m0, k0, nu0 = model.mean_prior_, model.mean_precision_prior_, 2.0
+        kappa, nu = k0 + n, nu0 + n
+        mean = (k0 * m0 + Xk.sum(0)) / kappa
+        dm = Xk.mean(0) - m0
+        psi = (
+            model.covariance_prior_
+            + np.cov(Xk.T, bias=True) * n
+            + k0 * n / kappa * np.outer(dm, dm)
+        )
+        dof = nu - 1
+        dens.append(n * stats.multivariate_t(mean, psi * (kappa + 1) / (kappa * dof), dof).pdf(x))
+    dens = np.array(dens).T
+    np.testing.assert_allclose(proba[:5], dens / dens.sum(1, keepdims=True), rtol=1e-8)
+
+
+def test_log_joint_trace_matches_labels():
+    X, _ = blobs(300, 2, 3, seed=8)
+    model = DPGMMClusterer(random_state=0).fit(X)
+    n, s, S = sufficient_statistics(X, model.labels_, model.n_clusters_)
+    prior = NIWPrior(
+        model.mean_prior_,
+        model.mean_precision_prior_,
+        model.degrees_of_freedom_prior_,
+        model.covariance_prior_,
+    )
+    expected = log_crp(n, 1.0) + log_marginal_likelihood(n, s, S, prior).sum()
+    assert model.best_log_joint_ == pytest.approx(expected, rel=1e-9)
+
+
+def test_deterministic_given_random_state():
+    X, _ = blobs(300, 2, 3, seed=9)
+    a = DPGMMClusterer(random_state=3).fit(X)
+    b = DPGMMClusterer(random_state=3).fit(X)
+    np.testing.assert_array_equal(a.labels_, b.labels_)
+    np.testing.assert_array_equal(a.log_joint_, b.log_joint_)
+
+
+@pytest.mark.parametrize("D", [1, 4])
+def test_other_dimensions(D):
+    X, y = blobs(400, D, 3, seed=D, separation=8.0)
+    model = DPGMMClusterer(random_state=0).fit(X)
+    assert adjusted_rand_score(y, model.labels_) >= 0.95
+
+
+# -- bad input ---------------------------------------------------------------------------
+
+
+def test_constant_data_is_one_cluster():
+    X = np.ones((50, 2))
+    model = DPGMMClusterer(random_state=0).fit(X)
+    assert model.n_clusters_ == 1
+    np.testing.assert_allclose(model.predict_proba(X), 1.0)
+
+
+def test_two_points():
+    model = DPGMMClusterer(random_state=0).fit([[0.0, 0.0], [1.0, 1.0]])
+    assert model.labels_.shape == (2,)
+
+
+@pytest.mark.parametrize(
+    "X, match",
+    [
+        (np.zeros((1, 2)), "1 sample"),
+        (np.array([[0.0, np.nan], [1.0, 2.0]]), "NaN"),
+        (np.zeros((0, 2)), "0 sample"),
+    ],
+)
+def test_bad_input_raises(X, match):
+    with pytest.raises(ValueError, match=match):
+        DPGMMClusterer().fit(X)
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        ({"degrees_of_freedom_prior": 0.5}, "degrees_of_freedom_prior"),
+        ({"covariance_prior": [[1.0, 2.0], [2.0, 1.0]]}, "covariance_prior"),
+        ({"covariance_prior": np.eye(3)}, "covariance_prior"),
+        ({"mean_prior": [0.0, 0.0, 0.0]}, "mean_prior"),
+    ],
+)
+def test_bad_prior_raises(params, match):
+    X, _ = blobs(50, 2, 2, seed=0)
+    with pytest.raises(ValueError, match=match):
+        DPGMMClusterer(**params).fit(X)
+
+
+def test_predict_checks_features():
+    X, _ = blobs(50, 2, 2, seed=0)
+    model = DPGMMClusterer(random_state=0).fit(X)
+    with pytest.raises(ValueError, match="features"):
+        model.predict_proba(np.zeros((3, 3)))
+
+
+def test_max_iter_warns():
+    X, _ = blobs(200, 2, 3, seed=0)
+    with pytest.warns(ConvergenceWarning, match="max_iter"):
+        model = DPGMMClusterer(max_iter=1, random_state=0).fit(X)
+    assert model.n_iter_ == 1 and len(model.log_joint_) == 1
+
+
+def test_scalar_prior_parameters():
+    X, y = blobs(300, 2, 3, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        model = DPGMMClusterer(
+            covariance_prior=1.0,
+            mean_prior=[0, 0],
+            degrees_of_freedom_prior=4,
+            mean_precision_prior=0.01,
+            random_state=0,
+        ).fit(X)
+    np.testing.assert_array_equal(model.covariance_prior_, np.eye(2))
+    assert adjusted_rand_score(y, model.labels_) >= 0.95
