@@ -9,8 +9,9 @@ from sklearn.utils.estimator_checks import check_param_validation, parametrize_w
 
 from skoccmap.baselines import OccupancyGridMap
 from skoccmap.classifier import EPGaussianProcessClassifier
+from skoccmap.cluster import DPGMMClusterer
 
-ESTIMATORS = [OccupancyGridMap(), EPGaussianProcessClassifier()]
+ESTIMATORS = [OccupancyGridMap(), EPGaussianProcessClassifier(), DPGMMClusterer()]
 
 # {estimator class name: {check name: reason}}
 EXPECTED_FAILED_CHECKS = {}
