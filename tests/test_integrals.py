@@ -6,6 +6,7 @@ from scipy import integrate
 from scipy.special import ndtr
 
 from skoccmap._integrals import (
+    _CUTOFF,
     _GL_MAX_WINDOW,
     _GL_NODES,
     _GL_WEIGHTS,
@@ -274,8 +275,11 @@ def test_point_pairs_are_the_rbf_kernel():
     diff = (P[:, None, :] - P[None, :, :]) / scale
     expected = np.exp(-0.5 * (diff**2).sum(-1))
     K, G = integral_kernel(X, length_scale=scale, eval_gradient=True, anisotropic=True)
-    assert_close(K, expected, rtol=1e-14, atol=0)
-    assert_close(G, diff**2 * expected[..., None], rtol=1e-14, atol=0)
+    # Pairs further apart than the cutoff are zero, and only those.
+    cut = np.exp(-0.5 * _CUTOFF**2)
+    assert np.all((K == 0) == (expected < cut))
+    assert_close(K, expected, rtol=1e-14, atol=cut)
+    assert_close(G, diff**2 * expected[..., None], rtol=1e-14, atol=cut * _CUTOFF**2)
 
 
 @pytest.mark.parametrize("order", [1, 2, 5, 12, 20, len(_GL_MAX_WINDOW)])
