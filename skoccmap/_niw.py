@@ -13,7 +13,7 @@ Every function accepts a leading cluster axis so that all clusters are handled i
 from typing import NamedTuple
 
 import numpy as np
-from scipy.special import gammaln, multigammaln
+from scipy.special import gammaln
 
 
 class NIWPrior(NamedTuple):
@@ -86,16 +86,25 @@ def log_marginal_likelihood(n, s, S, prior):
 
 def _log_marginal_from_posterior(n, kappa, nu, logdet_n, prior):
     D = prior.psi.shape[0]
-    _, logdet_0 = cholesky(prior.psi)
-    multigamma = np.vectorize(multigammaln, otypes=[float])
+    _, logdet_0 = np.linalg.slogdet(prior.psi)
     return (
         -0.5 * n * D * np.log(np.pi)
-        + multigamma(0.5 * nu, D)
-        - multigammaln(0.5 * prior.nu, D)
+        + log_multigamma(0.5 * nu, D)
+        - log_multigamma(0.5 * prior.nu, D)
         + 0.5 * prior.nu * logdet_0
         - 0.5 * nu * logdet_n
         + 0.5 * D * (np.log(prior.kappa) - np.log(kappa))
     )
+
+
+def log_multigamma(a, D):
+    """Log multivariate gamma function, vectorised over ``a``.
+
+    ``log Gamma_D(a) = D (D - 1) / 4 log(pi) + sum_{j=1..D} log Gamma(a + (1 - j) / 2)``.
+    """
+    a = np.asarray(a, dtype=float)
+    j = np.arange(1, D + 1)
+    return 0.25 * D * (D - 1) * np.log(np.pi) + gammaln(a[..., None] + 0.5 * (1 - j)).sum(-1)
 
 
 def log_crp(counts, alpha):

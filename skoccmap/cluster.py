@@ -113,7 +113,6 @@ def greedy_split(X, labels, prior, alpha, max_rounds=50):
     point farthest from its mean and the point farthest from that one.
     """
     labels = labels.copy()
-    log_alpha = math.log(alpha)
     for _ in range(max_rounds):
         grew = False
         for k in range(int(labels.max()) + 1):
@@ -128,16 +127,7 @@ def greedy_split(X, labels, prior, alpha, max_rounds=50):
             log_left, log_right = _launch(XS, far, other, prior)
             right = log_right > log_left
             right[far], right[other] = False, True
-            parts = sufficient_statistics(XS, right.astype(np.intp), 2)
-            whole = (np.array([len(members)], float), XS.sum(0)[None], (XS.T @ XS)[None])
-            gain = (
-                log_alpha
-                + gammaln(parts[0]).sum()
-                - gammaln(whole[0]).sum()
-                + log_marginal_likelihood(*parts, prior).sum()
-                - log_marginal_likelihood(*whole, prior).sum()
-            )
-            if gain > 0:
+            if _split_gain(XS, right, prior, alpha) > 0:
                 labels[members[right]] = labels.max() + 1
                 grew = True
         if not grew:
@@ -380,15 +370,7 @@ class _CollapsedGibbs:
         else:
             right = self.labels[members] == b
         log_q = np.where(right, log_q_right, log_q_left)[~fixed].sum()
-        parts = sufficient_statistics(XS, right.astype(np.intp), 2)
-        whole = (np.array([len(members)], float), XS.sum(0)[None], (XS.T @ XS)[None])
-        delta = (
-            math.log(self.alpha)
-            + gammaln(parts[0]).sum()
-            - gammaln(whole[0]).sum()
-            + log_marginal_likelihood(*parts, self.prior).sum()
-            - log_marginal_likelihood(*whole, self.prior).sum()
-        )
+        delta = _split_gain(XS, right, self.prior, self.alpha)
         # delta = log p(split) - log p(merged); the split proposal has probability q.
         log_accept = delta - log_q if a == b else log_q - delta
         if math.log(rng.random()) >= log_accept:
@@ -410,6 +392,16 @@ class _CollapsedGibbs:
         for slot, k in enumerate(ks):
             self.n[k], self.s[k], self.S[k] = n[slot], s[slot], S[slot]
         self.refresh(np.array(ks))
+
+
+def _split_gain(XS, right, prior, alpha):
+    """``log p(X, split) - log p(X, merged)`` for points ``XS`` split by the mask ``right``."""
+    n, s, S = sufficient_statistics(XS, right.astype(np.intp), 3)
+    # third row: the merged cluster
+    n[2], s[2], S[2] = n[0] + n[1], s[0] + s[1], S[0] + S[1]
+    lml = log_marginal_likelihood(n, s, S, prior)
+    lg = gammaln(n)
+    return math.log(alpha) + lg[0] + lg[1] - lg[2] + lml[0] + lml[1] - lml[2]
 
 
 def _launch(XS, pos_i, pos_j, prior, n_steps=3):

@@ -120,6 +120,16 @@ def test_leave_one_out_predictive_matches_refit():
             assert got[i] == pytest.approx(log_student_t(X[i : i + 1], t_rest)[0, 0])
 
 
+def test_log_multigamma_against_scipy():
+    from scipy.special import multigammaln
+
+    from skoccmap._niw import log_multigamma
+
+    for D in (1, 2, 3, 5):
+        a = np.array([D / 2 + 0.1, 3.7, 40.0])
+        np.testing.assert_allclose(log_multigamma(a, D), [multigammaln(v, D) for v in a])
+
+
 def test_log_crp_against_sequential_seating():
     alpha = 0.7
     labels = [0, 0, 1, 0, 2, 1, 1]
