@@ -407,53 +407,43 @@ def _segment_pairs(s1, s2, dim, gradient, max_nodes):
     panel_lo = lo[panel_pair] + panel_rank * panel_span
     order = gauss_legendre_order(np.repeat(window / n_panels, n_panels))
 
-    # Chunks of panels with at most max_nodes nodes each bound the temporaries.
-    ends = np.cumsum(order)
+    # Panels grouped by order, so that nodes form (panels, order) arrays that broadcast the
+    # per-pair coefficients; at most max_nodes nodes at once bound the temporaries.
+    by_order = np.argsort(order, kind="stable")
+    orders, counts = np.unique(order[by_order], return_counts=True)
     start = 0
-    while start < panel_pair.size:
-        stop = max(np.searchsorted(ends, (ends[start - 1] if start else 0) + max_nodes,
-                                   side="right"), start + 1)
-        sl = slice(start, stop)
-        _accumulate_panels(k, grad, panel_pair[sl], panel_lo[sl], panel_span[sl], order[sl],
-                           a1, d1, a2, d2, len2, gradient)
-        start = stop
+    for n_nodes, count in zip(orders, counts, strict=True):
+        group = by_order[start:start + count]
+        start += count
+        step = max(1, max_nodes // int(n_nodes))
+        for first in range(0, count, step):
+            sel = group[first:first + step]
+            _accumulate_panels(k, grad, panel_pair[sel], panel_lo[sel], panel_span[sel],
+                               int(n_nodes), a1, d1, a2, d2, len2, gradient)
     return k, grad
 
 
-def _accumulate_panels(k, grad, pair, lo, span, order, a1, d1, a2, d2, len2, gradient):
-    """Add the Gauss-Legendre sums of the given panels into ``k`` and ``grad`` (in place)."""
-    n_nodes = order.sum()
-    node_panel = np.repeat(np.arange(order.size), order)
-    first = np.cumsum(order) - order
-    rank = np.arange(n_nodes) - first[node_panel]
-    node_order = order[node_panel]
-    u = lo[node_panel] + span[node_panel] * _GL_NODES[node_order, rank]
-    weight = span[node_panel] * _GL_WEIGHTS[node_order, rank]
-
-    # Per pair scalars of f0(u) = |w0 + u d1|^2 and dw(u) = d2 . (w0 + u d1), w0 = a1 - a2.
-    p = pair
-    w0 = a1[p] - a2[p]
-    dd1, dd2 = d1[p], d2[p]
-    coef_a = _dot(w0, w0)
+def _accumulate_panels(k, grad, pair, lo, span, n_nodes, a1, d1, a2, d2, len2, gradient):
+    """Add the n_nodes-point Gauss-Legendre sums of the given panels into k and grad."""
+    x, w = _GL_NODES[n_nodes, :n_nodes], _GL_WEIGHTS[n_nodes, :n_nodes]
+    u = lo[:, None] + span[:, None] * x  # (panels, nodes)
+    # f0(u) = |w0 + u d1|^2 and dw(u) = d2 . (w0 + u d1) with w0 = a1 - a2: polynomials in u.
+    w0, dd1, dd2 = a1[pair] - a2[pair], d1[pair], d2[pair]
     coef_b = 2.0 * _dot(w0, dd1)
     coef_c = _dot(dd1, dd1)
-    coef_p = _dot(dd2, w0)
-    coef_q = _dot(dd2, dd1)
-    f0 = coef_a[node_panel] + u * (coef_b[node_panel] + u * coef_c[node_panel])
-    dw = coef_p[node_panel] + u * coef_q[node_panel]
-    m0, x1, x2, e0, e1, h2, inv_len = _inner_scalars(f0, dw, len2[p][node_panel])
-
-    sums = np.add.reduceat(weight * m0, first)
-    np.add.at(k, p, sums)
+    f0 = _dot(w0, w0)[:, None] + u * (coef_b[:, None] + u * coef_c[:, None])
+    dw = _dot(dd2, w0)[:, None] + u * _dot(dd2, dd1)[:, None]
+    m0, x1, x2, e0, e1, h2, inv_len = _inner_scalars(f0, dw, len2[pair][:, None])
+    np.add.at(k, pair, (m0 @ w) * span)
     if gradient is None:
         return
     if gradient == "iso":
-        g = _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len)[:, None]
-    else:
-        w = w0[node_panel] + u[:, None] * dd1[node_panel]
-        g = _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, dd2[node_panel])
-    gsums = np.add.reduceat(weight[:, None] * g, first, axis=0)
-    np.add.at(grad, p, gsums)
+        g = _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len)
+        np.add.at(grad[:, 0], pair, (g @ w) * span)
+        return
+    wvec = w0[:, None, :] + u[:, :, None] * dd1[:, None, :]
+    g = _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, wvec, dd2[:, None, :])
+    np.add.at(grad, pair, np.einsum("pnk,n->pk", g, w) * span[:, None])
 
 
 def pair_integrals(s1, s2, gradient=None, max_nodes=1 << 16):
