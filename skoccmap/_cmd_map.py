@@ -161,6 +161,7 @@ def _run(args, unknown_variance):
         extent,
         args.resolution,
         unknown_variance=unknown_variance,
+        chunk_size=8192,  # small chunks: frequent progress, bounded memory
         verbose=0 if args.quiet else 1,
     )
     print(f"map: {grid.shape[1]} x {grid.shape[0]} cells at {grid.resolution:g} m")
