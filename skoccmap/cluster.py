@@ -5,6 +5,7 @@ import warnings
 from numbers import Integral, Real
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 from scipy.special import gammaln, logsumexp
 from sklearn.base import BaseEstimator, ClusterMixin, _fit_context
 from sklearn.exceptions import ConvergenceWarning
@@ -16,7 +17,6 @@ from ._niw import (
     NIWPrior,
     StudentT,
     _log_marginal_from_posterior,
-    cholesky,
     leave_one_out_log_student_t,
     log_crp,
     log_marginal_likelihood,
@@ -404,7 +404,7 @@ def _split_gain(XS, right, prior, alpha):
     return math.log(alpha) + lg[0] + lg[1] - lg[2] + lml[0] + lml[1] - lml[2]
 
 
-def _launch(XS, pos_i, pos_j, prior, n_steps=3):
+def _launch(XS, pos_i, pos_j, prior, n_steps=2):
     """Launch state of a split-merge proposal: log P(left), log P(right) of each point.
 
     Depends only on the points, the two anchor positions and the prior, so that the split
@@ -413,11 +413,9 @@ def _launch(XS, pos_i, pos_j, prior, n_steps=3):
     then ``n_steps`` restricted classification steps reassign each point to the sub-cluster
     with the larger ``n_l t_l(x)``.
     """
-    chol0, _ = cholesky(prior.psi[None])
-    white = np.linalg.solve(chol0[0], (XS - XS[pos_i]).T)
-    d_left = np.einsum("ij,ij->j", white, white)
-    white = np.linalg.solve(chol0[0], (XS - XS[pos_j]).T)
-    right = np.einsum("ij,ij->j", white, white) < d_left
+    # Nearer to x_j than to x_i in the metric Psi0^{-1}: a half-space through the midpoint.
+    normal = cho_solve(cho_factor(prior.psi, lower=True), XS[pos_j] - XS[pos_i])
+    right = (XS - 0.5 * (XS[pos_i] + XS[pos_j])) @ normal > 0
     for step in range(n_steps + 1):
         right[pos_i], right[pos_j] = False, True
         n, s, S = sufficient_statistics(XS, right.astype(np.intp), 2)
