@@ -37,14 +37,18 @@ _SIMILARITY_CUTOFF = 4.5
 _GATING_GPC_MAX_SAMPLES = 300
 
 
-def _check_segment_columns(X, name="X"):
+def _as_segment_rows(X, layout):
+    """Segment rows ``[start, end]`` of ``X`` read with the given layout."""
+    if layout == "points":
+        return np.hstack([X, X])
     if X.shape[1] % 2:
         # "feature(s)" wording: the message sklearn's checks look for on 1-column input.
         raise ValueError(
-            f"{name} has {X.shape[1]} feature(s); MixtureGPOccupancyMap needs segment rows "
-            "[start_1..start_D, end_1..end_D] with an even number of columns (2*D). Turn "
-            "points into zero-length segments with skoccmap.observations.as_segments."
+            f"X has {X.shape[1]} feature(s); with layout='segments' MixtureGPOccupancyMap "
+            "needs segment rows [start_1..start_D, end_1..end_D] with an even number of "
+            "columns (2*D). Pass layout='points' for rows that are points."
         )
+    return X
 
 
 def _midpoints(X):
@@ -137,8 +141,42 @@ def _assign_no_return(X_nr, X_ret, ret_labels, kernel):
 
 
 # ---------------------------------------------------------------------------------------
-# Splitting big clusters
+# Merging small clusters, splitting big ones
 # ---------------------------------------------------------------------------------------
+
+
+def _merge_small(labels, hit_points, hit_labels, min_size):
+    """Merge clusters with fewer than ``min_size`` observations into their nearest one.
+
+    Returns the merged index of every cluster. A cluster of a few hits can learn nothing,
+    and the broad predictive density of a near-empty DP cluster would win the gate far
+    from all hits; nearest is by hit centroid, smallest first.
+    """
+    n_clusters = hit_labels.max() + 1
+    counts = np.bincount(labels, minlength=n_clusters).astype(float)
+    hit_counts = np.bincount(hit_labels, minlength=n_clusters).astype(float)
+    centroids = np.zeros((n_clusters, hit_points.shape[1]))
+    np.add.at(centroids, hit_labels, hit_points)
+    centroids /= hit_counts[:, None]
+    merged = np.arange(n_clusters)
+    alive = np.ones(n_clusters, dtype=bool)
+    while alive.sum() > 1:
+        live = np.flatnonzero(alive)
+        small = live[np.argmin(counts[live])]
+        if counts[small] >= min_size:
+            break
+        others = live[live != small]
+        target = others[np.argmin(np.linalg.norm(centroids[others] - centroids[small], axis=1))]
+        total = hit_counts[target] + hit_counts[small]
+        centroids[target] = (
+            hit_counts[target] * centroids[target] + hit_counts[small] * centroids[small]
+        ) / total
+        hit_counts[target] = total
+        counts[target] += counts[small]
+        alive[small] = False
+        merged[merged == small] = target
+    # Renumber the surviving clusters 0..K-1 in order.
+    return np.unique(merged, return_inverse=True)[1]
 
 
 def _bisect(points, max_size):
@@ -282,6 +320,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``GaussianProcessClassifier`` with a fixed RBF kernel, on at most 300 points).
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
         Merging rule, see :mod:`skoccmap.combine`.
+    min_expert_size : int, default=20
+        Clusters with fewer observations are merged into the cluster with the nearest hit
+        centroid (their gate is the sum of the merged clusters' responsibilities). A
+        near-empty cluster learns nothing, and its broad predictive density would otherwise
+        win the gate far from all hits. 1 disables merging.
     max_expert_size : int or None, default=400
         Clusters with more observations are split at the median along their principal
         axis until every piece has at most this many; pieces are gated by Gaussians fitted
@@ -301,6 +344,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         the cluster of the return beam most similar to them under the expert's kernel
         (the paper's rule). Keep it a few cm above the ``free_margin`` of
         :func:`~skoccmap.observations.scans_to_observations` (0.05 m).
+    layout : {"segments", "points"}, default="segments"
+        How rows of ``X`` are read. ``"segments"``: ``[start, end]`` rows with ``2 * D``
+        columns, as everywhere in skoccmap (odd column counts are rejected).
+        ``"points"``: every row is a point with ``D = n_columns`` coordinates (e.g. free
+        points sampled along beams); rows become zero-length segments before they reach
+        the experts, and every free point joins the cluster of its nearest hit.
     n_jobs : int, default=None
         Experts fitted in parallel with :class:`sklearn.utils.parallel.Parallel`; honours
         ``joblib.parallel_config`` (e.g. ``backend="dask"``). ``None`` means 1 unless in a
@@ -316,17 +365,22 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     classes_ : ndarray of shape (2,)
         Class labels; ``classes_[1]`` is *occupied*.
     n_features_in_ : int
-        Number of columns of ``X`` (``2 * D``).
+        Number of columns of ``X`` (``2 * D`` with segments, ``D`` with points).
     clusterer_ : estimator
         The fitted clusterer.
     observation_kind_ : ndarray of shape (n_samples,)
-        ``HIT``, ``RETURN`` or ``NO_RETURN`` code (:mod:`skoccmap.observations`) per row.
+        ``HIT``, ``RETURN`` or ``NO_RETURN`` code (:mod:`skoccmap.observations`) per row;
+        with ``layout="points"`` free points are marked ``RETURN`` (they follow that rule).
     cluster_labels_ : ndarray of shape (n_samples,)
         Expert index (0 .. ``n_experts_ - 1``) of every training row.
     expert_cluster_ : ndarray of shape (n_experts_,)
-        Clusterer cluster (position in ``cluster_ids_``) each expert's piece belongs to.
+        Merged cluster (0 .. ``n_clusters_ - 1``) each expert's piece belongs to.
     cluster_ids_ : ndarray
         Labels of the clusterer that received hit points, in order.
+    cluster_merge_ : ndarray of shape (len(cluster_ids_),)
+        Merged cluster of each of the clusterer's clusters (see ``min_expert_size``).
+    n_clusters_ : int
+        Number of clusters after merging small ones.
     n_experts_ : int
         Number of experts.
     experts_ : list of estimators
@@ -378,10 +432,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "expert": [HasMethods(["fit", "latent_mean_and_variance"]), None],
         "gating": [StrOptions({"clusterer", "gpc"})],
         "combiner": [StrOptions(set(COMBINERS))],
+        "min_expert_size": [Interval(Integral, 1, None, closed="left")],
         "max_expert_size": [Interval(Integral, 2, None, closed="left"), None],
         "share_hyperparameters": ["boolean"],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
+        "layout": [StrOptions({"segments", "points"})],
         "n_jobs": [Integral, None],
         "random_state": ["random_state"],
         "verbose": ["verbose"],
@@ -394,10 +450,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         *,
         gating="clusterer",
         combiner="moe",
+        min_expert_size=20,
         max_expert_size=400,
         share_hyperparameters=False,
         gating_threshold=1e-3,
         return_radius=0.1,
+        layout="segments",
         n_jobs=None,
         random_state=None,
         verbose=0,
@@ -406,10 +464,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.expert = expert
         self.gating = gating
         self.combiner = combiner
+        self.min_expert_size = min_expert_size
         self.max_expert_size = max_expert_size
         self.share_hyperparameters = share_hyperparameters
         self.gating_threshold = gating_threshold
         self.return_radius = return_radius
+        self.layout = layout
         self.n_jobs = n_jobs
         self.random_state = random_state
         self.verbose = verbose
@@ -438,14 +498,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             Fitted estimator.
         """
         X, y = validate_data(self, X, y, dtype=np.float64)
-        _check_segment_columns(X)
         check_classification_targets(y)
         self.classes_, y_enc = np.unique(y, return_inverse=True)
         if self.classes_.size != 2:
             raise ValueError(
-                "MixtureGPOccupancyMap needs y with exactly 2 classes (free and occupied), "
-                f"got {self.classes_.size} class(es): {self.classes_.tolist()}."
+                "Only binary classification is supported. MixtureGPOccupancyMap needs y with "
+                f"exactly 2 classes (free and occupied), got {self.classes_.size} class(es): "
+                f"{self.classes_.tolist()}."
             )
+        X = _as_segment_rows(X, self.layout)
         rng = check_random_state(self.random_state)
         start = time.perf_counter()
 
@@ -454,8 +515,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         labels = self._cluster_and_assign(X, occupied, expert, rng)
         _log(
             self.verbose,
-            f"clustering done: {self.cluster_ids_.size} cluster(s) "
-            f"({time.perf_counter() - start:.1f} s)",
+            f"clustering done: {self.cluster_ids_.size} cluster(s), "
+            f"{self.n_clusters_} after merging small ones ({time.perf_counter() - start:.1f} s)",
         )
         labels = self._split_clusters(X, labels)
         self.cluster_labels_ = labels
@@ -504,7 +565,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         labels = np.empty(X.shape[0], dtype=np.intp)
         labels[occupied] = hit_labels
-        kinds, nearest_hit = _observation_kinds(X, occupied, self.return_radius)
+        # Free points follow the return-beam rule without a distance limit.
+        radius = np.inf if self.layout == "points" else self.return_radius
+        kinds, nearest_hit = _observation_kinds(X, occupied, radius)
         self.observation_kind_ = kinds
         is_ret = kinds == RETURN
         # Position of each hit row among the hits, to look up its cluster.
@@ -521,14 +584,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 # beam's midpoint.
                 idx = cKDTree(hits).query(_midpoints(X[is_nr]))[1]
                 labels[is_nr] = hit_labels[idx]
-        return labels
+        self.cluster_merge_ = _merge_small(labels, hits, hit_labels, self.min_expert_size)
+        self.n_clusters_ = int(self.cluster_merge_.max() + 1)
+        return self.cluster_merge_[labels]
 
     def _split_clusters(self, X, labels):
         """Split clusters above ``max_expert_size``; returns expert labels per row."""
         mids = _midpoints(X)
         expert_labels = np.empty_like(labels)
         expert_cluster, piece_gates = [], []
-        for c in range(self.cluster_ids_.size):
+        for c in range(self.n_clusters_):
             rows = np.flatnonzero(labels == c)
             if self.max_expert_size is None or rows.size <= self.max_expert_size:
                 pieces = [np.arange(rows.size)]
@@ -634,9 +699,18 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     # -- gating ----------------------------------------------------------------------
 
     def _cluster_weights(self, mids):
-        n_clusters = self.cluster_ids_.size
-        if n_clusters == 1:
+        """Gate of the merged clusters: sums of the clusterer's responsibilities."""
+        if self.n_clusters_ == 1:
             return np.ones((mids.shape[0], 1))
+        raw = self._clusterer_weights(mids)
+        weights = np.zeros((mids.shape[0], self.n_clusters_))
+        for c in range(self.n_clusters_):
+            weights[:, c] = raw[:, self.cluster_merge_ == c].sum(axis=1)
+        return weights
+
+    def _clusterer_weights(self, mids):
+        """Responsibilities of the clusterer's clusters that received hits."""
+        n_clusters = self.cluster_ids_.size
         soft = hasattr(self.clusterer_, "predict_proba") and (
             np.issubdtype(self.cluster_ids_.dtype, np.integer) and self.cluster_ids_.min() >= 0
         )
@@ -693,8 +767,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def _validate_queries(self, X):
         check_is_fitted(self)
         X = validate_data(self, X, reset=False, dtype=np.float64)
-        _check_segment_columns(X)
-        return X
+        return _as_segment_rows(X, self.layout)
 
     def _merged(self, X):
         """Merged prediction (proba, mean, variance) over query chunks."""
@@ -761,7 +834,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         y : ndarray of shape (n_queries,)
             Labels from ``classes_``.
         """
-        return self.classes_[np.argmax(self.predict_proba(X), axis=1)]
+        proba = self.predict_proba(X)
+        return self.classes_[np.argmax(proba, axis=1)]
 
     def latent_mean_and_variance(self, X):
         """Merged latent mean and variance at the query segments.

@@ -66,7 +66,9 @@ def test_hits_and_return_beams_follow_their_hit(paper):
     # Hits carry the clusterer's labels.
     raw = model.clusterer_.predict(X[hits, :2])
     _, expected = np.unique(raw, return_inverse=True)
-    np.testing.assert_array_equal(model.expert_cluster_[labels[hits]], expected)
+    np.testing.assert_array_equal(
+        model.expert_cluster_[labels[hits]], model.cluster_merge_[expected]
+    )
     # A return beam stops free_margin short of its hit: brute-force nearest hit to its end.
     for row in np.flatnonzero(paper.kind == RETURN):
         nearest = hits[np.argmin(np.linalg.norm(X[hits, :2] - X[row, 2:], axis=1))]
@@ -107,7 +109,7 @@ def test_one_class_cluster_gets_constant_expert():
     X = np.vstack([as_segments(wall), beams, as_segments(far)])
     y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
     model = MixtureGPOccupancyMap(
-        KMeans(2, n_init=3, random_state=0), _fast_expert(), random_state=0
+        KMeans(2, n_init=3, random_state=0), _fast_expert(), min_expert_size=1, random_state=0
     ).fit(X, y)
     constant = [e for e in model.experts_ if isinstance(e, _ConstantExpert)]
     assert len(constant) == 1
@@ -119,7 +121,27 @@ def test_one_class_cluster_gets_constant_expert():
     np.testing.assert_allclose(model.predict_proba(q)[:, 1], 13 / 14)
 
 
-# --- experts and splitting ----------------------------------------------------------------
+# --- experts, merging and splitting ------------------------------------------------------
+
+
+def test_small_clusters_are_merged_and_their_gates_summed(paper, grid):
+    _, Q = grid
+    model = _mixture(clusterer=GaussianMixture(12, random_state=0), min_expert_size=60)
+    model.fit(paper.X, paper.y)
+    sizes = np.bincount(model.cluster_labels_)
+    assert model.cluster_ids_.size > model.n_clusters_ > 1
+    assert sizes.min() >= 60
+    # Every clusterer cluster maps to one merged cluster whose gate is the sum.
+    raw = model.clusterer_.predict_proba(Q[:, :2])[:, model.cluster_ids_]
+    merged = model._cluster_weights(Q[:, :2])
+    for c in range(model.n_clusters_):
+        np.testing.assert_allclose(merged[:, c], raw[:, model.cluster_merge_ == c].sum(axis=1))
+    # Hits keep their clusterer cluster, up to the merge.
+    hits = paper.y == 1
+    raw_hit = np.searchsorted(model.cluster_ids_, model.clusterer_.predict(paper.X[hits, :2]))
+    np.testing.assert_array_equal(
+        model.expert_cluster_[model.cluster_labels_[hits]], model.cluster_merge_[raw_hit]
+    )
 
 
 def test_single_cluster_mixture_equals_its_expert(paper, grid):
