@@ -443,8 +443,14 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
       clusters, which single-site moves cannot do on large data.
 
     The state is initialised by k-means (or as given by ``init``), after which clusters are
-    merged greedily while the log joint rises. The fitted state is the sample with the highest
+    merged, bisected and merged again greedily while the log joint rises (a deterministic
+    search, part of the initialisation only). The fitted state is the sample with the highest
     log joint ``log p(X, z)`` seen after burn-in.
+
+    The Gibbs sweeps are exact: the conditionals of a block of points are evaluated in one
+    vectorised step against cached per-cluster predictives (the point's own cluster through a
+    closed-form leave-one-out update), and the block is cut at its first point that moves, so
+    every draw sees the current state. ``block_size`` switches to faster approximate sweeps.
 
     Parameters
     ----------
@@ -465,7 +471,8 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
     init : {"kmeans", "one", "random"}, default="kmeans"
         Starting partition: k-means with ``ceil(2 alpha log(1 + n / alpha))`` clusters (at most
         50), all points in one cluster, or uniformly random labels over that many clusters.
-        Either way clusters are then merged greedily while the log joint rises.
+        Either way clusters are then merged, bisected and merged greedily while the log joint
+        rises.
     block_size : int, default=None
         None: exact collapsed Gibbs. An int: approximate, blocked sweeps in which the points of
         each block are drawn against the statistics at the start of the block (stale by the
