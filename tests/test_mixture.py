@@ -249,19 +249,20 @@ def test_chunked_prediction_equals_one_chunk(paper, grid):
     np.testing.assert_allclose(whole, chunked, rtol=1e-12, atol=1e-15)
 
 
-@pytest.mark.parametrize("combiner", sorted(COMBINERS))
 @pytest.mark.parametrize("gating", ["clusterer", "gpc"])
-def test_every_combiner_gives_a_valid_map(paper, grid, combiner, gating):
+def test_every_combiner_gives_a_valid_map(paper, grid, gating):
     occupied, Q = grid
-    model = _mixture(combiner=combiner, gating=gating).fit(paper.X, paper.y)
-    proba = model.predict_proba(Q)
-    mean, var = model.latent_mean_and_variance(Q)
-    assert np.all(np.isfinite(proba)) and np.all((proba >= 0) & (proba <= 1))
-    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
-    assert np.all(np.isfinite(mean)) and np.all(var > 0)
-    np.testing.assert_array_equal(model.predict_var(Q), var)
-    auc = roc_auc_score(occupied, proba[:, 1])
-    assert auc > 0.8, auc
+    model = _mixture(gating=gating).fit(paper.X, paper.y)
+    for combiner in COMBINERS:
+        model.set_params(combiner=combiner)  # used at prediction only
+        proba = model.predict_proba(Q)
+        mean, var = model.latent_mean_and_variance(Q)
+        assert np.all(np.isfinite(proba)) and np.all((proba >= 0) & (proba <= 1))
+        np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+        assert np.all(np.isfinite(mean)) and np.all(var > 0)
+        np.testing.assert_array_equal(model.predict_var(Q), var)
+        auc = roc_auc_score(occupied, proba[:, 1])
+        assert auc > 0.8, (combiner, auc)
 
 
 def test_labels_are_any_two_classes(paper, grid):
@@ -359,3 +360,68 @@ def test_dask_backend_matches_local(paper, grid):
         # The experts ran as tasks on the workers.
         assert len(stream.data) > 0
     np.testing.assert_array_equal(model.predict_proba(Q), local)
+
+
+# --- the package's defaults on simulated scans ----------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def default_model(paper):
+    return MixtureGPOccupancyMap(random_state=0).fit(paper.X, paper.y)
+
+
+@pytest.mark.parametrize("combiner", sorted(COMBINERS))
+def test_defaults_map_the_paper_scans(default_model, grid, combiner):
+    occupied, Q = grid
+    # The combiner acts at prediction only: switching it on the fitted model is enough.
+    model = default_model.set_params(combiner=combiner)
+    proba = model.predict_proba(Q)[:, 1]
+    var = model.predict_var(Q)
+    assert np.all((proba >= 0) & (proba <= 1)) and not np.any(np.isnan(proba))
+    assert np.all(var > 0) and np.all(np.isfinite(var))
+    assert roc_auc_score(occupied, proba) > 0.95
+
+
+@pytest.mark.slow  # the single EP GP on all ~700 observations takes minutes here
+@pytest.mark.parametrize("share", [False, True])
+def test_mixture_auc_within_001_of_single_gp(paper, share):
+    from skoccmap import EPGaussianProcessClassifier
+    from skoccmap.mixture import _default_kernel
+
+    g = paper.environment.ground_truth_grid(0.2, scans=paper.scans)
+    Q = as_segments(g.points[g.observed])
+    truth = g.occupied[g.observed]
+    single = EPGaussianProcessClassifier(kernel=_default_kernel()).fit(paper.X, paper.y)
+    mixture = MixtureGPOccupancyMap(share_hyperparameters=share, random_state=0)
+    mixture.fit(paper.X, paper.y)
+    auc_single = roc_auc_score(truth, single.predict_proba(Q)[:, 1])
+    auc_mixture = roc_auc_score(truth, mixture.predict_proba(Q)[:, 1])
+    assert auc_mixture >= auc_single - 0.01, (auc_mixture, auc_single)
+
+
+def test_maps_a_3d_scan():
+    from skoccmap.datasets import make_room3d_scans
+
+    data = make_room3d_scans(random_state=0)
+    g = data.environment.ground_truth_grid(0.5, scans=data.scans)
+    Q = as_segments(g.points[g.observed])
+    model = MixtureGPOccupancyMap(random_state=0).fit(data.X, data.y)
+    np.testing.assert_array_equal(model.observation_kind_, data.kind)
+    proba = model.predict_proba(Q)[:, 1]
+    assert np.all(model.predict_var(Q) > 0)
+    assert roc_auc_score(g.occupied[g.observed], proba) > 0.85
+
+
+@pytest.mark.slow  # runs all of check_estimator once more (~1-3 min)
+def test_segments_layout_fails_checks_only_on_odd_columns():
+    # tests/test_common.py runs the checks on layout="points", where every column count is
+    # valid. The default layout reads rows as segments: every check it fails must fail on
+    # the documented odd-column ValueError, nothing else.
+    from sklearn.utils.estimator_checks import check_estimator
+
+    results = check_estimator(MixtureGPOccupancyMap(), on_fail=None)
+    failed = [r for r in results if r["status"] == "failed"]
+    assert failed  # the checks do feed 3 and 5 columns
+    for r in failed:
+        assert isinstance(r["exception"], ValueError), r["check_name"]
+        assert "even number of columns" in str(r["exception"]), r["check_name"]
