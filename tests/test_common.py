@@ -10,8 +10,11 @@ from sklearn.utils.estimator_checks import check_param_validation, parametrize_w
 from skoccmap.baselines import OccupancyGridMap
 from skoccmap.classifier import EPGaussianProcessClassifier
 from skoccmap.cluster import DPGMMClusterer
+from skoccmap.mixture import MixtureGPOccupancyMap
 
 ESTIMATORS = [OccupancyGridMap(), EPGaussianProcessClassifier(), DPGMMClusterer()]
+# Points layout: every column count is valid (segments: tests/test_mixture.py).
+ESTIMATORS.append(MixtureGPOccupancyMap(layout="points"))
 
 # {estimator class name: {check name: reason}}
 EXPECTED_FAILED_CHECKS = {}
