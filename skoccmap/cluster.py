@@ -478,7 +478,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         each block are drawn against the statistics at the start of the block (stale by the
         moves earlier in that block) and moved together; faster when many points move per
         sweep (overlapping clusters, large data). Split-merge moves stay exact.
-    n_split_merge : int, default=20
+    n_split_merge : int, default=10
         Split-merge proposals after each Gibbs sweep.
     burn_in : int, default=5
         Sweeps before samples become candidates for the final state (capped at
@@ -592,7 +592,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         degrees_of_freedom_prior=None,
         init="kmeans",
         block_size=None,
-        n_split_merge=20,
+        n_split_merge=10,
         burn_in=5,
         max_iter=200,
         tol=1e-3,
