@@ -44,6 +44,9 @@ _WINDOW_MARGIN = 6.0
 _SHORT = 0.05
 # Gauss-Legendre order for pairs of short segments (error < 1e-12 for lengths below _SHORT).
 _SHORT_ORDER = 5
+# A line-point tail term whose exponent exceeds the minimum by this much is below exp(-40) < 5e-18
+# of the integral and is skipped (see _inner_scalars).
+_TAIL = 80.0
 
 # _GL_MAX_WINDOW[n - 1]: the longest interval (scaled units) on which n-point Gauss-Legendre
 # integrates a unit Gaussian, centred anywhere, with an error below 5e-13 of its mass
@@ -106,7 +109,8 @@ def _inner_scalars(f0, dw, length):
     """Line-point integral from the scalars of ``f(v) = |w - v d|**2``.
 
     ``f0 = |w|**2``, ``dw = w . d``, ``length = |d|`` (>= _SHORT). Returns
-    ``M0 = int_0^1 exp(-f(v)/2) dv`` and the pieces the moments need.
+    ``M0 = int_0^1 exp(-f(v)/2) dv``, the pieces the moments need and ``min f`` (the squared
+    distance between the point and the segment).
 
     With ``v0 = dw / length**2`` the closest point, ``h**2 = f0 - dw**2 / length**2`` and
     ``x1 = -length * v0``, ``x2 = x1 + length``::
@@ -116,6 +120,10 @@ def _inner_scalars(f0, dw, length):
     ``Phi(x) exp(-h**2/2) = E(-x) exp(-f/2)`` for x <= 0 with ``E(z) = erfcx(z / sqrt 2) / 2`` and
     ``f = h**2 + x**2`` (``f0`` at ``x1``, ``f1 = f(1)`` at ``x2``); the upper tail is symmetric.
     Using only non-negative erfcx arguments keeps both tails free of cancellation.
+
+    A tail term at an end where ``f`` exceeds its minimum by more than ``_TAIL`` is below
+    ``exp(-_TAIL / 2)`` of the result (erfcx decreases, and the other end or the peak dominates),
+    so its erfcx is skipped: erfcx of ``inf`` is 0 and costs a fraction of a finite argument.
     """
     inv_len = 1.0 / length
     x1 = -dw * inv_len
@@ -124,12 +132,14 @@ def _inner_scalars(f0, dw, length):
     h2 = np.maximum(f0 - x1 * x1, 0.0)
     e0 = np.exp(-0.5 * f0)
     e1 = np.exp(-0.5 * f1)
-    g1 = 0.5 * erfcx(np.abs(x1) * _SQRT_HALF) * e0
-    g2 = 0.5 * erfcx(np.abs(x2) * _SQRT_HALF) * e1
     # Peak before the segment (x1 >= 0), after it (x2 <= 0), or inside it.
-    diff = np.where(x1 >= 0.0, g1 - g2, np.where(x2 <= 0.0, g2 - g1, np.exp(-0.5 * h2) - g1 - g2))
+    before, after = x1 >= 0.0, x2 <= 0.0
+    fmin = np.where(before, f0, np.where(after, f1, h2))
+    g1 = 0.5 * erfcx(np.where(f0 - fmin <= _TAIL, np.abs(x1) * _SQRT_HALF, np.inf)) * e0
+    g2 = 0.5 * erfcx(np.where(f1 - fmin <= _TAIL, np.abs(x2) * _SQRT_HALF, np.inf)) * e1
+    diff = np.where(before, g1 - g2, np.where(after, g2 - g1, np.exp(-0.5 * h2) - g1 - g2))
     m0 = _SQRT_2PI * inv_len * diff
-    return m0, x1, x2, e0, e1, h2, inv_len
+    return m0, x1, x2, e0, e1, h2, inv_len, fmin
 
 
 def _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len):
@@ -159,8 +169,9 @@ def _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, d):
 def segment_point(a, d, p, *, eval_gradient=False):
     """Average of the point kernel along a segment, against a point (scaled coordinates).
 
-    ``int_0^1 exp(-|a + v d - p|**2 / 2) dv`` in closed form; segments shorter than the
-    cancellation threshold use Gauss-Legendre on the (then nearly flat) integrand.
+    ``int_0^1 exp(-|a + v d - p|**2 / 2) dv`` in closed form (:func:`_inner_scalars`, erfcx
+    of non-negative arguments); segments shorter than the cancellation threshold ``_SHORT`` use
+    Gauss-Legendre on the (then nearly flat) integrand. No cut-off is applied.
 
     Parameters
     ----------
@@ -184,12 +195,12 @@ def segment_point(a, d, p, *, eval_gradient=False):
     1.0
     """
     a, d, p = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (a, d, p)))
-    s1 = np.concatenate([p, p], axis=-1).reshape(-1, 2 * a.shape[-1])
-    s2 = np.concatenate([a, a + d], axis=-1).reshape(-1, 2 * a.shape[-1])
-    out = pair_integrals(s1, s2, gradient="aniso" if eval_gradient else None)
-    k = out[0].reshape(a.shape[:-1])
+    dim = a.shape[-1]
+    w = (p - a).reshape(-1, dim)
+    k, grad, _ = _point_segment(w, d.reshape(-1, dim), "aniso" if eval_gradient else None)
+    k = k.reshape(a.shape[:-1])
     if eval_gradient:
-        return k, out[1].reshape(a.shape)
+        return k, grad.reshape(a.shape)
     return k
 
 
@@ -263,6 +274,94 @@ def _short_pairs(s1, s2, dim, gradient):
     if gradient is None:
         return k, None
     return k, np.einsum("pij,pijk->pk", kern, diff2)
+
+
+def _point_point_values(w, gradient):
+    """Point kernel from differences ``w`` (n, n_dims): (k, grad, dist2)."""
+    ww = w * w
+    dist2 = ww.sum(axis=1)
+    k = np.exp(-0.5 * dist2)
+    if gradient == "aniso":
+        return k, ww * k[:, None], dist2
+    if gradient == "iso":
+        return k, (dist2 * k)[:, None], dist2
+    return k, None, dist2
+
+
+def _point_short_values(w, d, gradient):
+    """Point against segments shorter than ``_SHORT``: Gauss-Legendre, (k, grad, dist2).
+
+    The ``_SHORT_ORDER``-point rule is the tensor rule of :func:`_short_pairs` with one factor
+    collapsed on the point.
+    """
+    x = _GL_NODES[_SHORT_ORDER, :_SHORT_ORDER]
+    wt = _GL_WEIGHTS[_SHORT_ORDER, :_SHORT_ORDER]
+    diff = w[:, None, :] - x[None, :, None] * d[:, None, :]
+    diff2 = diff * diff
+    kern = np.exp(-0.5 * diff2.sum(axis=-1)) * wt
+    dist2 = _point_segment_dist2(w, np.zeros_like(w), d, _dot(d, d))
+    if gradient is None:
+        return kern.sum(axis=1), None, dist2
+    grad = np.einsum("pn,pnk->pk", kern, diff2)
+    if gradient == "iso":
+        grad = grad.sum(axis=1, keepdims=True)
+    return kern.sum(axis=1), grad, dist2
+
+
+def _point_long_values(w, d, gradient, length=None):
+    """Point against segments of length ``_SHORT`` or more: closed form, (k, grad, dist2)."""
+    if length is None:
+        length = np.sqrt(_dot(d, d))
+    f0, dw = _dot(w, w), _dot(w, d)
+    m0, x1, x2, e0, e1, h2, inv_len, dist2 = _inner_scalars(f0, dw, length)
+    if gradient == "aniso":
+        return m0, _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, d), dist2
+    if gradient == "iso":
+        return m0, _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len)[:, None], dist2
+    return m0, None, dist2
+
+
+def _point_segment(w, d, gradient):
+    """Integral kernel of points ``p`` against segments ``a + v d``, from ``w = p - a`` and ``d``.
+
+    Vectorised over rows (n, n_dims): zero-length segments by the point kernel, short ones
+    (below ``_SHORT``) by Gauss-Legendre, the rest by the closed form of :func:`_inner_scalars`.
+
+    Returns (k, grad, dist2): grad is None, (n, 1) for "iso" or (n, n_dims) for "aniso";
+    ``dist2`` is the squared distance from the point to the segment, for the cut-off.
+    """
+    n, dim = w.shape
+    k = np.empty(n)
+    grad = None if gradient is None else np.empty((n, dim if gradient == "aniso" else 1))
+    dist2 = np.empty(n)
+    length = np.sqrt(_dot(d, d))
+    groups = (
+        (length == 0.0, lambda i: _point_point_values(w[i], gradient)),
+        ((length > 0.0) & (length < _SHORT), lambda i: _point_short_values(w[i], d[i], gradient)),
+        (length >= _SHORT, lambda i: _point_long_values(w[i], d[i], gradient, length[i])),
+    )
+    for mask, values in groups:
+        if not np.any(mask):
+            continue
+        i = slice(None) if np.all(mask) else np.flatnonzero(mask)
+        k[i], g, dist2[i] = values(i)
+        if grad is not None:
+            grad[i] = g
+    return k, grad, dist2
+
+
+def _point_segment_pairs(s1, s2, dim, gradient):
+    """Pairs in which exactly one row is a point: the closed form, zero beyond ``_CUTOFF``."""
+    len1 = _dot(s1[:, dim:] - s1[:, :dim], s1[:, dim:] - s1[:, :dim])
+    first_is_point = (len1 == 0.0)[:, None]
+    p = np.where(first_is_point, s1[:, :dim], s2[:, :dim])
+    seg = np.where(first_is_point, s2, s1)
+    k, grad, dist2 = _point_segment(p - seg[:, :dim], seg[:, dim:] - seg[:, :dim], gradient)
+    far = dist2 > _CUTOFF**2
+    k[far] = 0.0
+    if grad is not None:
+        grad[far] = 0.0
+    return k, grad
 
 
 def _dot(x, y):
@@ -433,7 +532,7 @@ def _accumulate_panels(k, grad, pair, lo, span, n_nodes, a1, d1, a2, d2, len2, g
     coef_c = _dot(dd1, dd1)
     f0 = _dot(w0, w0)[:, None] + u * (coef_b[:, None] + u * coef_c[:, None])
     dw = _dot(dd2, w0)[:, None] + u * _dot(dd2, dd1)[:, None]
-    m0, x1, x2, e0, e1, h2, inv_len = _inner_scalars(f0, dw, len2[pair][:, None])
+    m0, x1, x2, e0, e1, h2, inv_len, _ = _inner_scalars(f0, dw, len2[pair][:, None])
     np.add.at(k, pair, (m0 @ w) * span)
     if gradient is None:
         return
@@ -446,11 +545,11 @@ def _accumulate_panels(k, grad, pair, lo, span, n_nodes, a1, d1, a2, d2, len2, g
     np.add.at(grad, pair, np.einsum("pnk,n->pk", g, w) * span[:, None])
 
 
-def pair_integrals(s1, s2, gradient=None, max_nodes=1 << 16):
+def pair_integrals(s1, s2, gradient=None, max_nodes=1 << 16, *, _closed_form_points=True):
     """Integral kernel of paired segment rows, in scaled coordinates.
 
-    This is the one hot loop: it sorts the pairs into points, short segments and general
-    segments and evaluates each group vectorised.
+    This is the one hot loop: it sorts the pairs into point-point, point-segment, short
+    segment and general segment pairs and evaluates each group vectorised.
 
     Parameters
     ----------
@@ -461,6 +560,9 @@ def pair_integrals(s1, s2, gradient=None, max_nodes=1 << 16):
         shape (n_pairs, 1). "aniso": the gradient per dimension, shape (n_pairs, n_dims).
     max_nodes : int, default=65536
         Quadrature nodes evaluated at once (bounds the temporary memory).
+    _closed_form_points : bool, default=True
+        Private. False sends point-segment pairs through the general segment-segment
+        quadrature (the reference for tests and benchmarks).
 
     Returns
     -------
@@ -485,10 +587,14 @@ def pair_integrals(s1, s2, gradient=None, max_nodes=1 << 16):
     len1 = np.sqrt(_dot(d1, d1))
     len2 = np.sqrt(_dot(d2, d2))
     longest = np.maximum(len1, len2)
+    one_point = (np.minimum(len1, len2) == 0.0) & (longest > 0.0)
+    if not _closed_form_points:
+        one_point[:] = False
     groups = (
         (longest == 0.0, _point_pairs, {}),
-        ((longest > 0.0) & (longest < _SHORT), _short_pairs, {}),
-        (longest >= _SHORT, _segment_pairs, {"max_nodes": max_nodes}),
+        (one_point, _point_segment_pairs, {}),
+        ((longest > 0.0) & (longest < _SHORT) & ~one_point, _short_pairs, {}),
+        ((longest >= _SHORT) & ~one_point, _segment_pairs, {"max_nodes": max_nodes}),
     )
     for mask, func, kwargs in groups:
         idx = np.flatnonzero(mask)
@@ -510,9 +616,139 @@ def _bounding_circles(Xs, dim):
     return mid, np.sqrt(_dot(half, half))
 
 
+def _circle_pairs(mid_x, rad_x, mid_y, rad_y, rows, cols, symmetric, block_size):
+    """Pairs (rows[i], cols[j]) whose bounding circles are within ``_CUTOFF``, in blocks.
+
+    Dense test of every pair, by blocks of rows of about ``block_size`` pairs. ``symmetric``
+    (rows is cols, ascending): only pairs with the column after the row.
+    """
+    n, m = len(rows), len(cols)
+    start = 0
+    while start < n:
+        first_col = start + 1 if symmetric else 0
+        stop = min(n, start + max(1, block_size // max(m - first_col, 1)))
+        r, c = rows[start:stop], cols[first_col:]
+        gap2 = np.zeros((len(r), len(c)))
+        for k in range(mid_x.shape[1]):
+            gap2 += (mid_x[r, k, None] - mid_y[None, c, k]) ** 2
+        reach = rad_x[r, None] + rad_y[None, c] + _CUTOFF
+        near = gap2 <= reach * reach
+        if symmetric:
+            near &= np.arange(first_col, m)[None, :] > np.arange(start, stop)[:, None]
+        rr, cc = np.nonzero(near)
+        if rr.size:
+            yield r[rr], c[cc]
+        start = stop
+
+
+def _point_tiles(P, size):
+    """Points sorted into cubic cells of side ``size``: order, starts, counts, centres, radii.
+
+    The centre and radius are those of each cell's bounding box of its points.
+    """
+    key = np.floor((P - P.min(axis=0)) / size)
+    order = np.lexsort(key.T[::-1])
+    key = key[order]
+    new = np.any(key[1:] != key[:-1], axis=1)
+    starts = np.flatnonzero(np.r_[True, new])
+    counts = np.diff(np.r_[starts, len(P)])
+    Ps = P[order]
+    lo = np.minimum.reduceat(Ps, starts, axis=0)
+    hi = np.maximum.reduceat(Ps, starts, axis=0)
+    half = 0.5 * (hi - lo)
+    return order, starts, counts, lo + half, np.sqrt(_dot(half, half))
+
+
+def _tile_pairs(tiles, A, D, chunk):
+    """Candidate pairs of tiled points and segments ``a + v d`` for the cut-off, in chunks.
+
+    A (tile, segment) pair is kept when the distance from the tile's centre to the segment is
+    within ``_CUTOFF`` plus the tile's radius, so every pair of a point and a segment within
+    ``_CUTOFF`` is a candidate (with a few beyond it). Yields (point index, segment index)
+    arrays of about ``chunk`` pairs (more only where one tile holds more points).
+    """
+    order, starts, counts, centre, radius = tiles
+    n_tiles, m = len(starts), len(A)
+    dd = _dot(D, D)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv_dd = np.where(dd > 0.0, 1.0 / dd, 0.0)
+    step = max(1, chunk // max(m, 1))
+    tt, cc = [], []
+    for t0 in range(0, n_tiles, step):
+        c = centre[t0:t0 + step]
+        w = [c[:, k, None] - A[None, :, k] for k in range(A.shape[1])]
+        v = w[0] * D[None, :, 0]
+        for k in range(1, A.shape[1]):
+            v += w[k] * D[None, :, k]
+        np.clip(v * inv_dd, 0.0, 1.0, out=v)
+        dist2 = (w[0] - v * D[None, :, 0]) ** 2
+        for k in range(1, A.shape[1]):
+            dist2 += (w[k] - v * D[None, :, k]) ** 2
+        reach = radius[t0:t0 + step, None] + _CUTOFF
+        t, j = np.nonzero(dist2 <= reach * reach)
+        tt.append(t + t0)
+        cc.append(j)
+    tt, cc = np.concatenate(tt), np.concatenate(cc)
+    n_pairs = counts[tt]
+    ends = np.cumsum(n_pairs)
+    # Cut the candidate list where the running pair count crosses multiples of chunk.
+    total = ends[-1] if ends.size else 0
+    cuts = np.searchsorted(ends, np.arange(chunk, total, chunk), side="right")
+    for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, len(tt)], strict=True):
+        if hi <= lo:
+            continue
+        cnt = n_pairs[lo:hi]
+        first = ends[lo:hi] - cnt - (ends[lo - 1] if lo else 0)
+        pos = np.repeat(starts[tt[lo:hi]] - first, cnt) + np.arange(cnt.sum())
+        yield order[pos], np.repeat(cc[lo:hi], cnt)
+
+
+# Side (scaled units) of the cells that group points for the cut-off test, and the pairs
+# evaluated at once on the point paths (temporaries of a few hundred kB stay in cache).
+_TILE = 2.0
+_POINT_CHUNK = 1 << 15
+
+
+def _points_against(P, Ys, cols, gradient, block_size):
+    """Kernel values of points ``P`` against segment rows ``Ys[cols]`` within the cut-off.
+
+    The columns are split into points, short and long segments, each with its closed form.
+    Yields (point index, index into cols, k, grad) chunks; pairs beyond ``_CUTOFF`` are left
+    out (their kernel value is exactly 0).
+    """
+    dim = P.shape[1]
+    A = Ys[cols, :dim]
+    D = Ys[cols, dim:] - A
+    length = np.sqrt(_dot(D, D))
+    tiles = _point_tiles(P, _TILE)
+    chunk = min(block_size, _POINT_CHUNK)
+    kinds = (
+        (length == 0.0, lambda w, j: _point_point_values(w, gradient)),
+        ((length > 0.0) & (length < _SHORT), lambda w, j: _point_short_values(w, D[j], gradient)),
+        (length >= _SHORT, lambda w, j: _point_long_values(w, D[j], gradient, length[j])),
+    )
+    for mask, values in kinds:
+        sub = np.flatnonzero(mask)
+        if sub.size == 0:
+            continue
+        for pi, cj in _tile_pairs(tiles, A[sub], D[sub], chunk):
+            cj = sub[cj]
+            k, grad, dist2 = values(P.take(pi, axis=0) - A.take(cj, axis=0), cj)
+            keep = dist2 <= _CUTOFF**2
+            if not np.all(keep):
+                pi, cj, k = pi[keep], cj[keep], k[keep]
+                grad = None if grad is None else grad[keep]
+            yield pi, cj, k, grad
+
+
 def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotropic=False,
-                    block_size=None):
+                    block_size=None, _fast=True):
     """Integral kernel matrix between segment rows, in blocks.
+
+    Pairs with a point (a zero-length row) take the closed forms of :func:`_point_segment`,
+    with candidate pairs found by tiling the points; segment-segment pairs are pre-cut by
+    bounding circles and evaluated by :func:`pair_integrals`. Pairs further apart than
+    ``_CUTOFF`` scaled units are exactly 0.
 
     Parameters
     ----------
@@ -529,6 +765,10 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
     block_size : int, optional
         Pairs per block; by default a sixteenth of the output size (at least 4096, at most
         262144), so that temporaries stay within about the output's size.
+    _fast : bool, default=True
+        Private. False evaluates every pair through the general path (dense bounding-circle
+        pre-cut, segment-segment quadrature for point-segment pairs): the reference for tests
+        and benchmarks.
 
     Returns
     -------
@@ -557,37 +797,46 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
     G = np.zeros((n, m, n_grad)) if eval_gradient else None
     if block_size is None:
         block_size = int(np.clip(n * m // 16, 4096, 1 << 18))
-    max_nodes = block_size
 
-    # Bounding circles: pairs whose circles are more than _CUTOFF apart are never gathered.
-    mid_x, rad_x = _bounding_circles(Xs, dim)
-    mid_y, rad_y = (mid_x, rad_x) if symmetric else _bounding_circles(Ys, dim)
-    row = 0
-    while row < n:
-        # Rows [row, stop) against the columns after them (symmetric) or all columns.
-        first_col = row + 1 if symmetric else 0
-        n_rows = max(1, block_size // max(m - first_col, 1))
-        stop = min(n, row + n_rows)
-        gap2 = np.zeros((stop - row, m - first_col))
-        for k in range(dim):
-            gap2 += (mid_x[row:stop, k, None] - mid_y[None, first_col:, k]) ** 2
-        reach = rad_x[row:stop, None] + rad_y[None, first_col:] + _CUTOFF
-        near = gap2 <= reach * reach
+    def put(rr, cc, k, g):
+        np.put(K, rr * m + cc, k)
         if symmetric:
-            near &= np.arange(first_col, m)[None, :] > np.arange(row, stop)[:, None]
-        rr, cc = np.nonzero(near)
-        rr += row
-        cc += first_col
-        if rr.size:
-            k, g = pair_integrals(Xs[rr], Ys[cc], gradient=gradient, max_nodes=max_nodes)
-            K[rr, cc] = k
+            np.put(K, cc * m + rr, k)
+        if eval_gradient:
+            G[rr, cc] = g
             if symmetric:
-                K[cc, rr] = k
-            if eval_gradient:
-                G[rr, cc] = g
-                if symmetric:
-                    G[cc, rr] = g
-        row = stop
+                G[cc, rr] = g
+
+    x_point = np.all(Xs[:, :dim] == Xs[:, dim:], axis=1) if _fast else np.zeros(n, bool)
+    y_point = x_point if symmetric else (
+        np.all(Ys[:, :dim] == Ys[:, dim:], axis=1) if _fast else np.zeros(m, bool))
+    x_pts, x_segs = np.flatnonzero(x_point), np.flatnonzero(~x_point)
+    y_pts, y_segs = np.flatnonzero(y_point), np.flatnonzero(~y_point)
+
+    # Point rows of X against every column (symmetric: the other points after them and all
+    # segments), then segment rows of X against the point columns of Y.
+    if x_pts.size:
+        cols = np.arange(m) if not symmetric else np.r_[x_pts, x_segs]
+        for pi, cj, k, g in _points_against(Xs[x_pts, :dim], Ys, cols, gradient, block_size):
+            rr, cc = x_pts[pi], cols[cj]
+            if symmetric:
+                upper = (cc > rr) | ~x_point[cc]
+                rr, cc, k = rr[upper], cc[upper], k[upper]
+                g = None if g is None else g[upper]
+            put(rr, cc, k, g)
+    if not symmetric and y_pts.size and x_segs.size:
+        for pj, ci, k, g in _points_against(Ys[y_pts, :dim], Xs, x_segs, gradient, block_size):
+            put(x_segs[ci], y_pts[pj], k, g)
+
+    # Segment-segment pairs: bounding circles, then the general quadrature.
+    if x_segs.size and y_segs.size:
+        mid_x, rad_x = _bounding_circles(Xs, dim)
+        mid_y, rad_y = (mid_x, rad_x) if symmetric else _bounding_circles(Ys, dim)
+        for rr, cc in _circle_pairs(mid_x, rad_x, mid_y, rad_y, x_segs, y_segs, symmetric,
+                                    block_size):
+            k, g = pair_integrals(Xs[rr], Ys[cc], gradient=gradient, max_nodes=block_size,
+                                  _closed_form_points=_fast)
+            put(rr, cc, k, g)
 
     if symmetric:
         d = (Xs[:, dim:] - Xs[:, :dim])

@@ -300,3 +300,103 @@ def test_gauss_legendre_table(order):
     assert worst_error(order) <= 1e-12
     if order > 1:
         assert worst_error(order - 1) > 1e-12
+
+
+def _mixed_segments(rng, n, dim, box, max_length):
+    """Points, short segments (below _SHORT) and long segments, shuffled."""
+    X = _random_segments(rng, n, dim, box=box, max_length=max_length, point_fraction=0.4)
+    short = rng.random(n) < 0.15
+    step = rng.normal(size=(short.sum(), dim))
+    step *= rng.uniform(1e-4, _SHORT, (short.sum(), 1)) / np.linalg.norm(step, axis=1)[:, None]
+    X[short, dim:] = X[short, :dim] + step
+    return X
+
+
+def _scaled_distances(X, Y, scale):
+    """Squared distances of pairs with a point, by dense sampling of the segment (NaN else)."""
+    dim = X.shape[1] // 2
+    t = np.linspace(0.0, 1.0, 20001)[:, None]
+
+    def samples(s):
+        return s[None, :dim] if np.all(s[:dim] == s[dim:]) else s[:dim] + t * (s[dim:] - s[:dim])
+
+    out = np.full((len(X), len(Y)), np.nan)
+    for i, s in enumerate(X / np.r_[scale, scale]):
+        for j, r in enumerate(Y / np.r_[scale, scale]):
+            ps, qs = samples(s), samples(r)
+            if len(ps) == 1 or len(qs) == 1:
+                out[i, j] = ((ps - qs) ** 2).sum(-1).min()
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_point_fast_path_matches_general_path_cross(dim):
+    # Mixed blocks spread over more than the cut-off: point rows against beams, hits and short
+    # segments, and segment rows against point columns, all through the closed forms.
+    rng = np.random.default_rng(30 + dim)
+    box = 25.0 if dim == 2 else 14.0  # about as many near pairs as far ones
+    X = _mixed_segments(rng, 120, dim, box=box, max_length=12.0)
+    Y = _mixed_segments(rng, 70, dim, box=box, max_length=12.0)
+    scale = rng.uniform(0.6, 1.4, dim)
+    K = integral_kernel(X, Y, length_scale=scale)
+    K_ref = integral_kernel(X, Y, length_scale=scale, _fast=False)
+    cut = np.exp(-0.5 * _CUTOFF**2)
+    assert_close(K, K_ref, rtol=1e-10, atol=cut)
+    assert np.count_nonzero(K) > 0.2 * K.size and np.count_nonzero(K == 0) > 0.2 * K.size
+    np.testing.assert_allclose(integral_kernel(Y, X, length_scale=scale), K.T, rtol=1e-12,
+                               atol=1e-300)
+
+
+@pytest.mark.parametrize("anisotropic", [False, True])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_point_fast_path_matches_general_path_symmetric(dim, anisotropic):
+    rng = np.random.default_rng(40 + dim)
+    X = _mixed_segments(rng, 150, dim, box=20.0, max_length=10.0)
+    scale = rng.uniform(0.7, 1.3, dim) if anisotropic else 1.1
+    K, G = integral_kernel(X, length_scale=scale, eval_gradient=True, anisotropic=anisotropic)
+    K_ref, G_ref = integral_kernel(X, length_scale=scale, eval_gradient=True,
+                                   anisotropic=anisotropic, _fast=False)
+    cut = np.exp(-0.5 * _CUTOFF**2)
+    assert np.array_equal(K, K.T)
+    assert_close(K, K_ref, rtol=1e-10, atol=cut)
+    assert_close(G, G_ref, rtol=1e-10, atol=cut * _CUTOFF**2)
+    assert np.count_nonzero(K == 0) > 0.2 * K.size
+
+
+def test_point_pairs_beyond_cutoff_are_exactly_zero():
+    # For every pair with a point, K is exactly 0 beyond _CUTOFF and positive within it
+    # (distances from an independent dense sampling of each segment).
+    rng = np.random.default_rng(50)
+    X = _mixed_segments(rng, 40, 2, box=30.0, max_length=15.0)
+    Y = _mixed_segments(rng, 30, 2, box=30.0, max_length=15.0)
+    K = integral_kernel(X, Y, length_scale=1.0)
+    dist2 = _scaled_distances(X, Y, np.ones(2))
+    with_point = ~np.isnan(dist2)
+    margin = 0.01  # above the sampling resolution of the reference distance
+    far = with_point & (dist2 > (_CUTOFF + margin) ** 2)
+    near = with_point & (dist2 < (_CUTOFF - margin) ** 2)
+    assert far.sum() > 100 and near.sum() > 100
+    assert np.all(K[far] == 0.0)
+    assert np.all(K[near] > 0.0)
+
+
+def test_dense_point_tiles_match_general_path():
+    # Query grids much finer than the length scale put thousands of points into one tile,
+    # more than a chunk of pairs: the chunks must still cover every pair exactly once.
+    g = np.linspace(0.0, 3.0, 60)
+    P = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
+    X = np.hstack([P, P])
+    Y = np.array([[0.5, 0.5, 2.5, 2.0], [1.0, 1.0, 1.0, 1.0], [2.0, 0.1, 2.01, 0.1],
+                  [-9.0, 1.0, -8.0, 1.0]])
+    K = integral_kernel(X, Y, length_scale=0.9, block_size=500)
+    K_ref = integral_kernel(X, Y, length_scale=0.9, _fast=False)
+    assert_close(K, K_ref, rtol=1e-10, atol=1e-300)
+
+
+def test_diagonal_of_points_is_exactly_one():
+    rng = np.random.default_rng(60)
+    X = _mixed_segments(rng, 50, 2, box=5.0, max_length=3.0)
+    is_point = np.all(X[:, :2] == X[:, 2:], axis=1)
+    K = integral_kernel(X, length_scale=0.4)
+    assert np.all(np.diag(K)[is_point] == 1.0)
+    assert np.all(np.diag(K)[~is_point] < 1.0)
