@@ -8,12 +8,15 @@ and the integral kernel is the average of the point kernel over both segments::
 
 so a point against itself gives 1 and a zero-length segment reduces to the point kernel.
 
-Evaluation (see :func:`pair_integrals`):
+Evaluation (see :func:`pair_integrals` and the driver :func:`integral_kernel`):
 
 - point-point: the closed form.
 - segment-point and the inner integral of segment-segment: ``|w - v d|**2`` is a quadratic in
   ``v``, so the integral is a Gaussian factor times a difference of normal CDFs. It is written with
   ``erfcx`` of non-negative arguments only, so that neither tail of the CDF cancels.
+- in a kernel matrix, every pair with a point row or column (query cells, hits) takes these
+  closed forms, vectorised over chunks of candidate pairs that a tiling of the points finds
+  within the cut-off; only segment-segment pairs go through the quadrature below.
 - segment-segment: the inner integral (over the longer segment) is analytic, the outer one (over
   the shorter segment) is Gauss-Legendre on the window where the integrand is not negligible, with
   a node count that grows with the window length (:data:`_GL_MAX_WINDOW`). Viewed along the outer
