@@ -469,7 +469,10 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
     """P(occupied) and (if available) variance on all cell centres, ``chunk_size`` at a time."""
     n_cells = int(np.prod(counts))
     proba = np.empty(n_cells)
-    has_var = hasattr(estimator, "predict_var")
+    # One pass for both when the estimator offers it (the mixture of experts does): its
+    # kernels are the cost, and predict_proba + predict_var would compute them twice.
+    joint = getattr(estimator, "_predict_proba_and_var", None)
+    has_var = joint is not None or hasattr(estimator, "predict_var")
     var = np.empty(n_cells) if has_var else None
     tic = time.perf_counter()
     next_report = 0.0
@@ -477,9 +480,12 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
         hi = min(lo + chunk_size, n_cells)
         centers = _cell_centers(origin, resolution, counts, lo, hi)
         queries = np.concatenate([centers, centers], axis=1)  # zero-length segments
-        proba[lo:hi] = estimator.predict_proba(queries)[:, 1]
-        if has_var:
-            var[lo:hi] = estimator.predict_var(queries)
+        if joint is not None:
+            proba[lo:hi], var[lo:hi] = joint(queries)
+        else:
+            proba[lo:hi] = estimator.predict_proba(queries)[:, 1]
+            if has_var:
+                var[lo:hi] = estimator.predict_var(queries)
         if verbose and (hi / n_cells >= next_report or hi == n_cells):
             elapsed = time.perf_counter() - tic
             print(

@@ -357,8 +357,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         the experts, and every free point joins the cluster of its nearest hit.
     n_jobs : int, default=None
         Experts fitted in parallel with :class:`sklearn.utils.parallel.Parallel`; honours
-        ``joblib.parallel_config`` (e.g. ``backend="dask"``). ``None`` means 1 unless in a
-        joblib context.
+        ``joblib.parallel_config`` (e.g. ``backend="dask"``). Prediction runs the experts
+        of each query chunk in as many threads. ``None`` means 1 unless in a joblib
+        context.
     random_state : int, RandomState instance or None, default=None
         Seeds the clusterer and, drawn up front, one seed per expert; results do not
         depend on ``n_jobs``.
@@ -799,15 +800,20 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         means = np.full(shape, np.nan)
         variances = np.full(shape, np.nan)
         prior = np.full(shape, np.nan) if needs_prior else None
-        for k, expert in enumerate(self.experts_):
-            rows = np.flatnonzero(weights[:, k] > 0)
-            if rows.size == 0:
-                continue
-            m, v = expert.latent_mean_and_variance(Xc[rows])
-            means[rows, k] = m
-            variances[rows, k] = v
+
+        def predict_expert(k, rows):
+            # Each task writes its own column: results do not depend on n_jobs.
+            expert = self.experts_[k]
+            means[rows, k], variances[rows, k] = expert.latent_mean_and_variance(Xc[rows])
             if needs_prior:
                 prior[rows, k] = _prior_variance(expert, Xc[rows])
+
+        tasks = [(k, np.flatnonzero(weights[:, k] > 0)) for k in range(shape[1])]
+        # Threads, not processes: shipping all experts to workers per chunk costs more than
+        # the kernels, which spend their time in numpy calls that release the GIL.
+        Parallel(n_jobs=self.n_jobs, require="sharedmem")(
+            delayed(predict_expert)(k, rows) for k, rows in tasks if rows.size
+        )
         return combine(means, variances, weights, method=self.combiner, prior_variance=prior)
 
     def predict_proba(self, X):
@@ -859,6 +865,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """
         _, mean, variance = self._merged(X)
         return mean, variance
+
+    def _predict_proba_and_var(self, X):
+        """P(occupied) and merged latent variance from one pass over the experts.
+
+        :meth:`skoccmap.OccupancyGrid.from_estimator` uses it when present, so that a map
+        needs every expert's kernel rows once rather than once for ``predict_proba`` and
+        again for ``predict_var``.
+        """
+        proba, _, variance = self._merged(X)
+        return proba, variance
 
     def predict_var(self, X):
         """Merged latent variance at the query segments.

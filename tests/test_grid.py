@@ -57,6 +57,33 @@ def test_from_estimator_matches_direct_evaluation():
     np.testing.assert_allclose(grid.cell_centers(), points)
 
 
+class _JointEstimator(_FieldEstimator):
+    """Offers probability and variance in one call; the separate methods must not be used."""
+
+    def predict_proba(self, X):
+        raise AssertionError("the grid called predict_proba despite _predict_proba_and_var")
+
+    def predict_var(self, X):
+        raise AssertionError("the grid called predict_var despite _predict_proba_and_var")
+
+    def _predict_proba_and_var(self, X):
+        X = np.asarray(X)
+        self.batches.append(len(X))
+        points = X[:, : X.shape[1] // 2]
+        return self.proba_at(points), self.var_at(points)
+
+
+def test_from_estimator_uses_joint_prediction_once_per_chunk():
+    field, joint = _FieldEstimator(), _JointEstimator()
+    kwargs = dict(extent=(-1.0, 2.0, 0.5, 1.5), resolution=0.25, chunk_size=7)
+    expected = OccupancyGrid.from_estimator(field, **kwargs)
+    grid = OccupancyGrid.from_estimator(joint, **kwargs)
+    assert joint.batches == field.batches  # one call per chunk, no second pass
+    np.testing.assert_array_equal(grid.probability, expected.probability)
+    np.testing.assert_array_equal(grid.variance, expected.variance)
+    np.testing.assert_array_equal(grid.unknown, expected.unknown)
+
+
 def test_extent_from_data_is_snapped_and_covers_it():
     points = np.array([[0.23, -0.61], [1.07, 0.44]])
     grid = OccupancyGrid.from_estimator(_FieldEstimator(), points, resolution=0.2)

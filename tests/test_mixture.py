@@ -321,6 +321,14 @@ def test_same_result_for_n_jobs_and_after_pickle(paper, grid):
     np.testing.assert_array_equal(one.predict_var(Q), again.predict_var(Q))
 
 
+def test_joint_proba_and_var_equal_the_separate_calls(paper, grid):
+    _, Q = grid
+    model = _mixture(combiner="rbcm").fit(paper.X, paper.y)
+    proba, var = model._predict_proba_and_var(Q)
+    np.testing.assert_array_equal(proba, model.predict_proba(Q)[:, 1])
+    np.testing.assert_array_equal(var, model.predict_var(Q))
+
+
 def test_pipeline_and_grid_search(paper):
     pipe = make_pipeline(FunctionTransformer(), _mixture(max_expert_size=150))
     search = GridSearchCV(
