@@ -323,6 +323,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``GaussianProcessClassifier`` with a fixed RBF kernel, on at most 300 points).
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
         Merging rule, see :mod:`skoccmap.combine`.
+    max_cluster_samples : int or None, default=4000
+        The clusterer is fitted on at most this many hit points, drawn uniformly without
+        replacement; every hit is then labelled by the clusterer's ``predict``. Clustering
+        is the one step whose cost grows faster than linearly (collapsed Gibbs sweeps over
+        all hits, and more of them as clusters crowd); a few thousand hits already fix the
+        clusters' shapes, and the experts are cut to ``max_expert_size`` anyway. ``None``
+        clusters all hits.
     min_expert_size : int, default=20
         Clusters with fewer observations are merged into the cluster with the nearest hit
         centroid (their gate is the sum of the merged clusters' responsibilities). A
@@ -438,6 +445,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "expert": [HasMethods(["fit", "latent_mean_and_variance"]), None],
         "gating": [StrOptions({"clusterer", "gpc"})],
         "combiner": [StrOptions(set(COMBINERS))],
+        "max_cluster_samples": [Interval(Integral, 2, None, closed="left"), None],
         "min_expert_size": [Interval(Integral, 1, None, closed="left")],
         "max_expert_size": [Interval(Integral, 2, None, closed="left"), None],
         "share_hyperparameters": ["boolean"],
@@ -456,6 +464,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         *,
         gating="clusterer",
         combiner="moe",
+        max_cluster_samples=4000,
         min_expert_size=20,
         max_expert_size=400,
         share_hyperparameters=True,
@@ -470,6 +479,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.expert = expert
         self.gating = gating
         self.combiner = combiner
+        self.max_cluster_samples = max_cluster_samples
         self.min_expert_size = min_expert_size
         self.max_expert_size = max_expert_size
         self.share_hyperparameters = share_hyperparameters
@@ -562,9 +572,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             clusterer = clone(self.clusterer)
         if "random_state" in clusterer.get_params():
             clusterer.set_params(random_state=rng.randint(np.iinfo(np.int32).max))
-        _log(self.verbose, f"clustering {hits.shape[0]} hit point(s)")
-        self.clusterer_ = clusterer.fit(hits)
-        raw = getattr(self.clusterer_, "labels_", None)
+        sample = None
+        if self.max_cluster_samples is not None and hits.shape[0] > self.max_cluster_samples:
+            sample = np.sort(rng.choice(hits.shape[0], self.max_cluster_samples, replace=False))
+        _log(
+            self.verbose,
+            f"clustering {hits.shape[0] if sample is None else sample.size} of "
+            f"{hits.shape[0]} hit point(s)",
+        )
+        self.clusterer_ = clusterer.fit(hits if sample is None else hits[sample])
+        raw = getattr(self.clusterer_, "labels_", None) if sample is None else None
         if raw is None or len(raw) != hits.shape[0]:
             raw = self.clusterer_.predict(hits)
         self.cluster_ids_, hit_labels = np.unique(np.asarray(raw), return_inverse=True)

@@ -100,6 +100,25 @@ def test_no_return_beams_use_the_integral_kernel(paper):
     np.testing.assert_array_equal(got, np.argmax(kernel(nr, X[ret]), axis=1))
 
 
+def test_clusterer_fitted_on_a_subsample_labels_every_hit(paper):
+    X, y = paper.X, paper.y
+    model = _mixture(
+        clusterer=KMeans(4, n_init=2, random_state=0),
+        max_cluster_samples=60,
+        min_expert_size=1,
+        max_expert_size=None,
+    ).fit(X, y)
+    assert model.clusterer_.labels_.size == 60 < np.sum(y == 1)
+    # Every hit, sampled or not, joins the cluster the fitted clusterer predicts for it.
+    hits = X[y == 1, :2]
+    np.testing.assert_array_equal(
+        model.cluster_ids_[model.cluster_labels_[y == 1]], model.clusterer_.predict(hits)
+    )
+    # Fewer hits than the cap: the clusterer sees them all.
+    full = _mixture(clusterer=KMeans(4, n_init=2, random_state=0)).fit(X, y)
+    assert full.clusterer_.labels_.size == np.sum(y == 1)
+
+
 def test_one_class_cluster_gets_constant_expert():
     rng = np.random.default_rng(1)
     # Left: a wall at x=0 seen by beams from x=3; right: hits at x=20 that no beam reaches.
