@@ -1,74 +1,79 @@
-"""``skoccmap demo``: simulate the paper's laser scans, count them and draw them."""
+"""``skoccmap demo``: the simulation experiment of Kim & Kim (ACRA 2011) in one command.
 
-from pathlib import Path
+Fits the mixture of GP experts, the Bayesian committee machine and the single GP to the
+paper's simulated scans, prints Table 1 (observations per cluster), Table 2 (learning and
+inference times) and the AUC of each map against the true map, and writes into ``--out``
+Figure 2 (clustered data), Figure 4 (maps and uncertainty), Figure 5 (ROC curves) as PNG
+(with matplotlib) and every map as a ROS map_server PGM + YAML pair.
+"""
+
+import sys
+
+_DEFAULT_OUT = "skoccmap_demo"
 
 
 def add_arguments(parser):
     parser.add_argument(
-        "--out", metavar="DIR", default=None, help="folder for the figure (created if missing)"
+        "--out",
+        metavar="DIR",
+        default=_DEFAULT_OUT,
+        help=f"folder for figures and maps, created if missing (default ./{_DEFAULT_OUT})",
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the range noise")
+    parser.add_argument(
+        "--methods",
+        default="moe,bcm,single",
+        help="comma-separated maps to fit among moe, bcm, single (default: all three)",
+    )
+    parser.add_argument(
+        "--resolution", type=float, default=0.2, help="map cell size in metres (default 0.2)"
+    )
     parser.add_argument(
         "--noise-std", type=float, default=0.0, help="range noise in metres (default 0)"
     )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="the single GP reuses the mixture's learned kernel instead of learning its own "
+        "(a smoke run; its learning time then excludes hyperparameter learning)",
+    )
+    parser.add_argument(
+        "--n-jobs", type=int, default=1, help="parallel expert fits (default 1; -1: all cores)"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
 def run(args):
-    from .datasets import make_paper_scans
-    from .observations import HIT, NO_RETURN, RETURN
+    from .experiment import format_tables, run_paper_experiment, save_figures, save_maps
 
-    data = make_paper_scans(noise_std=args.noise_std, random_state=args.seed)
-    names = (("hits", HIT), ("return beams", RETURN), ("no-return beams", NO_RETURN))
-    counts = {name: int((data.kind == code).sum()) for name, code in names}
-    scans = data.scans
-    print(
-        f"Simulated {len(scans)} scans x {scans.n_beams} beams "
-        f"(max range {scans.max_range:g} m) in a 22 m x 18 m environment."
-    )
-    print("| observations | count |\n|---|---|")
-    for name, count in counts.items():
-        print(f"| {name} | {count} |")
-    print(f"| total | {len(data.X)} |")
-    if args.out is None:
-        print("Pass --out DIR to save a figure of the environment and the observations.")
-        return 0
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
-        from matplotlib.figure import Figure
-    except ImportError:
-        print('matplotlib is not installed: pip install "skoccmap[plot]" for figures.')
-        return 0
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / "paper_observations.png"
-    _draw(Figure(figsize=(8, 6.8)), data).savefig(path, dpi=120)
-    print(f"Saved {path}")
-    return 0
-
-
-def _draw(fig, data):
-    from matplotlib.collections import LineCollection
-
-    from .observations import HIT, NO_RETURN, RETURN
-
-    ax = fig.add_subplot()
-    walls = data.environment.walls.reshape(-1, 2, 2)
-    ax.add_collection(LineCollection(walls, colors="k", linewidths=2, label="walls"))
-    beams = data.X.reshape(-1, 2, 2)
-    for code, color, label in ((RETURN, "tab:green", "return beams"),
-                               (NO_RETURN, "tab:blue", "no-return beams")):  # fmt: skip
-        ax.add_collection(
-            LineCollection(beams[data.kind == code], colors=color, linewidths=0.4, label=label)
+        if args.noise_std < 0:
+            raise ValueError("--noise-std must be >= 0")
+        result = run_paper_experiment(
+            methods,
+            resolution=args.resolution,
+            noise_std=args.noise_std,
+            single_hyperparameters="from_mixture" if args.quick else "learn",
+            random_state=args.seed,
+            n_jobs=args.n_jobs,
+            verbose=0 if args.quiet else 1,
         )
-    hits = data.X[data.kind == HIT]
-    ax.plot(hits[:, 0], hits[:, 1], ".", color="tab:red", ms=4, label="hits")
-    poses = data.scans.poses
-    ax.plot(poses[:, 0], poses[:, 1], "o", color="tab:purple", ms=3, label="poses")
-    extent = data.environment.extent
-    ax.set_xlim(extent[0] - 0.5, extent[1] + 0.5)
-    ax.set_ylim(extent[2] - 0.5, extent[3] + 0.5)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_title("Simulated laser observations (Kim & Kim, ACRA 2011 setup)")
-    ax.legend(loc="upper left", fontsize="small")
-    return fig
+    except ValueError as exc:
+        print(f"skoccmap demo: error: {exc}", file=sys.stderr)
+        return 2
+    print()
+    print(format_tables(result))
+    if args.quick and "single" in result.methods:
+        print("(--quick: the single GP used the mixture's kernel; no hyperparameter learning)")
+    print()
+    for path in save_maps(result, args.out):
+        print(f"Saved {path} and {path.with_suffix('.pgm').name} (ROS map_server)")
+    try:
+        paths = save_figures(result, args.out)
+    except ImportError:
+        print('matplotlib is not installed: pip install "skoccmap[plot]" for Figures 2, 4, 5.')
+        return 0
+    for path in paths:
+        print(f"Saved {path}")
+    return 0

@@ -1,0 +1,229 @@
+import sys
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+from sklearn.metrics import auc as trapezoid_auc
+
+from skoccmap import OccupancyGrid
+from skoccmap.datasets import make_paper_scans
+from skoccmap.experiment import (
+    METHODS,
+    cluster_counts,
+    format_tables,
+    make_models,
+    plot_clusters,
+    plot_maps,
+    plot_roc,
+    points_along_beams,
+    run_paper_experiment,
+    save_figures,
+    save_maps,
+)
+from skoccmap.metrics import ground_truth_auc
+from skoccmap.observations import HIT, NO_RETURN, RETURN
+
+
+@pytest.fixture(scope="module")
+def result():
+    # A coarse grid and the single GP on the mixture's kernel keep this to a few seconds.
+    return run_paper_experiment(
+        ["moe", "single"], resolution=0.5, single_hyperparameters="from_mixture"
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# points_along_beams
+# ---------------------------------------------------------------------------------------
+
+
+def test_points_along_beams_against_a_loop():
+    rng = np.random.default_rng(0)
+    starts = rng.uniform(-5, 5, size=(30, 2))
+    ends = starts + rng.uniform(-3, 3, size=(30, 2))
+    hits = rng.uniform(-5, 5, size=(7, 2))
+    X = np.vstack([np.hstack([starts, ends]), np.hstack([hits, hits])])
+    y = np.r_[np.zeros(30, int), np.ones(7, int)]
+    spacing = 0.3
+    points, labels = points_along_beams(X, y, spacing)
+
+    expected = [hits]
+    for a, b in zip(starts, ends, strict=True):
+        length = np.hypot(*(b - a))
+        t = 0.0
+        while t <= length + 1e-9:
+            expected.append((a + t * (b - a) / length)[None])
+            t += spacing
+    expected = np.vstack(expected)
+    assert_allclose(points, expected, atol=1e-9)
+    assert labels.tolist() == [1] * 7 + [0] * (len(expected) - 7)
+
+
+def test_points_along_beams_zero_length_free_row_and_3d():
+    X = [[1.0, 2.0, 3.0, 1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 0.0, 0.0, 1.0]]
+    points, labels = points_along_beams(X, [0, 0], spacing=0.5)
+    assert_allclose(points, [[1, 2, 3], [0, 0, 0], [0, 0, 0.5], [0, 0, 1.0]])
+    assert labels.tolist() == [0, 0, 0, 0]
+
+
+@pytest.mark.parametrize(
+    "X, y, spacing, match",
+    [
+        ([[0.0, 0.0, np.nan, 1.0]], [0], 0.2, "NaN"),
+        ([[0.0, 0.0, 1.0]], [0], 0.2, "even number of columns"),
+        ([[0.0, 0.0, 1.0, 1.0]], [0, 1], 0.2, "y must have shape"),
+        ([[0.0, 0.0, 1.0, 1.0]], [2], 0.2, "0 \\(free\\) and 1"),
+        ([[0.0, 0.0, 1.0, 1.0]], [0], 0.0, "spacing"),
+        ([[0.0, 0.0, 1.0, 1.0]], [0], np.nan, "spacing"),
+        (np.empty((0, 4)), [], 0.2, "no rows"),
+    ],
+)
+def test_points_along_beams_bad_input(X, y, spacing, match):
+    with pytest.raises(ValueError, match=match):
+        points_along_beams(X, y, spacing)
+
+
+# ---------------------------------------------------------------------------------------
+# run_paper_experiment
+# ---------------------------------------------------------------------------------------
+
+
+def test_result_layout_and_scores(result):
+    assert list(result.methods) == ["moe", "single"]
+    truth = result.truth
+    data = make_paper_scans(random_state=0)
+    assert_allclose(result.data.X, data.X)
+    for name, res in result.methods.items():
+        assert res.label == METHODS[name]
+        assert res.grid.shape == truth.shape
+        assert res.grid.variance is not None and res.fit_s > 0 and res.predict_s > 0
+        # The stored AUC equals an independent evaluation: the fitted model predicted at the
+        # observed cells of the true map by skoccmap.metrics.
+        expected = ground_truth_auc(res.model, data.environment, 0.5, scans=data.scans)
+        assert res.auc == pytest.approx(expected, abs=1e-9)
+        assert res.auc > 0.9
+        # The ROC curve runs from (0, 0) to (1, 1), monotone, with the AUC as its area.
+        assert (res.fpr[0], res.tpr[0], res.fpr[-1], res.tpr[-1]) == (0, 0, 1, 1)
+        assert np.all(np.diff(res.fpr) >= 0) and np.all(np.diff(res.tpr) >= 0)
+        assert trapezoid_auc(res.fpr, res.tpr) == pytest.approx(res.auc, abs=1e-9)
+        # Unknown cells are those far from all data: high variance, none near the poses.
+        unknown = res.grid.unknown
+        assert unknown.any() and not unknown.all()
+        assert res.grid.variance[unknown].min() > res.grid.variance[~unknown].max()
+    assert result.mixture is result.methods["moe"].model
+
+
+def test_single_gp_reuses_the_mixture_kernel(result):
+    single = result.methods["single"].model
+    assert single.optimizer is None
+    assert single.kernel_.get_params() == result.mixture.shared_kernel_.get_params()
+
+
+def test_moe_and_bcm_share_clusters_and_differ_in_merging():
+    models = make_models(["moe", "bcm"], random_state=3)
+    assert models["moe"].combiner == "moe" and models["bcm"].combiner == "bcm"
+    params = {k: v for k, v in models["moe"].get_params().items() if k != "combiner"}
+    assert params == {k: v for k, v in models["bcm"].get_params().items() if k != "combiner"}
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"methods": ["moe", "gp"]}, "methods"),
+        ({"methods": []}, "methods"),
+        ({"methods": ["moe", "moe"]}, "methods"),
+        ({"resolution": 0.0}, "resolution"),
+        ({"resolution": np.inf}, "resolution"),
+        ({"single_hyperparameters": "fixed"}, "single_hyperparameters"),
+        ({"random_state": None}, "random_state"),
+    ],
+)
+def test_run_paper_experiment_bad_input(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        run_paper_experiment(**kwargs)
+
+
+# ---------------------------------------------------------------------------------------
+# Tables
+# ---------------------------------------------------------------------------------------
+
+
+def test_cluster_counts_cover_every_observation(result):
+    model, data = result.mixture, result.data
+    counts = cluster_counts(model)
+    assert counts.shape == (model.n_experts_, 3)
+    expected = [np.sum(data.kind == k) for k in (HIT, RETURN, NO_RETURN)]
+    assert counts.sum(axis=0).tolist() == expected
+    assert counts.sum(axis=1).tolist() == np.bincount(model.cluster_labels_).tolist()
+    with pytest.raises(ValueError, match="fitted MixtureGPOccupancyMap"):
+        cluster_counts(result.methods["single"].model)
+
+
+def test_format_tables(result):
+    text = format_tables(result)
+    data = result.data
+    h, r, n = (int(np.sum(data.kind == k)) for k in (HIT, RETURN, NO_RETURN))
+    assert f"| all | {h} | {r} | {n} | {h + r + n} |" in text
+    for k, row in enumerate(cluster_counts(result.mixture)):
+        assert f"| {k + 1} | {row[0]} | {row[1]} | {row[2]} | {row.sum()} |" in text
+    for res in result.methods.values():
+        assert f"| {res.label} | {res.fit_s:.2f} | {res.predict_s:.2f} | {res.auc:.4f} |" in text
+    assert f"{int(result.truth.observed.sum())} observed cells at 0.5 m" in text
+
+
+def test_format_tables_without_mixture(result):
+    only_single = type(result)(**{**result, "mixture": None})
+    only_single.methods = {"single": result.methods["single"]}
+    text = format_tables(only_single)
+    assert "Table 1" not in text and "| single GP |" in text
+
+
+# ---------------------------------------------------------------------------------------
+# Files and figures
+# ---------------------------------------------------------------------------------------
+
+
+def test_save_maps_round_trip(result, tmp_path):
+    paths = save_maps(result, tmp_path / "maps")
+    assert [p.name for p in paths] == ["map_moe.yaml", "map_single.yaml"]
+    for path, res in zip(paths, result.methods.values(), strict=True):
+        assert path.with_suffix(".pgm").is_file()
+        back = OccupancyGrid.load_map_server(path)
+        assert back.shape == res.grid.shape
+        assert_allclose(back.origin, res.grid.origin)
+        np.testing.assert_array_equal(back.trinary(), res.grid.trinary())
+
+
+def test_figures(result, tmp_path):
+    pytest.importorskip("matplotlib")
+    ax = plot_roc(result)
+    # One curve per method plus the chance diagonal.
+    assert len(ax.get_lines()) == len(result.methods) + 1
+    fig = plot_maps(result)
+    images = [im for a in fig.axes for im in a.get_images()]
+    assert len(images) == 2 * len(result.methods)
+    ax = plot_clusters(result)
+    # One marker line per expert plus the poses.
+    assert len(ax.get_lines()) == result.mixture.n_experts_ + 1
+    paths = save_figures(result, tmp_path)
+    assert [p.name for p in paths] == [
+        "figure2_clusters.png",
+        "figure4_maps.png",
+        "figure5_roc.png",
+    ]
+    for path in paths:
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plot_clusters_needs_a_mixture(result):
+    pytest.importorskip("matplotlib")
+    no_mixture = type(result)(**{**result, "mixture": None})
+    with pytest.raises(ValueError, match="mixture"):
+        plot_clusters(no_mixture)
+
+
+def test_save_figures_without_matplotlib(result, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with pytest.raises(ImportError, match=r"skoccmap\[plot\]"):
+        save_figures(result, tmp_path)
+    assert not list(tmp_path.iterdir())
