@@ -359,36 +359,6 @@ def test_scanner_directions():
     assert_allclose(d[2], [np.cos(np.pi / 6), 0, 0.5], atol=1e-12)
 
 
-# --------------------------------------------------------------------------------------------
-# skoccmap demo
-# --------------------------------------------------------------------------------------------
-
-
-def test_demo_command_saves_figure(tmp_path, capsys):
-    pytest.importorskip("matplotlib")
-    from skoccmap.cli import main
-
-    assert main(["demo", "--out", str(tmp_path / "figs")]) == 0
-    out = capsys.readouterr().out
-    counts = np.bincount(make_paper_scans().kind)
-    assert f"| hits | {counts[HIT]} |" in out
-    assert f"| no-return beams | {counts[NO_RETURN]} |" in out
-    png = tmp_path / "figs" / "paper_observations.png"
-    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
-def test_demo_command_without_matplotlib(tmp_path, capsys, monkeypatch):
-    import sys
-
-    from skoccmap.cli import main
-
-    monkeypatch.setitem(sys.modules, "matplotlib", None)
-    monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
-    assert main(["demo", "--out", str(tmp_path)]) == 0
-    assert 'pip install "skoccmap[plot]"' in capsys.readouterr().out
-    assert not list(tmp_path.iterdir())
-
-
 def test_paper_scans_scale_up():
     data = make_paper_scans(n_beams=34, n_poses_per_piece=26)
     assert (len(data.scans), data.scans.n_beams) == (52, 34)
