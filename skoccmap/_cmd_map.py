@@ -50,9 +50,9 @@ def add_model_arguments(parser):
     )
     parser.add_argument(
         "--combiner",
-        default="moe",
+        default="rbcm",
         choices=["moe", "poe", "gpoe", "bcm", "rbcm"],
-        help="rule merging the experts (default moe)",
+        help="rule merging the experts (default rbcm)",
     )
     parser.add_argument(
         "--learn-all-hyperparameters",

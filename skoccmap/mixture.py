@@ -321,8 +321,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         midpoint. ``"gpc"``: a GP classifier over the expert labels of the training
         observations' midpoints (the paper's gate; sklearn's
         ``GaussianProcessClassifier`` with a fixed RBF kernel, on at most 300 points).
-    combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
-        Merging rule, see :mod:`skoccmap.combine`.
+    combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="rbcm"
+        Merging rule, see :mod:`skoccmap.combine`. The robust BCM is the default by
+        measurement: held-out AUC on the Intel lab log (every 10th scan) rbcm 0.956, gpoe
+        0.950, moe 0.920 (counting grid 0.923); on the paper's world scanned with 8k
+        observations rbcm 0.988, gpoe 0.989, moe 0.974. The mixture (``"moe"``, the
+        paper's rule) lets an expert that knows nothing about a query (latent mean 0,
+        probability 1/2) dilute one that does; the product rules weigh experts by
+        their confidence.
     max_cluster_samples : int or None, default=4000
         The clusterer is fitted on at most this many hit points, drawn uniformly without
         replacement; every hit is then labelled by the clusterer's ``predict``. Clustering
@@ -464,7 +470,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         expert=None,
         *,
         gating="clusterer",
-        combiner="moe",
+        combiner="rbcm",
         max_cluster_samples=4000,
         min_expert_size=20,
         max_expert_size=400,

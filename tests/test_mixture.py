@@ -128,7 +128,11 @@ def test_one_class_cluster_gets_constant_expert():
     X = np.vstack([as_segments(wall), beams, as_segments(far)])
     y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
     model = MixtureGPOccupancyMap(
-        KMeans(2, n_init=3, random_state=0), _fast_expert(), min_expert_size=1, random_state=0
+        KMeans(2, n_init=3, random_state=0),
+        _fast_expert(),
+        combiner="moe",
+        min_expert_size=1,
+        random_state=0,
     ).fit(X, y)
     constant = [e for e in model.experts_ if isinstance(e, _ConstantExpert)]
     assert len(constant) == 1
@@ -138,6 +142,10 @@ def test_one_class_cluster_gets_constant_expert():
     np.testing.assert_allclose(var, _fast_expert().kernel.diag(q))
     np.testing.assert_allclose(ndtr(mean / np.sqrt(1 + var)), 13 / 14)
     np.testing.assert_allclose(model.predict_proba(q)[:, 1], 13 / 14)
+    # The robust BCM weighs experts by their information gain over the prior, which is
+    # zero for a constant expert: where it is the only expert, the merge is the prior.
+    model.set_params(combiner="rbcm")
+    np.testing.assert_allclose(model.predict_proba(q)[:, 1], 0.5)
 
 
 # --- experts, merging and splitting ------------------------------------------------------
