@@ -29,8 +29,8 @@ def add_arguments(parser):
     parser.add_argument(
         "--unknown-variance",
         default="auto",
-        help="cells with a larger predictive variance are unknown; 'auto' (default): half the "
-        "largest variance on the map; 'none': no unknown cells",
+        help="cells with a larger predictive variance are unknown; 'auto' (default): 90%% of "
+        "the largest variance on the map; 'none': no unknown cells",
     )
 
 
@@ -60,7 +60,10 @@ def add_model_arguments(parser):
         help="learn kernel hyperparameters per expert (slow) instead of once, shared",
     )
     parser.add_argument(
-        "--n-jobs", type=int, default=1, help="parallel expert fits (default 1; -1: all cores)"
+        "--n-jobs",
+        type=int,
+        default=-1,
+        help="processes fitting experts, threads predicting them (default -1: all cores)",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
