@@ -1,0 +1,336 @@
+"""The benchmark suite in one command: workloads B1-B3 with the baselines, same run.
+
+Run::
+
+    python benchmarks/run.py              # full: B1, B2 (1k..64k), B3 (every 10th, 40th scan)
+    python benchmarks/run.py --quick      # smoke run, a few minutes
+    python benchmarks/run.py --only B1,B3 --full-log   # B3 also on all training scans
+
+Every process runs one BLAS thread (set below, before numpy is imported). Prints one
+markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_paper.json``,
+``bench_mixture.json`` (B2, written by ``bench_mixture.py``), ``b3_intel.json`` and a
+summary ``run.json``.
+
+- **B1**, the paper's simulation (``skoccmap.experiment.run_paper_experiment``): mixture of
+  GP experts, BCM and our single ``EPGaussianProcessClassifier`` with ``IntegralKernel``,
+  against scikit-learn's ``GaussianProcessClassifier`` (Laplace, RBF) on the beams cut into
+  points every 0.2 m (all hits and a random subset of the free points, ``--gpc-points`` in
+  all: it is cubic in them) and the counting grid ``OccupancyGridMap`` at 0.2 m. Fit s
+  includes hyperparameter learning; predict s is the 0.2 m map (all cells); AUC is against
+  the true map on the observed cells.
+- **B2**, the mixture's fit and predict time from 1k to 64k observations and the log-log slope
+  of fit time: ``benchmarks/bench_mixture.py`` run as a subprocess.
+- **B3**, the Intel Research Lab log (``../shared/data/intel.gfs.log``): every 10th scan held
+  out (offset 5); the mixture and the counting grid (0.1 m) trained on every 1st (with
+  ``--full-log``), 10th and 40th remaining scan; AUC on held-out hits against points drawn
+  along the held-out beams (``skoccmap.metrics.heldout_auc``); fit s and predict us/point.
+  The single GP and scikit-learn's GPC are not run on B3: they are cubic in n, and every
+  40th scan already gives ~7k observations (~30k points for the GPC).
+"""
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_var] = "1"
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from sklearn.gaussian_process import GaussianProcessClassifier  # noqa: E402
+from sklearn.gaussian_process.kernels import RBF  # noqa: E402
+from sklearn.gaussian_process.kernels import ConstantKernel as C  # noqa: E402
+from sklearn.metrics import roc_auc_score  # noqa: E402
+
+from skoccmap.baselines import OccupancyGridMap  # noqa: E402
+from skoccmap.experiment import points_along_beams, run_paper_experiment  # noqa: E402
+from skoccmap.metrics import heldout_points, split_scans  # noqa: E402
+from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
+from skoccmap.observations import as_segments  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+INTEL = HERE.parents[1] / "shared" / "data" / "intel.gfs.log"
+WORKLOADS = ("B1", "B2", "B3")
+
+
+def timed(func, *args, **kwargs):
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        # Convergence chatter of the optimisers would bury the tables; results are reported.
+        warnings.simplefilter("ignore")
+        out = func(*args, **kwargs)
+    return out, time.perf_counter() - start
+
+
+def fmt(value, spec):
+    return "" if value is None else format(value, spec)
+
+
+def print_table(title, header, rows):
+    print(f"\n### {title}\n")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in rows:
+        print("| " + " | ".join(str(cell) for cell in row) + " |")
+    sys.stdout.flush()
+
+
+# ---------------------------------------------------------------------------------------
+# B1: the paper's simulation
+# ---------------------------------------------------------------------------------------
+
+
+def gpc_on_points(data, truth_points, n_points, seed):
+    """scikit-learn's Laplace GPC on beams cut into points every 0.2 m.
+
+    All hits are kept and the free points are subsampled uniformly to ``n_points`` in all: a
+    uniform subsample of all points keeps so few hits (2 %) that the GPC learns a flat map.
+    """
+    points, labels = points_along_beams(data.X, data.y, spacing=0.2)
+    rng = np.random.default_rng(seed)
+    hits, free = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
+    n_free = min(max(n_points - hits.size, 1), free.size)
+    idx = np.r_[hits, rng.choice(free, n_free, replace=False)]
+    gpc = GaussianProcessClassifier(C(1.0) * RBF(1.0), random_state=seed)
+    _, fit_s = timed(gpc.fit, points[idx], labels[idx])
+    proba, predict_s = timed(gpc.predict_proba, truth_points)
+    return gpc, proba[:, 1], fit_s, predict_s, idx.size, points.shape[0]
+
+
+def run_b1(args):
+    quick = args.quick
+    print("B1: the paper's simulation ...", flush=True)
+    result = run_paper_experiment(
+        ["moe", "bcm", "single"], random_state=0, n_jobs=args.n_jobs, verbose=1
+    )
+    truth = result.truth
+    data = result.data
+    cells = truth.points  # every cell of the 0.2 m map
+    observed = truth.observed
+    labels = truth.occupied[observed]
+    rows = []
+    for name, res in result.methods.items():
+        rows.append(
+            dict(
+                method=res.label,
+                n_train=int(data.X.shape[0]),
+                fit_s=res.fit_s,
+                predict_s=res.predict_s,
+                auc=res.auc,
+            )
+        )
+        if name != "single":
+            rows[-1]["n_experts"] = int(res.model.n_experts_)
+
+    grid = OccupancyGridMap(resolution=0.2)
+    _, fit_s = timed(grid.fit, data.X, data.y)
+    proba, predict_s = timed(grid.predict_proba, as_segments(cells))
+    rows.append(
+        dict(
+            method="counting grid (0.2 m)",
+            n_train=int(data.X.shape[0]),
+            fit_s=fit_s,
+            predict_s=predict_s,
+            auc=float(roc_auc_score(labels, proba[observed, 1])),
+        )
+    )
+
+    n_points = args.gpc_points or (500 if quick else 1000)
+    print(f"B1: scikit-learn GPC (Laplace, RBF) on {n_points} points ...", flush=True)
+    _, proba, fit_s, predict_s, n_used, n_all = gpc_on_points(data, cells, n_points, seed=0)
+    rows.append(
+        dict(
+            method=f"sklearn GPC, points every 0.2 m ({n_used} of {n_all})",
+            n_train=n_used,
+            fit_s=fit_s,
+            predict_s=predict_s,
+            auc=float(roc_auc_score(labels, proba[observed])),
+        )
+    )
+    moe = rows[0]
+    total = moe["fit_s"] + moe["predict_s"]
+    for row in rows:
+        row["time_vs_mixture"] = (row["fit_s"] + row["predict_s"]) / total
+        row["auc_minus_mixture"] = row["auc"] - moe["auc"]
+    print_table(
+        f"B1: paper simulation ({data.X.shape[0]} observations, 0.2 m map of "
+        f"{cells.shape[0]} cells, AUC on {int(observed.sum())} observed cells)",
+        ["method", "train rows", "fit s", "predict s", "AUC", "time / mixture", "AUC - mixture"],
+        [
+            (
+                r["method"],
+                r["n_train"],
+                f"{r['fit_s']:.2f}",
+                f"{r['predict_s']:.2f}",
+                f"{r['auc']:.4f}",
+                f"{r['time_vs_mixture']:.1f}",
+                f"{r['auc_minus_mixture']:+.4f}",
+            )
+            for r in rows
+        ],
+    )
+    return {"benchmark": "B1 paper simulation", "grid_resolution": 0.2, "rows": rows}
+
+
+# ---------------------------------------------------------------------------------------
+# B2: scaling of the mixture (bench_mixture.py)
+# ---------------------------------------------------------------------------------------
+
+
+def run_b2(args):
+    print("\nB2: mixture scaling (benchmarks/bench_mixture.py) ...", flush=True)
+    command = [sys.executable, str(HERE / "bench_mixture.py"), "--n-jobs", str(args.n_jobs)]
+    if args.quick:
+        command.append("--quick")
+    completed = subprocess.run(command, env=os.environ.copy(), check=False)
+    path = RESULTS / "bench_mixture.json"
+    if completed.returncode != 0 or not path.is_file():
+        print(f"B2 failed (exit status {completed.returncode})", flush=True)
+        return {"benchmark": "B2 mixture scaling", "error": completed.returncode}
+    result = json.loads(path.read_text())
+    print(
+        f"\nB2: log-log slope of fit time from 2k observations: "
+        f"{fmt(result.get('fit_slope'), '.2f')} (target <= 1.2)"
+    )
+    return result
+
+
+# ---------------------------------------------------------------------------------------
+# B3: Intel Research Lab
+# ---------------------------------------------------------------------------------------
+
+
+def score_heldout(model, points, labels):
+    proba, predict_s = timed(model.predict_proba, as_segments(points))
+    return float(roc_auc_score(labels, proba[:, 1])), predict_s
+
+
+def run_b3(args):
+    from skoccmap.datasets import load_carmen
+
+    log = Path(args.intel)
+    if not log.is_file():
+        print(f"\nB3 skipped: {log} not found", flush=True)
+        return {"benchmark": "B3 Intel", "skipped": f"{log} not found"}
+    print(f"\nB3: {log.name} ...", flush=True)
+    scans = load_carmen(log)
+    train_all, test = split_scans(scans, 10, offset=5)
+    points, labels = heldout_points(test, random_state=0)
+    sparsities = [40] if args.quick else [10, 40]
+    if args.full_log:
+        sparsities.insert(0, 1)
+    rows = []
+    for every in sparsities:
+        train = train_all[::every]
+        X, y, _ = train.to_observations()
+        models = {
+            "mixture of GP experts": MixtureGPOccupancyMap(n_jobs=args.n_jobs, random_state=0),
+            "counting grid (0.1 m)": OccupancyGridMap(resolution=0.1),
+        }
+        for name, model in models.items():
+            print(f"B3: every {every} scan(s), {len(X)} observations: {name} ...", flush=True)
+            _, fit_s = timed(model.fit, X, y)
+            auc, predict_s = score_heldout(model, points, labels)
+            row = dict(
+                every_nth=every,
+                n_scans=len(train),
+                n_train=int(len(X)),
+                method=name,
+                fit_s=fit_s,
+                predict_us_per_point=1e6 * predict_s / len(points),
+                auc=auc,
+            )
+            if hasattr(model, "n_experts_"):
+                row["n_experts"] = int(model.n_experts_)
+            rows.append(row)
+            print(f"    fit {fit_s:.1f} s, AUC {auc:.4f}", flush=True)
+    print_table(
+        f"B3: Intel Research Lab, {len(test)} held-out scans ({len(points)} test points)",
+        ["training scans", "observations", "method", "fit s", "predict us/point", "AUC"],
+        [
+            (
+                f"every {r['every_nth']} ({r['n_scans']})",
+                r["n_train"],
+                r["method"],
+                f"{r['fit_s']:.1f}",
+                f"{r['predict_us_per_point']:.1f}",
+                f"{r['auc']:.4f}",
+            )
+            for r in rows
+        ],
+    )
+    return {
+        "benchmark": "B3 Intel",
+        "log": str(log),
+        "heldout": "every 10th scan, offset 5",
+        "n_test_points": int(len(points)),
+        "rows": rows,
+    }
+
+
+# ---------------------------------------------------------------------------------------
+
+
+def parse_args(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="smoke run (a few minutes)")
+    parser.add_argument(
+        "--only", default=",".join(WORKLOADS), help="comma-separated workloads (default all)"
+    )
+    parser.add_argument(
+        "--full-log", action="store_true", help="B3 also trains on all training scans (slow)"
+    )
+    parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
+    parser.add_argument(
+        "--gpc-points",
+        type=int,
+        default=None,
+        help="training points of scikit-learn's GPC in B1 (default 1000; 500 with --quick)",
+    )
+    parser.add_argument("--intel", default=str(INTEL), help="path of intel.gfs.log")
+    args = parser.parse_args(argv)
+    args.only = [w.strip().upper() for w in args.only.split(",") if w.strip()]
+    unknown = sorted(set(args.only) - set(WORKLOADS))
+    if unknown or not args.only:
+        parser.error(f"--only takes workloads among {', '.join(WORKLOADS)}, got {args.only}")
+    return args
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    summary = {
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": platform.platform(),
+        "processor": platform.processor(),
+        "cpu_count": os.cpu_count(),
+        "quick": args.quick,
+        "blas_threads": 1,
+        "workloads": {},
+    }
+    runners = {"B1": run_b1, "B2": run_b2, "B3": run_b3}
+    files = {"B1": "b1_paper.json", "B3": "b3_intel.json"}
+    for workload in WORKLOADS:
+        if workload not in args.only:
+            continue
+        result = runners[workload](args)
+        summary["workloads"][workload] = result
+        if workload in files:
+            (RESULTS / files[workload]).write_text(json.dumps(result, indent=2))
+    summary["total_s"] = time.perf_counter() - started
+    (RESULTS / "run.json").write_text(json.dumps(summary, indent=2))
+    print(f"\nDone in {summary['total_s']:.0f} s; JSON in {RESULTS}/")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
