@@ -44,9 +44,6 @@ METHODS = {
     "single": "single GP",
 }
 _SINGLE_HYPERPARAMETERS = ("learn", "from_mixture")
-# A cell is unknown when its latent variance exceeds this fraction of the largest on the map:
-# far from all data a GP's variance returns to the prior variance, its largest value.
-_UNKNOWN_FRACTION = 0.9
 
 
 def _signal_and_integral_kernel():
@@ -243,11 +240,9 @@ def run_paper_experiment(
             _, fit_s = _timed(model.fit, data.X, data.y)
             grid, predict_s = _timed(
                 lambda m=model: OccupancyGrid.from_estimator(
-                    m, extent=environment.extent, resolution=resolution, unknown_variance=None
+                    m, extent=environment.extent, resolution=resolution
                 )
             )
-        # Unknown: cells where the map's variance is back near its prior (its largest value).
-        grid.unknown = grid.variance > _UNKNOWN_FRACTION * grid.variance.max()
         auc, fpr, tpr = _score(grid, truth)
         _progress(
             verbose,
