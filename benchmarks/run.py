@@ -9,7 +9,7 @@ Run::
 Every process runs one BLAS thread (set below, before numpy is imported). Prints one
 markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_paper.json``,
 ``bench_mixture.json`` (B2, written by ``bench_mixture.py``), ``b3_intel.json`` and a
-summary ``run.json``.
+summary ``run.json`` (``run_B1_B3.json`` and so on for a partial run).
 
 - **B1**, the paper's simulation (``skoccmap.experiment.run_paper_experiment``): mixture of
   GP experts, BCM and our single ``EPGaussianProcessClassifier`` with ``IntegralKernel``,
@@ -349,7 +349,9 @@ def main(argv=None):
         if workload in files:
             (RESULTS / files[workload]).write_text(json.dumps(result, indent=2))
     summary["total_s"] = time.perf_counter() - started
-    (RESULTS / "run.json").write_text(json.dumps(summary, indent=2))
+    # A partial run (--only) keeps the summary of the others.
+    name = "run.json" if len(args.only) == len(WORKLOADS) else f"run_{'_'.join(args.only)}.json"
+    (RESULTS / name).write_text(json.dumps(summary, indent=2))
     print(f"\nDone in {summary['total_s']:.0f} s; JSON in {RESULTS}/")
     return 0
 
