@@ -195,6 +195,8 @@ def run_b2(args):
     command = [sys.executable, str(HERE / "bench_mixture.py"), "--n-jobs", str(args.n_jobs)]
     if args.quick:
         command.append("--quick")
+    elif args.b2_sizes:
+        command += ["--sizes", *(str(n) for n in args.b2_sizes)]
     completed = subprocess.run(command, env=os.environ.copy(), check=False)
     path = RESULTS / "bench_mixture.json"
     if completed.returncode != 0 or not path.is_file():
@@ -316,6 +318,13 @@ def parse_args(argv=None):
         type=int,
         default=None,
         help="training points of scikit-learn's GPC in B1 (default 1000; 500 with --quick)",
+    )
+    parser.add_argument(
+        "--b2-sizes",
+        type=int,
+        nargs="+",
+        default=None,
+        help="B2 observation counts (default: bench_mixture.py's, 1000 to 64000)",
     )
     parser.add_argument("--intel", default=str(INTEL), help="path of intel.gfs.log")
     args = parser.parse_args(argv)
