@@ -9,7 +9,8 @@ Run::
 Every process runs one BLAS thread (set below, before numpy is imported). Prints one
 markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_paper.json``,
 ``bench_mixture.json`` (B2, written by ``bench_mixture.py``), ``b3_intel.json`` and a
-summary ``run.json`` (``run_B1_B3.json`` and so on for a partial run).
+summary ``run.json`` (``run_B1_B3.json`` and so on for a partial run); ``--quick`` writes
+them to ``benchmarks/results/quick/``.
 
 - **B1**, the paper's simulation (``skoccmap.experiment.run_paper_experiment``): mixture of
   GP experts, BCM and our single ``EPGaussianProcessClassifier`` with ``IntegralKernel``,
@@ -192,13 +193,21 @@ def run_b1(args):
 
 def run_b2(args):
     print("\nB2: mixture scaling (benchmarks/bench_mixture.py) ...", flush=True)
-    command = [sys.executable, str(HERE / "bench_mixture.py"), "--n-jobs", str(args.n_jobs)]
+    command = [
+        sys.executable,
+        str(HERE / "bench_mixture.py"),
+        "--n-jobs",
+        str(args.n_jobs),
+        "--out",
+        str(args.results),
+    ]
     if args.quick:
-        command.append("--quick")
+        # The single-GP reference at 2k alone takes minutes: only at 1k in a smoke run.
+        command += ["--quick", "--single-max", "1100"]
     elif args.b2_sizes:
         command += ["--sizes", *(str(n) for n in args.b2_sizes)]
     completed = subprocess.run(command, env=os.environ.copy(), check=False)
-    path = RESULTS / "bench_mixture.json"
+    path = args.results / "bench_mixture.json"
     if completed.returncode != 0 or not path.is_file():
         print(f"B2 failed (exit status {completed.returncode})", flush=True)
         return {"benchmark": "B2 mixture scaling", "error": completed.returncode}
@@ -337,7 +346,9 @@ def parse_args(argv=None):
 
 def main(argv=None):
     args = parse_args(argv)
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    # A smoke run keeps its JSON apart from the full run's.
+    args.results = RESULTS / "quick" if args.quick else RESULTS
+    args.results.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     summary = {
         "date": datetime.datetime.now().isoformat(timespec="seconds"),
@@ -356,12 +367,12 @@ def main(argv=None):
         result = runners[workload](args)
         summary["workloads"][workload] = result
         if workload in files:
-            (RESULTS / files[workload]).write_text(json.dumps(result, indent=2))
+            (args.results / files[workload]).write_text(json.dumps(result, indent=2))
     summary["total_s"] = time.perf_counter() - started
     # A partial run (--only) keeps the summary of the others.
     name = "run.json" if len(args.only) == len(WORKLOADS) else f"run_{'_'.join(args.only)}.json"
-    (RESULTS / name).write_text(json.dumps(summary, indent=2))
-    print(f"\nDone in {summary['total_s']:.0f} s; JSON in {RESULTS}/")
+    (args.results / name).write_text(json.dumps(summary, indent=2))
+    print(f"\nDone in {summary['total_s']:.0f} s; JSON in {args.results}/")
     return 0
 
 
