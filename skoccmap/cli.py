@@ -25,10 +25,7 @@ def build_parser():
     parser.add_argument("--version", action="version", version=f"skoccmap {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, help_text in SUBCOMMANDS.items():
-        try:
-            module = importlib.import_module(f"skoccmap._cmd_{name}")
-        except ModuleNotFoundError:
-            continue
+        module = importlib.import_module(f"skoccmap._cmd_{name}")
         command = sub.add_parser(name, help=help_text, description=help_text)
         module.add_arguments(command)
         command.set_defaults(_run=module.run)
