@@ -28,11 +28,13 @@ __all__ = ["MixtureGPOccupancyMap"]
 # Covariance ridge of the Gaussians that gate the pieces of a split cluster, relative to
 # the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
 _GATING_RIDGE = 1e-3
-# Rows of no-return beams compared with return beams per kernel block.
-_NO_RETURN_BLOCK = 128
-# Beyond this many length scales apart, two segments' integral-kernel similarity is
-# below exp(-4.5^2 / 2) ~ 4e-5 of its peak: not a candidate for "most similar".
-_SIMILARITY_CUTOFF = 4.5
+# No-return beams are compared with at most this many return beams, drawn uniformly: the
+# exact argmax over all of them costs about 15% of all (no-return, return) pairs in
+# quadrature (on dense simulated scans), quadratic in the number of observations.
+_NO_RETURN_REFERENCES = 1000
+# (no-return, return) pairs bounded at once, and pairs per no-return beam evaluated first.
+_NO_RETURN_PAIRS = 1 << 18
+_NO_RETURN_FIRST = 4
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
 
@@ -86,57 +88,50 @@ def _observation_kinds(X, occupied, return_radius):
     return kinds, nearest_hit
 
 
-def _kernel_length_scale(kernel):
-    """Largest length scale among a kernel's parameters, or None when it has none."""
-    scales = [
-        np.max(value)
-        for key, value in kernel.get_params(deep=True).items()
-        if key.endswith("length_scale") and np.size(value)
-    ]
-    return float(max(scales)) if scales else None
+def _similarity_length_scale(kernel, dim):
+    """Length scale(s) of a kernel's ``length_scale`` parameter, 1.0 when it has none."""
+    for key, value in kernel.get_params(deep=True).items():
+        if key.endswith("length_scale") and np.size(value) in (1, dim):
+            return np.asarray(value, dtype=float)
+    return np.asarray(1.0)
 
 
-def _assign_no_return(X_nr, X_ret, ret_labels, kernel):
-    """Cluster of the most similar return beam under ``kernel`` for each no-return beam.
+def _assign_no_return(X_nr, X_ret, ret_labels, length_scale):
+    """Cluster of the most similar return beam under the integral kernel, per no-return beam.
 
-    The paper's rule. Only return beams that can be close are compared: two segments whose
-    midpoints are further apart than their half lengths plus a few length scales have a
-    negligible integral-kernel similarity, so a KD-tree on midpoints prunes the pairs.
+    The paper's rule, exact over the given return beams. The argmax is found by bounds:
+    per no-return beam the few return beams with the largest upper bound
+    (:func:`~skoccmap._integrals.pair_upper_bound`) are evaluated first, then only those
+    whose bound beats the best value so far. A beam beyond the kernel's reach of every
+    return beam takes the cluster of the nearest one.
     """
-    mid_ret = _midpoints(X_ret)
-    d = X_ret.shape[1] // 2
-    half_ret = 0.5 * np.linalg.norm(X_ret[:, d:] - X_ret[:, :d], axis=1)
-    half_nr = 0.5 * np.linalg.norm(X_nr[:, d:] - X_nr[:, :d], axis=1)
-    mid_nr = _midpoints(X_nr)
-    length_scale = _kernel_length_scale(kernel)
-    labels = np.empty(X_nr.shape[0], dtype=np.intp)
-    tree = cKDTree(mid_ret)
-    # Spatially coherent blocks keep the union of candidates small.
-    order = np.lexsort(mid_nr.T[::-1])
-    for block in gen_batches(order.size, _NO_RETURN_BLOCK):
-        rows = order[block]
-        if length_scale is None:
-            cand = np.arange(X_ret.shape[0])
-            mask = None
-        else:
-            radius = half_nr[rows] + half_ret.max() + _SIMILARITY_CUTOFF * length_scale
-            lists = tree.query_ball_point(mid_nr[rows], radius)
-            cand = np.unique(np.concatenate([np.asarray(c, dtype=np.intp) for c in lists]))
-            mask = np.zeros((rows.size, cand.size), dtype=bool)
-            for i, c in enumerate(lists):
-                mask[i, np.searchsorted(cand, c)] = True
-        if cand.size == 0:
-            # Nothing within reach: the return beam with the nearest midpoint.
-            labels[rows] = ret_labels[tree.query(mid_nr[rows])[1]]
-            continue
-        sim = kernel(X_nr[rows], X_ret[cand])
-        if mask is not None:
-            sim = np.where(mask, sim, -np.inf)
-        best = np.argmax(sim, axis=1)
-        labels[rows] = ret_labels[cand[best]]
-        lonely = ~np.isfinite(sim[np.arange(rows.size), best])
-        if np.any(lonely):
-            labels[rows[lonely]] = ret_labels[tree.query(mid_nr[rows[lonely]])[1]]
+    from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
+
+    dim = X_nr.shape[1] // 2
+    scale = np.tile(np.broadcast_to(length_scale, (dim,)), 2)
+    A, B = X_nr / scale, X_ret / scale
+    n_ref = B.shape[0]
+    n_first = min(_NO_RETURN_FIRST, n_ref)
+    labels = np.empty(A.shape[0], dtype=np.intp)
+    for block in gen_batches(A.shape[0], max(1, _NO_RETURN_PAIRS // n_ref)):
+        rows = np.arange(A.shape[0])[block]
+        bound, dist2 = pair_upper_bound(
+            np.repeat(A[rows], n_ref, axis=0), np.tile(B, (rows.size, 1))
+        )
+        bound, dist2 = bound.reshape(rows.size, n_ref), dist2.reshape(rows.size, n_ref)
+        sim = np.full(bound.shape, -np.inf)
+        first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
+        ii = np.repeat(np.arange(rows.size), n_first)
+        sim[ii, first.ravel()] = pair_integrals(A[rows[ii]], B[first.ravel()])[0]
+        best = sim.max(axis=1)
+        ii, jj = np.nonzero(
+            (bound > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim)
+        )
+        sim[ii, jj] = pair_integrals(A[rows[ii]], B[jj])[0]
+        choice = np.argmax(sim, axis=1)
+        out_of_reach = sim[np.arange(rows.size), choice] <= 0.0
+        choice[out_of_reach] = np.argmin(dist2[out_of_reach], axis=1)
+        labels[rows] = ret_labels[choice]
     return labels
 
 
@@ -360,8 +355,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     return_radius : float, default=0.1
         A beam is a *return* beam when a hit lies within this distance (metres) of its
         end; it then joins that hit's cluster. Other beams are *no-return* beams and join
-        the cluster of the return beam most similar to them under the expert's kernel
-        (the paper's rule). Keep it a few cm above the ``free_margin`` of
+        the cluster of the return beam most similar to them under the integral kernel
+        with the expert kernel's length scale (the paper's rule; see Notes). Keep it a
+        few cm above the ``free_margin`` of
         :func:`~skoccmap.observations.scans_to_observations` (0.05 m).
     layout : {"segments", "points"}, default="segments"
         How rows of ``X`` are read. ``"segments"``: ``[start, end]`` rows with ``2 * D``
@@ -418,6 +414,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     Notes
     -----
+    No-return beams are compared with at most 1000 return beams drawn uniformly (all of
+    them below that): the most similar of all return beams is a search whose cost grows
+    with the square of the number of observations, while a uniform sample of return
+    beams covers the same clusters.
+
     Gating of a query segment uses its midpoint (a query cell is a zero-length segment,
     so its midpoint is the cell centre). Queries are predicted in chunks sized by
     sklearn's ``working_memory`` so that a million cells keep memory bounded.
@@ -560,13 +561,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         return EPGaussianProcessClassifier(kernel=_default_kernel())
 
-    def _similarity_kernel(self, expert):
+    def _similarity_length_scale(self, expert, dim):
         kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
-        if kernel is None:
-            from .kernels import IntegralKernel
-
-            kernel = IntegralKernel()
-        return kernel
+        return np.asarray(1.0) if kernel is None else _similarity_length_scale(kernel, dim)
 
     def _cluster_and_assign(self, X, occupied, expert, rng):
         d = X.shape[1] // 2
@@ -606,8 +603,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         is_nr = kinds == NO_RETURN
         if np.any(is_nr):
             if np.any(is_ret):
+                ret = np.flatnonzero(is_ret)
+                if ret.size > _NO_RETURN_REFERENCES:
+                    ret = np.sort(rng.choice(ret, _NO_RETURN_REFERENCES, replace=False))
                 labels[is_nr] = _assign_no_return(
-                    X[is_nr], X[is_ret], labels[is_ret], self._similarity_kernel(expert)
+                    X[is_nr], X[ret], labels[ret], self._similarity_length_scale(expert, d)
                 )
             else:
                 # No return beams to compare with: the cluster of the hit nearest to the

@@ -14,6 +14,7 @@ from skoccmap._integrals import (
     gauss_legendre_order,
     integral_kernel,
     pair_integrals,
+    pair_upper_bound,
     segment_point,
     segment_self,
 )
@@ -400,3 +401,27 @@ def test_diagonal_of_points_is_exactly_one():
     K = integral_kernel(X, length_scale=0.4)
     assert np.all(np.diag(K)[is_point] == 1.0)
     assert np.all(np.diag(K)[~is_point] < 1.0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pair_upper_bound_bounds_the_integral(dim):
+    # Random pairs of segments, points and near-parallel segments: the bound must hold.
+    rng = np.random.default_rng(dim)
+    n = 3000
+    s1 = rng.uniform(-3, 3, size=(n, 2 * dim))
+    s2 = rng.uniform(-3, 3, size=(n, 2 * dim))
+    s2[:500, dim:] = s2[:500, :dim]  # points
+    s2[500:1000] = s1[500:1000] + rng.normal(scale=0.3, size=(500, 2 * dim))
+    s1[1000:1200, dim:] = s1[1000:1200, :dim] + 12.0 * rng.normal(size=(200, dim))
+    k, _ = pair_integrals(s1, s2)
+    bound, dist2 = pair_upper_bound(s1, s2)
+    assert np.all(k <= bound * (1 + 1e-9) + 1e-15)
+    # The bound is not vacuous: within 2x of the value for most close pairs.
+    close = k > 0.1
+    assert np.median(k[close] / bound[close]) > 0.5
+    np.testing.assert_allclose(np.sqrt(dist2[:500]), [
+        np.min(np.linalg.norm(
+            s1[i, :dim] + np.linspace(0, 1, 20001)[:, None] * (s1[i, dim:] - s1[i, :dim])
+            - s2[i, :dim], axis=1))
+        for i in range(500)
+    ], atol=1e-3)

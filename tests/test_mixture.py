@@ -24,6 +24,7 @@ from sklearn.preprocessing import FunctionTransformer
 
 from skoccmap.combine import COMBINERS, combine
 from skoccmap.datasets import make_paper_scans
+from skoccmap.kernels import IntegralKernel
 from skoccmap.mixture import MixtureGPOccupancyMap, _assign_no_return, _ConstantExpert
 from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
 
@@ -75,29 +76,22 @@ def test_hits_and_return_beams_follow_their_hit(paper):
         assert labels[row] == labels[nearest]
 
 
-@pytest.mark.parametrize("length_scale", [0.3, 1.0])
+@pytest.mark.parametrize("length_scale", [0.3, 1.0, [0.5, 2.0]])
 def test_no_return_rule_matches_brute_force(paper, length_scale):
-    # The KD-tree pruning must not change the argmax of the kernel over all return beams.
-    X, kind = paper.X, paper.kind
-    rng = np.random.default_rng(0)
-    ret = np.flatnonzero(kind == RETURN)
-    ret_labels = rng.integers(0, 7, size=ret.size)
-    nr = X[kind == NO_RETURN]
-    kernel = RBF(length_scale)
-    got = _assign_no_return(nr, X[ret], ret_labels, kernel)
-    expected = ret_labels[np.argmax(kernel(nr, X[ret]), axis=1)]
-    np.testing.assert_array_equal(got, expected)
-
-
-def test_no_return_beams_use_the_integral_kernel(paper):
-    kernels = pytest.importorskip("skoccmap.kernels")
+    # Pruning by upper bounds must not change the argmax of the integral kernel.
     X, kind = paper.X, paper.kind
     ret = np.flatnonzero(kind == RETURN)
     ret_labels = np.arange(ret.size)
-    nr = X[kind == NO_RETURN][:40]
-    kernel = kernels.IntegralKernel(length_scale=1.0)
-    got = _assign_no_return(nr, X[ret], ret_labels, kernel)
-    np.testing.assert_array_equal(got, np.argmax(kernel(nr, X[ret]), axis=1))
+    nr = X[kind == NO_RETURN]
+    got = _assign_no_return(nr, X[ret], ret_labels, np.asarray(length_scale))
+    expected = np.argmax(IntegralKernel(length_scale)(nr, X[ret]), axis=1)
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_no_return_beam_out_of_reach_joins_the_nearest_return_beam():
+    ret = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 5.0, 1.0, 5.0]])
+    far = np.array([[30.0, 4.0, 40.0, 4.0]])
+    assert _assign_no_return(far, ret, np.array([7, 9]), np.asarray(0.1))[0] == 9
 
 
 def test_clusterer_fitted_on_a_subsample_labels_every_hit(paper):
