@@ -11,7 +11,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process.kernels import RBF, WhiteKernel
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
-from skoccmap.classifier import EPGaussianProcessClassifier
+from skoccmap.classifier import EPGaussianProcessClassifier, _is_stationary
 
 
 def _data(n=40, seed=0, noise=0.3, dim=2):
@@ -343,3 +343,32 @@ def test_integral_kernel_works_unchanged():
         for e in np.eye(len(theta))
     ]
     np.testing.assert_allclose(grad, fd, rtol=1e-4)
+
+
+def test_separable_data_learns_without_a_spurious_warning():
+    # Setosa against the rest is separable: the evidence keeps rising with the signal
+    # variance, the optimum lies at its bound, and there L-BFGS-B's line search stopped
+    # "abnormally" (scikit-learn's check_positive_only_tag_during_fit saw the warning).
+    from sklearn.datasets import load_iris
+
+    X, y = load_iris(return_X_y=True)
+    X, y = X - X.mean(), (y > 0).astype(int)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        model = EPGaussianProcessClassifier().fit(X, y)
+    assert model.kernel_.k1.constant_value == pytest.approx(1e3)
+
+
+def test_stationarity_ignores_gradients_pressing_on_bounds():
+    from scipy.optimize import OptimizeResult
+
+    bounds = np.array([[-7.0, 7.0], [-7.0, 7.0]])
+
+    def result(x, jac):
+        return OptimizeResult(x=np.array(x), jac=np.array(jac), fun=4.5, success=False)
+
+    assert _is_stationary(result([7.0, 1.0], [-0.03, 1e-5]), bounds)
+    assert _is_stationary(result([-7.0, 1.0], [0.03, 1e-5]), bounds)
+    # Pointing into the box at the bound, or a free gradient: not stationary.
+    assert not _is_stationary(result([7.0, 1.0], [0.03, 1e-5]), bounds)
+    assert not _is_stationary(result([1.0, 1.0], [0.0, 0.01]), bounds)
