@@ -6,6 +6,10 @@ non-negative gating weights ``w_k`` (``p(expert k | x)``). A zero weight means "
 skipped at this query": its mean and variance there are never read, so they may hold NaN
 (the mixture leaves them unevaluated to save time).
 
+The rules: the mixture of experts of the paper ([KK2011]_), the product of experts and
+its generalised form ([CF2014]_), the Bayesian committee machine ([Tresp2000]_) and its
+robust form ([DN2015]_).
+
 Each combiner returns a :class:`MergedPrediction` ``(proba, mean, variance)``: the
 probability of the positive class and the merged latent Gaussian. For the product rules
 (PoE, gPoE, BCM, rBCM) the probability is the probit link of the merged Gaussian,

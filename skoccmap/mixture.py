@@ -174,16 +174,18 @@ def _merge_small(labels, hit_points, hit_labels, min_size):
     return np.unique(merged, return_inverse=True)[1]
 
 
-def _bisect(points, max_size):
-    """Split point indices recursively at the median along the principal axis.
+def _bisect(points, max_size, weights=None):
+    """Split point indices recursively at the (weighted) median along the principal axis.
 
-    Returns a list of index arrays, each of at most ``max_size`` points. Deterministic and
-    balanced, so expert sizes stay bounded however large the map grows.
+    Returns a list of index arrays, each of total weight at most ``max_size`` (or a single
+    point heavier than that). Deterministic and balanced, so expert sizes stay bounded
+    however large the map grows.
     """
+    weights = np.ones(points.shape[0]) if weights is None else np.asarray(weights, float)
     pieces, stack = [], [np.arange(points.shape[0])]
     while stack:
         idx = stack.pop()
-        if idx.size <= max_size:
+        if idx.size == 1 or weights[idx].sum() <= max_size:
             pieces.append(idx)
             continue
         p = points[idx]
@@ -191,7 +193,8 @@ def _bisect(points, max_size):
         # Principal axis = top right-singular vector of the centred points.
         axis = np.linalg.svd(centred, full_matrices=False)[2][0]
         order = np.argsort(centred @ axis, kind="stable")
-        half = idx.size // 2
+        cum = np.cumsum(weights[idx[order]])
+        half = int(np.clip(np.searchsorted(cum, 0.5 * cum[-1]) + 1, 1, idx.size - 1))
         stack.append(idx[order[half:]])
         stack.append(idx[order[:half]])
     return pieces
@@ -337,11 +340,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         near-empty cluster learns nothing, and its broad predictive density would otherwise
         win the gate far from all hits. 1 disables merging.
     max_expert_size : int or None, default=400
-        Clusters with more observations are split at the median along their principal
-        axis until every piece has at most this many; pieces are gated by Gaussians fitted
-        to their midpoints within the cluster's gate. This bounds the cost of each expert,
-        so fit time grows about linearly with the number of observations. ``None``
-        disables splitting (the paper's model; cubic cost in the cluster size).
+        Clusters with more observations are split until every piece has at most this
+        many: the cluster's hits are cut at the median along their principal axis, each
+        hit weighted by the beams that follow it, and every beam stays with its hit (so
+        a piece holds walls with the free space seen in front of them; a hit that alone
+        carries more beams stays whole). Pieces are gated by Gaussians fitted to their
+        midpoints within the cluster's gate. This bounds the cost of each expert, so fit
+        time grows about linearly with the number of observations. ``None`` disables
+        splitting (the paper's model; cubic cost in the cluster size).
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once, on a uniform sample of all
         observations as large as the largest expert, and give every expert that fitted
@@ -536,13 +542,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         occupied = y_enc == 1
         expert = self._make_expert()
-        labels = self._cluster_and_assign(X, occupied, expert, rng)
+        labels, anchor = self._cluster_and_assign(X, occupied, expert, rng)
         _log(
             self.verbose,
             f"clustering done: {self.cluster_ids_.size} cluster(s), "
             f"{self.n_clusters_} after merging small ones ({time.perf_counter() - start:.1f} s)",
         )
-        labels = self._split_clusters(X, labels)
+        labels = self._split_clusters(X, labels, anchor)
         self.cluster_labels_ = labels
         self.n_experts_ = int(self.expert_cluster_.size)
 
@@ -590,46 +596,62 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             raw = self.clusterer_.predict(hits)
         self.cluster_ids_, hit_labels = np.unique(np.asarray(raw), return_inverse=True)
 
-        labels = np.empty(X.shape[0], dtype=np.intp)
-        labels[occupied] = hit_labels
+        # Every row follows an anchor hit: a hit itself, a return beam its hit, a no-return
+        # beam the hit of its most similar return beam. Clusters and their pieces are
+        # sets of hits, so a piece keeps its hits' beams (its free space).
+        hit_rows = np.flatnonzero(occupied)
+        anchor = np.full(X.shape[0], -1, dtype=np.intp)
+        anchor[hit_rows] = hit_rows
         # Free points follow the return-beam rule without a distance limit.
         radius = np.inf if self.layout == "points" else self.return_radius
         kinds, nearest_hit = _observation_kinds(X, occupied, radius)
         self.observation_kind_ = kinds
         is_ret = kinds == RETURN
-        # Position of each hit row among the hits, to look up its cluster.
-        hit_pos = np.cumsum(occupied) - 1
-        labels[is_ret] = hit_labels[hit_pos[nearest_hit[is_ret]]]
+        anchor[is_ret] = nearest_hit[is_ret]
         is_nr = kinds == NO_RETURN
         if np.any(is_nr):
             if np.any(is_ret):
                 ret = np.flatnonzero(is_ret)
                 if ret.size > _NO_RETURN_REFERENCES:
                     ret = np.sort(rng.choice(ret, _NO_RETURN_REFERENCES, replace=False))
-                labels[is_nr] = _assign_no_return(
-                    X[is_nr], X[ret], labels[ret], self._similarity_length_scale(expert, d)
+                anchor[is_nr] = _assign_no_return(
+                    X[is_nr], X[ret], anchor[ret], self._similarity_length_scale(expert, d)
                 )
             else:
-                # No return beams to compare with: the cluster of the hit nearest to the
-                # beam's midpoint.
-                idx = cKDTree(hits).query(_midpoints(X[is_nr]))[1]
-                labels[is_nr] = hit_labels[idx]
+                # No return beams to compare with: the hit nearest to the beam's midpoint.
+                anchor[is_nr] = hit_rows[cKDTree(hits).query(_midpoints(X[is_nr]))[1]]
+        # Position of each hit row among the hits, to look up its cluster.
+        hit_pos = np.cumsum(occupied) - 1
+        labels = hit_labels[hit_pos[anchor]]
         self.cluster_merge_ = _merge_small(labels, hits, hit_labels, self.min_expert_size)
         self.n_clusters_ = int(self.cluster_merge_.max() + 1)
-        return self.cluster_merge_[labels]
+        return self.cluster_merge_[labels], anchor
 
-    def _split_clusters(self, X, labels):
-        """Split clusters above ``max_expert_size``; returns expert labels per row."""
+    def _split_clusters(self, X, labels, anchor):
+        """Split clusters above ``max_expert_size``; returns expert labels per row.
+
+        The split is of the cluster's hits, each weighted by the rows anchored to it, and
+        every row joins the piece of its anchor hit: cutting the rows themselves would
+        part walls from the beams that saw them and leave one-class pieces.
+        """
         mids = _midpoints(X)
+        dim = X.shape[1] // 2
+        rows_per_hit = np.bincount(anchor, minlength=X.shape[0])
         expert_labels = np.empty_like(labels)
         expert_cluster, piece_gates = [], []
         for c in range(self.n_clusters_):
             rows = np.flatnonzero(labels == c)
+            first = len(expert_cluster)
             if self.max_expert_size is None or rows.size <= self.max_expert_size:
                 pieces = [np.arange(rows.size)]
             else:
-                pieces = _bisect(mids[rows], self.max_expert_size)
-            first = len(expert_cluster)
+                hits = rows[anchor[rows] == rows]
+                hit_pieces = _bisect(X[hits, :dim], self.max_expert_size, rows_per_hit[hits])
+                piece_of_hit = np.empty(X.shape[0], dtype=np.intp)
+                for j, piece in enumerate(hit_pieces):
+                    piece_of_hit[hits[piece]] = j
+                row_piece = piece_of_hit[anchor[rows]]
+                pieces = [np.flatnonzero(row_piece == j) for j in range(len(hit_pieces))]
             for j, piece in enumerate(pieces):
                 expert_labels[rows[piece]] = first + j
                 expert_cluster.append(c)

@@ -25,7 +25,12 @@ from sklearn.preprocessing import FunctionTransformer
 from skoccmap.combine import COMBINERS, combine
 from skoccmap.datasets import make_paper_scans
 from skoccmap.kernels import IntegralKernel
-from skoccmap.mixture import MixtureGPOccupancyMap, _assign_no_return, _ConstantExpert
+from skoccmap.mixture import (
+    MixtureGPOccupancyMap,
+    _assign_no_return,
+    _bisect,
+    _ConstantExpert,
+)
 from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
 
 
@@ -187,6 +192,38 @@ def test_big_clusters_are_split_and_gated(paper, grid):
     w = model.set_params(gating_threshold=0.0)._gating_weights(Q)
     # Pieces share their cluster's weight: the split gate is a partition of unity.
     np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-12)
+
+
+def test_split_pieces_keep_each_hit_with_its_beams(paper):
+    # Pieces are cut through the hits; beams follow their hit, so no piece is left with
+    # one class (a wall without the beams that saw it, or free space without its wall).
+    X, kind = paper.X, paper.kind
+    model = _mixture(clusterer=KMeans(2, n_init=3, random_state=0), max_expert_size=60)
+    model.fit(X, paper.y)
+    labels = model.cluster_labels_
+    assert model.n_experts_ >= int(np.ceil(X.shape[0] / 60))
+    hits = np.flatnonzero(kind == HIT)
+    for row in np.flatnonzero(kind == RETURN):
+        nearest = hits[np.argmin(np.linalg.norm(X[hits, :2] - X[row, 2:], axis=1))]
+        assert labels[row] == labels[nearest]
+    for k in range(model.n_experts_):
+        assert 0 < paper.y[labels == k].mean() < 1, k
+    assert not any(isinstance(e, _ConstantExpert) for e in model.experts_)
+
+
+def test_weighted_bisection_bounds_piece_weight():
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0, 10, size=(300, 2))
+    weights = rng.integers(1, 6, size=300)
+    pieces = _bisect(points, 50, weights)
+    np.testing.assert_array_equal(np.sort(np.concatenate(pieces)), np.arange(300))
+    assert max(weights[p].sum() for p in pieces) <= 50
+    # Balanced: no more pieces than twice the minimum needed.
+    assert len(pieces) <= 2 * int(np.ceil(weights.sum() / 50))
+    # A point heavier than the cap stays a piece of its own.
+    heavy = _bisect(points[:3], 5, np.array([9, 1, 1]))
+    assert [0] in [p.tolist() for p in heavy]
+    assert sorted(np.concatenate(heavy).tolist()) == [0, 1, 2]
 
 
 def test_gating_threshold_skips_experts(paper, grid):
