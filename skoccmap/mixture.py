@@ -28,9 +28,9 @@ __all__ = ["MixtureGPOccupancyMap"]
 # Covariance ridge of the Gaussians that gate the pieces of a split cluster, relative to
 # the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
 _GATING_RIDGE = 1e-3
-# No-return beams are compared with at most this many return beams, drawn uniformly: the
-# exact argmax over all of them costs about 15% of all (no-return, return) pairs in
-# quadrature (on dense simulated scans), quadratic in the number of observations.
+# No-return beams are compared with at most this many return beams, drawn uniformly per
+# block: the exact argmax over all of them costs about 15% of all (no-return, return)
+# pairs in quadrature (on dense simulated scans), quadratic in the number of observations.
 _NO_RETURN_REFERENCES = 1000
 # (no-return, return) pairs bounded at once, and pairs per no-return beam evaluated first.
 _NO_RETURN_PAIRS = 1 << 18
@@ -96,25 +96,36 @@ def _similarity_length_scale(kernel, dim):
     return np.asarray(1.0)
 
 
-def _assign_no_return(X_nr, X_ret, ret_labels, length_scale):
-    """Cluster of the most similar return beam under the integral kernel, per no-return beam.
+def _assign_no_return(
+    X_nr, X_ret, ret_labels, length_scale, max_references=None, random_state=None
+):
+    """Label of the most similar return beam under the integral kernel, per no-return beam.
 
-    The paper's rule, exact over the given return beams. The argmax is found by bounds:
-    per no-return beam the few return beams with the largest upper bound
+    The paper's rule, exact over the return beams compared with. The argmax is found by
+    bounds: per no-return beam the few return beams with the largest upper bound
     (:func:`~skoccmap._integrals.pair_upper_bound`) are evaluated first, then only those
     whose bound beats the best value so far. A beam beyond the kernel's reach of every
-    return beam takes the cluster of the nearest one.
+    return beam takes the label of the nearest one.
+
+    With more than ``max_references`` return beams, each block of no-return beams is
+    compared with its own uniform sample of that many: the cost stays linear in the
+    number of no-return beams, and they spread over all return beams instead of piling
+    onto the few of one sample.
     """
     from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
 
+    rng = check_random_state(random_state)
     dim = X_nr.shape[1] // 2
     scale = np.tile(np.broadcast_to(length_scale, (dim,)), 2)
-    A, B = X_nr / scale, X_ret / scale
-    n_ref = B.shape[0]
+    A, B_all = X_nr / scale, X_ret / scale
+    n_ret = B_all.shape[0]
+    n_ref = n_ret if max_references is None else min(n_ret, max_references)
     n_first = min(_NO_RETURN_FIRST, n_ref)
     labels = np.empty(A.shape[0], dtype=np.intp)
     for block in gen_batches(A.shape[0], max(1, _NO_RETURN_PAIRS // n_ref)):
         rows = np.arange(A.shape[0])[block]
+        refs = np.arange(n_ret) if n_ref == n_ret else rng.choice(n_ret, n_ref, replace=False)
+        B = B_all[refs]
         bound, dist2 = pair_upper_bound(
             np.repeat(A[rows], n_ref, axis=0), np.tile(B, (rows.size, 1))
         )
@@ -131,7 +142,7 @@ def _assign_no_return(X_nr, X_ret, ret_labels, length_scale):
         choice = np.argmax(sim, axis=1)
         out_of_reach = sim[np.arange(rows.size), choice] <= 0.0
         choice[out_of_reach] = np.argmin(dist2[out_of_reach], axis=1)
-        labels[rows] = ret_labels[choice]
+        labels[rows] = ret_labels[refs[choice]]
     return labels
 
 
@@ -421,10 +432,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     Notes
     -----
-    No-return beams are compared with at most 1000 return beams drawn uniformly (all of
-    them below that): the most similar of all return beams is a search whose cost grows
-    with the square of the number of observations, while a uniform sample of return
-    beams covers the same clusters.
+    No-return beams are compared with at most 1000 return beams drawn uniformly (a new
+    sample for every few hundred no-return beams; all of them below that): the most
+    similar of all return beams is a search whose cost grows with the square of the
+    number of observations, while a uniform sample of return beams covers the same
+    clusters.
 
     Gating of a query segment uses its midpoint (a query cell is a zero-length segment,
     so its midpoint is the cell centre). Queries are predicted in chunks sized by
@@ -612,11 +624,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         is_nr = kinds == NO_RETURN
         if np.any(is_nr):
             if np.any(is_ret):
-                ret = np.flatnonzero(is_ret)
-                if ret.size > _NO_RETURN_REFERENCES:
-                    ret = np.sort(rng.choice(ret, _NO_RETURN_REFERENCES, replace=False))
                 anchor[is_nr] = _assign_no_return(
-                    X[is_nr], X[ret], anchor[ret], self._similarity_length_scale(expert, d)
+                    X[is_nr],
+                    X[is_ret],
+                    anchor[is_ret],
+                    self._similarity_length_scale(expert, d),
+                    max_references=_NO_RETURN_REFERENCES,
+                    random_state=rng,
                 )
             else:
                 # No return beams to compare with: the hit nearest to the beam's midpoint.

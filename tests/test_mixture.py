@@ -93,6 +93,25 @@ def test_no_return_rule_matches_brute_force(paper, length_scale):
     np.testing.assert_array_equal(got, expected)
 
 
+def test_no_return_rule_on_samples_of_return_beams(paper, monkeypatch):
+    import skoccmap.mixture as mixture
+
+    monkeypatch.setattr(mixture, "_NO_RETURN_PAIRS", 40 * 30)  # blocks of 40 beams
+    X, kind = paper.X, paper.kind
+    ret, nr = X[kind == RETURN], X[kind == NO_RETURN]
+    labels = np.arange(len(ret))
+    got = _assign_no_return(nr, ret, labels, 1.0, max_references=30, random_state=0)
+    again = _assign_no_return(nr, ret, labels, 1.0, max_references=30, random_state=0)
+    np.testing.assert_array_equal(got, again)
+    # Each choice is the best of a uniform sample of 30: better than almost all return
+    # beams (the median rank of the best of 30 is about 2% from the top).
+    K = IntegralKernel(1.0)(nr, ret)
+    better = (K > K[np.arange(len(nr)), got][:, None]).mean(axis=1)
+    assert np.median(better) < 0.1
+    # Every block draws its own sample, so the choices spread beyond one sample.
+    assert np.unique(got).size > 30
+
+
 def test_no_return_beam_out_of_reach_joins_the_nearest_return_beam():
     ret = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 5.0, 1.0, 5.0]])
     far = np.array([[30.0, 4.0, 40.0, 4.0]])
