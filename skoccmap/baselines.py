@@ -37,6 +37,10 @@ def _split_rows(X, layout):
     return X[:, :n_dims], X[:, n_dims:]
 
 
+# Relative distance (in cells) within which a crossing point counts as lying on a face.
+_FACE_TOL = 1e-9
+
+
 def traverse_cells(starts, ends, origin, resolution, shape):
     """Cells crossed by line segments on a regular grid, by exact boundary crossings.
 
@@ -64,8 +68,9 @@ def traverse_cells(starts, ends, origin, resolution, shape):
     segment : ndarray of shape (n_visits,)
         Index of the segment of each visit.
     cells : ndarray of shape (n_visits, n_dims)
-        Integer cell index of each visit. Each segment visits its start cell first and every
-        cell it passes through once, its end cell last.
+        Integer cell index of each visit. Each segment visits its start cell and every cell
+        it passes through exactly once. Visits are not in path order: first every
+        segment's start cell, then the cells entered through faces of each axis in turn.
 
     Examples
     --------
@@ -115,11 +120,16 @@ def _traverse_flat(q0, q1, shape):
             if e == d:
                 continue
             q = q0[seg, e] + t * dq[seg, e]
-            idx = np.floor(q)
-            # Through an exact corner the axes are crossed in index order (e before d), so a
-            # path stays face-connected and no cell is entered twice.
+            # A crossing within rounding of a face is on it: axis d's and axis e's own
+            # crossings must agree on which came first, or a cell is entered twice.
+            nearest = np.round(q)
+            on_face = (np.abs(q - nearest) <= _FACE_TOL * np.maximum(1.0, np.abs(q))) & (
+                dq[seg, e] != 0
+            )
+            idx = np.where(on_face, nearest, np.floor(q))
+            # Through a corner the axes are crossed in index order (e before d), so a path
+            # stays face-connected and no cell is entered twice.
             moving_up = dq[seg, e] > 0
-            on_face = (q == idx) & (dq[seg, e] != 0)
             idx -= on_face & (moving_up if e > d else ~moving_up)
             low = np.minimum(i0[:, e], i1[:, e])[seg]
             high = np.maximum(i0[:, e], i1[:, e])[seg]

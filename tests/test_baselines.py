@@ -79,6 +79,20 @@ def test_traverse_cells_property(coords, res):
     assert len(set(visited)) == len(visited)
 
 
+@pytest.mark.parametrize("res", [0.0546875, 0.1, 0.3, 1 / 3])
+def test_traverse_diagonal_through_corners_visits_each_cell_once(res):
+    # The diagonal meets every corner; the two axes' crossings are computed separately and
+    # round differently, which once entered cells twice.
+    start, end = np.zeros(2), np.array([3.0, 3.0])
+    shape = tuple(np.floor(end / res).astype(int) + 1)
+    _, cells = traverse_cells(start[None], end[None], np.zeros(2), res, shape)
+    visited = [tuple(c) for c in cells.tolist()]
+    last = tuple(np.minimum(np.floor(end / res).astype(int), np.array(shape) - 1))
+    assert len(set(visited)) == len(visited) == 1 + sum(last)
+    # A face-connected staircase: every step raises i + j by one.
+    np.testing.assert_array_equal(np.sort(cells.sum(axis=1)), np.arange(len(visited)))
+
+
 def _loop_reference(X, y, res, l_occ, l_free, l_min, l_max):
     """Per-row log-odds sums with the box-clipping cells, excluding each beam's end cell."""
     n_dims = X.shape[1] // 2
