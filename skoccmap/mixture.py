@@ -7,6 +7,7 @@ the experts, whose latent predictions are merged by a rule of :mod:`skoccmap.com
 
 import sys
 import time
+import warnings
 from numbers import Integral, Real
 
 import numpy as np
@@ -267,12 +268,28 @@ class _ConstantExpert:
 
 
 def _fit_expert(expert, X, y):
-    """Fit one expert; one-class data get a :class:`_ConstantExpert`."""
+    """Fit one expert; one-class data get a :class:`_ConstantExpert`.
+
+    Returns the expert and the warnings its fit raised, as ``(category, message)`` pairs:
+    warnings raised in worker processes would otherwise never reach the caller.
+    """
     n_positive = int(np.sum(y == 1))
     if n_positive in (0, y.size):
         kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
-        return _ConstantExpert(kernel, n_positive, y.size)
-    return expert.fit(X, y)
+        return _ConstantExpert(kernel, n_positive, y.size), []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        expert = expert.fit(X, y)
+    return expert, [(w.category, str(w.message)) for w in caught]
+
+
+def _warn_once_each(caught, n_experts):
+    """Re-raise the experts' warnings in the caller, each distinct one once with a count."""
+    counts = {}
+    for item in caught:
+        counts[item] = counts.get(item, 0) + 1
+    for (category, message), count in counts.items():
+        warnings.warn(f"{count} of {n_experts} expert(s): {message}", category, stacklevel=3)
 
 
 def _prior_variance(expert, X):
@@ -709,8 +726,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
             delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]]) for k in todo
         )
-        for k, est in zip(todo, results, strict=True):
+        caught = []
+        for k, (est, expert_warnings) in zip(todo, results, strict=True):
             fitted[k] = est
+            caught.extend(expert_warnings)
+        _warn_once_each(caught, n_experts)
         return fitted
 
     def _learn_shared(self, X, y, rows, expert, fitted, rng):

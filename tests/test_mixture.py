@@ -513,3 +513,16 @@ def test_segments_layout_fails_checks_only_on_odd_columns():
     for r in failed:
         assert isinstance(r["exception"], ValueError), r["check_name"]
         assert "even number of columns" in str(r["exception"]), r["check_name"]
+
+
+@pytest.mark.parametrize("n_jobs", [1, 2])
+def test_expert_warnings_reach_the_caller(paper, n_jobs):
+    # Warnings raised in joblib worker processes are lost unless passed back.
+    from sklearn.exceptions import ConvergenceWarning
+
+    from skoccmap import EPGaussianProcessClassifier
+
+    expert = EPGaussianProcessClassifier(C(4.0) * RBF(1.0), optimizer=None, max_iter=1)
+    model = _mixture(expert=expert, share_hyperparameters=False, n_jobs=n_jobs)
+    with pytest.warns(ConvergenceWarning, match=r"\d+ of \d+ expert\(s\): .*max_iter"):
+        model.fit(paper.X, paper.y)
