@@ -6,7 +6,7 @@ from sklearn.metrics import roc_auc_score
 
 from skoccmap import OccupancyGrid
 from skoccmap.cli import main
-from skoccmap.datasets import flaser_angles, make_paper_scans
+from skoccmap.datasets import flaser_angles, load_carmen, make_paper_scans
 
 
 @pytest.fixture(scope="module")
@@ -89,4 +89,11 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
                "--out", str(tmp_path), "--quiet"])  # fmt: skip
     assert rc == 0
     grid = OccupancyGrid.load(tmp_path / "intel.npz")
-    assert grid.shape[0] > 300 and grid.shape[1] > 300
+    # The map covers every training hit (every 10th scan spans 29.2 m x 29.1 m).
+    hits = load_carmen(shared_data / "intel.gfs.log")[::10].hit_points()
+    xmin, xmax, ymin, ymax = grid.extent
+    assert xmin <= hits[:, 0].min() and hits[:, 0].max() <= xmax
+    assert ymin <= hits[:, 1].min() and hits[:, 1].max() <= ymax
+    # ... and not much more: the bounding box snapped outwards to whole cells.
+    span = np.ptp(hits, axis=0) / grid.resolution
+    assert np.all(np.asarray(grid.shape[::-1]) <= np.ceil(span) + 2)
