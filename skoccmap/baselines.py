@@ -37,8 +37,9 @@ def _split_rows(X, layout):
     return X[:, :n_dims], X[:, n_dims:]
 
 
-# Relative distance (in cells) within which a crossing point counts as lying on a face.
-_FACE_TOL = 1e-9
+# Within this distance (in cells) of a face, the order of two axes' crossings is decided
+# from their crossing parameters rather than from the rounded crossing point.
+_NEAR_FACE = 1e-6
 
 
 def traverse_cells(starts, ends, origin, resolution, shape):
@@ -119,18 +120,20 @@ def _traverse_flat(q0, q1, shape):
         for e in range(n_dims):
             if e == d:
                 continue
-            q = q0[seg, e] + t * dq[seg, e]
-            # A crossing within rounding of a face is on it: axis d's and axis e's own
-            # crossings must agree on which came first, or a cell is entered twice.
-            nearest = np.round(q)
-            on_face = (np.abs(q - nearest) <= _FACE_TOL * np.maximum(1.0, np.abs(q))) & (
-                dq[seg, e] != 0
+            dqe = dq[seg, e]
+            q = q0[seg, e] + t * dqe
+            # Near a face of axis e, which axis crossed first is decided by comparing the
+            # crossing parameters, computed exactly as axis e's own loop computes its t, so
+            # the two loops agree bit for bit: no cell is entered twice or skipped. At an
+            # exact corner the axes are crossed in index order (e before d).
+            face = np.round(q)
+            near = (np.abs(q - face) <= _NEAR_FACE) & (dqe != 0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_e = (face.astype(np.int64) - q0[seg, e]) / dqe
+            e_first = (t_e < t) | ((t_e == t) & (e < d))
+            idx = np.where(
+                near, np.where(dqe > 0, face - 1 + e_first, face - e_first), np.floor(q)
             )
-            idx = np.where(on_face, nearest, np.floor(q))
-            # Through a corner the axes are crossed in index order (e before d), so a path
-            # stays face-connected and no cell is entered twice.
-            moving_up = dq[seg, e] > 0
-            idx -= on_face & (moving_up if e > d else ~moving_up)
             low = np.minimum(i0[:, e], i1[:, e])[seg]
             high = np.maximum(i0[:, e], i1[:, e])[seg]
             # Rounding at a face must not push an axis outside the segment's cell range.

@@ -93,6 +93,39 @@ def test_traverse_diagonal_through_corners_visits_each_cell_once(res):
     np.testing.assert_array_equal(np.sort(cells.sum(axis=1)), np.arange(len(visited)))
 
 
+def _assert_staircase(cells, first, last):
+    """Visits form a monotone face-connected path from ``first`` to ``last``, each once."""
+    visited = [tuple(c) for c in cells.tolist()]
+    assert len(set(visited)) == len(visited)
+    assert first in visited and last in visited
+    assert len(visited) == 1 + int(np.abs(np.subtract(last, first)).sum())
+    order = cells[np.argsort(np.abs(cells - np.asarray(first)).sum(axis=1), kind="stable")]
+    assert np.all(np.abs(np.diff(order, axis=0)).sum(axis=1) == 1)
+
+
+@pytest.mark.parametrize("dy", [0.0, 1e-12, 1e-9, -1e-9, 1e-7, -1e-7, 1e-5])
+def test_traverse_lines_passing_near_a_corner(dy):
+    # Near the corner (1, 1) each axis's crossing point rounds on its own; the order of the
+    # crossings must still be one order, or cells are entered twice or skipped.
+    start, end = np.array([0.5, 0.95]), np.array([1.5, 1.05 + dy])
+    _, cells = traverse_cells(start[None], end[None], np.zeros(2), 1.0, (3, 3))
+    _assert_staircase(cells, (0, 0), (1, 1))
+
+
+def test_traverse_near_corners_in_3d():
+    rng = np.random.default_rng(0)
+    corner = rng.integers(2, 8, size=(500, 3)).astype(float)
+    direction = rng.normal(size=(500, 3))
+    offset = rng.choice([0.0, 1e-12, 1e-9, 1e-7], size=(500, 1)) * rng.normal(size=(500, 3))
+    starts = corner + offset - 1.5 * direction / np.abs(direction).max(axis=1, keepdims=True)
+    ends = corner + offset + 1.5 * direction / np.abs(direction).max(axis=1, keepdims=True)
+    seg, cells = traverse_cells(starts, ends, np.zeros(3), 1.0, (12, 12, 12))
+    for i in range(500):
+        first = tuple(np.floor(starts[i]).astype(int))
+        last = tuple(np.floor(ends[i]).astype(int))
+        _assert_staircase(cells[seg == i], first, last)
+
+
 def _loop_reference(X, y, res, l_occ, l_free, l_min, l_max):
     """Per-row log-odds sums with the box-clipping cells, excluding each beam's end cell."""
     n_dims = X.shape[1] // 2
