@@ -384,11 +384,20 @@ def _point_segment_dist2(p, a, d, dd):
     return _dot(r, r)
 
 
+def _cross(x, y):
+    """Row-wise cross product; in 2-D the scalar one, as a column (so that _dot applies)."""
+    if x.shape[1] == 2:
+        return (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0])[:, None]
+    return np.cross(x, y)
+
+
 def _segment_dist2(a1, d1, a2, d2):
     """Squared distance between segments ``a1 + u d1`` and ``a2 + v d2``, u, v in [0, 1].
 
     The squared distance is a convex quadratic on the unit square: its minimum is at the lines'
     closest approach when that lies inside, else on an edge (an endpoint against a segment).
+    The closest approach is solved with cross products: the textbook determinant
+    ``|d1|^2 |d2|^2 - (d1.d2)^2`` cancels for nearly parallel segments.
     """
     dd1, dd2 = _dot(d1, d1), _dot(d2, d2)
     best = np.minimum.reduce([
@@ -397,16 +406,16 @@ def _segment_dist2(a1, d1, a2, d2):
         _point_segment_dist2(a2, a1, d1, dd1),
         _point_segment_dist2(a2 + d2, a1, d1, dd1),
     ])
-    r = a1 - a2
-    b, e, f = _dot(d1, d2), _dot(d1, r), _dot(d2, r)
-    den = dd1 * dd2 - b * b
+    normal = _cross(d1, d2)
+    den = _dot(normal, normal)
+    w = a2 - a1
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = (b * f - dd2 * e) / den
-        v = (dd1 * f - b * e) / den
-    inside = (den > 1e-12 * dd1 * dd2) & (u > 0.0) & (u < 1.0) & (v > 0.0) & (v < 1.0)
+        u = _dot(_cross(w, d2), normal) / den
+        v = _dot(_cross(w, d1), normal) / den
+    inside = (den > 0.0) & (u > 0.0) & (u < 1.0) & (v > 0.0) & (v < 1.0)
     if np.any(inside):
         i = np.flatnonzero(inside)
-        diff = r[i] + u[i, None] * d1[i] - v[i, None] * d2[i]
+        diff = u[i, None] * d1[i] - v[i, None] * d2[i] - w[i]
         best[i] = np.minimum(best[i], _dot(diff, diff))
     return best
 

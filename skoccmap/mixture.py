@@ -5,7 +5,9 @@ The hit points are clustered; every observation joins a cluster; one GP classifi
 the experts, whose latent predictions are merged by a rule of :mod:`skoccmap.combine`.
 """
 
+import re
 import sys
+import threading
 import time
 import warnings
 from numbers import Integral, Real
@@ -90,10 +92,20 @@ def _observation_kinds(X, occupied, return_radius):
 
 
 def _similarity_length_scale(kernel, dim):
-    """Length scale(s) of a kernel's ``length_scale`` parameter, 1.0 when it has none."""
+    """Length scale(s) of the first ``length_scale`` parameter of a kernel.
+
+    One value or one per coordinate (``dim``); one per segment column (``2 * dim``, e.g.
+    an RBF over segment rows) gives the larger of the start and end values. 1.0 when the
+    kernel has no such parameter.
+    """
     for key, value in kernel.get_params(deep=True).items():
-        if key.endswith("length_scale") and np.size(value) in (1, dim):
-            return np.asarray(value, dtype=float)
+        if not key.endswith("length_scale"):
+            continue
+        value = np.asarray(value, dtype=float)
+        if value.size in (1, dim):
+            return value
+        if value.size == 2 * dim:
+            return np.maximum(value[:dim], value[dim:])
     return np.asarray(1.0)
 
 
@@ -109,9 +121,9 @@ def _assign_no_return(
     return beam takes the label of the nearest one.
 
     With more than ``max_references`` return beams, each block of no-return beams is
-    compared with its own uniform sample of that many: the cost stays linear in the
-    number of no-return beams, and they spread over all return beams instead of piling
-    onto the few of one sample.
+    compared with its own uniform sample of (at most) that many: the cost stays linear in
+    the number of no-return beams, and they spread over all return beams instead of
+    piling onto the few of one sample.
     """
     from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
 
@@ -121,23 +133,29 @@ def _assign_no_return(
     A, B_all = X_nr / scale, X_ret / scale
     n_ret = B_all.shape[0]
     n_ref = n_ret if max_references is None else min(n_ret, max_references)
-    n_first = min(_NO_RETURN_FIRST, n_ref)
     labels = np.empty(A.shape[0], dtype=np.intp)
     for block in gen_batches(A.shape[0], max(1, _NO_RETURN_PAIRS // n_ref)):
         rows = np.arange(A.shape[0])[block]
-        refs = np.arange(n_ret) if n_ref == n_ret else rng.choice(n_ret, n_ref, replace=False)
+        if n_ref == n_ret:
+            refs = np.arange(n_ret)
+        else:
+            # Drawn with replacement (duplicates dropped): without, every block would
+            # permute all return beams, a cost quadratic in the data overall.
+            refs = np.unique(rng.randint(n_ret, size=n_ref))
         B = B_all[refs]
+        n_first = min(_NO_RETURN_FIRST, refs.size)
         bound, dist2 = pair_upper_bound(
-            np.repeat(A[rows], n_ref, axis=0), np.tile(B, (rows.size, 1))
+            np.repeat(A[rows], refs.size, axis=0), np.tile(B, (rows.size, 1))
         )
-        bound, dist2 = bound.reshape(rows.size, n_ref), dist2.reshape(rows.size, n_ref)
+        bound, dist2 = bound.reshape(rows.size, -1), dist2.reshape(rows.size, -1)
         sim = np.full(bound.shape, -np.inf)
         first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
         ii = np.repeat(np.arange(rows.size), n_first)
         sim[ii, first.ravel()] = pair_integrals(A[rows[ii]], B[first.ravel()])[0]
         best = sim.max(axis=1)
+        # The slack covers rounding of the quadrature against the closed-form bound.
         ii, jj = np.nonzero(
-            (bound > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim)
+            (bound * (1.0 + 1e-9) > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim)
         )
         sim[ii, jj] = pair_integrals(A[rows[ii]], B[jj])[0]
         choice = np.argmax(sim, axis=1)
@@ -271,24 +289,38 @@ def _fit_expert(expert, X, y):
     """Fit one expert; one-class data get a :class:`_ConstantExpert`.
 
     Returns the expert and the warnings its fit raised, as ``(category, message)`` pairs:
-    warnings raised in worker processes would otherwise never reach the caller.
+    warnings raised in worker processes would otherwise never reach the caller. Only the
+    main thread of a process records them (``catch_warnings`` is process-wide state, not
+    safe in threads); expert fits in threads warn as usual.
     """
     n_positive = int(np.sum(y == 1))
     if n_positive in (0, y.size):
         kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
         return _ConstantExpert(kernel, n_positive, y.size), []
+    if threading.current_thread() is not threading.main_thread():
+        return expert.fit(X, y), []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         expert = expert.fit(X, y)
     return expert, [(w.category, str(w.message)) for w in caught]
 
 
-def _warn_once_each(caught, n_experts):
-    """Re-raise the experts' warnings in the caller, each distinct one once with a count."""
-    counts = {}
-    for item in caught:
-        counts[item] = counts.get(item, 0) + 1
-    for (category, message), count in counts.items():
+def _warn_once_each(expert_warnings, n_experts):
+    """Re-raise the experts' warnings in the caller: each kind once, with how many experts.
+
+    Messages that differ only in their numbers (a residual, an iteration count) are one
+    kind; the first expert's message stands for them.
+    """
+    kinds = {}
+    for caught in expert_warnings:
+        seen = set()
+        for category, message in caught:
+            key = (category, re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
+            if key not in seen:
+                seen.add(key)
+                first, count = kinds.get(key, (message, 0))
+                kinds[key] = (first, count + 1)
+    for (category, _), (message, count) in kinds.items():
         warnings.warn(f"{count} of {n_experts} expert(s): {message}", category, stacklevel=3)
 
 
@@ -729,7 +761,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         caught = []
         for k, (est, expert_warnings) in zip(todo, results, strict=True):
             fitted[k] = est
-            caught.extend(expert_warnings)
+            caught.append(expert_warnings)
         _warn_once_each(caught, n_experts)
         return fitted
 

@@ -413,9 +413,26 @@ def test_pair_upper_bound_bounds_the_integral(dim):
     s2[:500, dim:] = s2[:500, :dim]  # points
     s2[500:1000] = s1[500:1000] + rng.normal(scale=0.3, size=(500, 2 * dim))
     s1[1000:1200, dim:] = s1[1000:1200, :dim] + 12.0 * rng.normal(size=(200, dim))
+    # Long, nearly parallel segments crossing at a random point: the closest-approach
+    # determinant cancels here, and a distance that is not zero would cut the bound.
+    m = 1000
+    length = rng.uniform(1.0, 200.0, size=(m, 2))
+    e1 = rng.normal(size=(m, dim))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    f = rng.normal(size=(m, dim))
+    f -= np.sum(f * e1, axis=1, keepdims=True) * e1
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    angle = 10.0 ** rng.uniform(-9, -1, size=(m, 1))
+    e2 = np.cos(angle) * e1 + np.sin(angle) * f
+    cross = rng.normal(size=(m, dim))
+    u, v = rng.uniform(size=(2, m, 1))
+    a1, a2 = cross - u * length[:, :1] * e1, cross - v * length[:, 1:] * e2
+    s1 = np.vstack([s1, np.hstack([a1, a1 + length[:, :1] * e1])])
+    s2 = np.vstack([s2, np.hstack([a2, a2 + length[:, 1:] * e2])])
     k, _ = pair_integrals(s1, s2)
     bound, dist2 = pair_upper_bound(s1, s2)
     assert np.all(k <= bound * (1 + 1e-9) + 1e-15)
+    np.testing.assert_allclose(dist2[-m:], 0.0, atol=1e-12)
     # The bound is not vacuous: within 2x of the value for most close pairs.
     close = k > 0.1
     assert np.median(k[close] / bound[close]) > 0.5

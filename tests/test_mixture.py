@@ -7,6 +7,7 @@ mixture must work with any clusterer with fit/predict and any expert with
 """
 
 import pickle
+import warnings
 
 import numpy as np
 import pytest
@@ -524,5 +525,52 @@ def test_expert_warnings_reach_the_caller(paper, n_jobs):
 
     expert = EPGaussianProcessClassifier(C(4.0) * RBF(1.0), optimizer=None, max_iter=1)
     model = _mixture(expert=expert, share_hyperparameters=False, n_jobs=n_jobs)
-    with pytest.warns(ConvergenceWarning, match=r"\d+ of \d+ expert\(s\): .*max_iter"):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         model.fit(paper.X, paper.y)
+    messages = [str(w.message) for w in caught if w.category is ConvergenceWarning]
+    # Every EP expert stops at max_iter=1; their messages differ only in the residual, so
+    # the caller sees one warning that counts them.
+    n_ep = sum(not isinstance(e, _ConstantExpert) for e in model.experts_)
+    assert n_ep >= 2
+    assert len(messages) == 1
+    assert messages[0].startswith(f"{n_ep} of {model.n_experts_} expert(s): ")
+    assert "max_iter" in messages[0]
+
+
+def test_expert_warnings_in_threads_are_not_recorded(paper):
+    # catch_warnings is process-wide: in a thread the expert warns as usual instead of
+    # recording (and racing with other threads on the warning filters).
+    import threading
+
+    from sklearn.exceptions import ConvergenceWarning
+
+    from skoccmap import EPGaussianProcessClassifier
+    from skoccmap.mixture import _fit_expert
+
+    expert = EPGaussianProcessClassifier(C(4.0) * RBF(1.0), optimizer=None, max_iter=1)
+    out = []
+    worker = threading.Thread(
+        target=lambda: out.append(_fit_expert(expert, paper.X[:200], paper.y[:200]))
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        worker.start()
+        worker.join()
+    assert out and out[0][1] == []
+    assert any(w.category is ConvergenceWarning for w in caught)
+
+
+@pytest.mark.parametrize(
+    "kernel, expected",
+    [
+        (IntegralKernel(0.5), [0.5]),
+        (C(2.0) * IntegralKernel([0.3, 0.7]), [0.3, 0.7]),
+        (RBF([1.0, 2.0, 3.0, 0.5]), [3.0, 2.0]),  # per segment column: max of start, end
+        (C(1.0), [1.0]),
+    ],
+)
+def test_similarity_length_scale(kernel, expected):
+    from skoccmap.mixture import _similarity_length_scale
+
+    np.testing.assert_allclose(np.atleast_1d(_similarity_length_scale(kernel, 2)), expected)
