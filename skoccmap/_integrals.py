@@ -384,20 +384,13 @@ def _point_segment_dist2(p, a, d, dd):
     return _dot(r, r)
 
 
-def _cross(x, y):
-    """Row-wise cross product; in 2-D the scalar one, as a column (so that _dot applies)."""
-    if x.shape[1] == 2:
-        return (x[:, 0] * y[:, 1] - x[:, 1] * y[:, 0])[:, None]
-    return np.cross(x, y)
-
-
 def _segment_dist2(a1, d1, a2, d2):
     """Squared distance between segments ``a1 + u d1`` and ``a2 + v d2``, u, v in [0, 1].
 
     The squared distance is a convex quadratic on the unit square: its minimum is at the lines'
     closest approach when that lies inside, else on an edge (an endpoint against a segment).
-    The closest approach is solved with cross products: the textbook determinant
-    ``|d1|^2 |d2|^2 - (d1.d2)^2`` cancels for nearly parallel segments.
+    The closest approach is solved with the part of ``d2`` orthogonal to ``d1``: the textbook
+    determinant ``|d1|^2 |d2|^2 - (d1.d2)^2`` cancels for nearly parallel segments.
     """
     dd1, dd2 = _dot(d1, d1), _dot(d2, d2)
     best = np.minimum.reduce([
@@ -406,16 +399,18 @@ def _segment_dist2(a1, d1, a2, d2):
         _point_segment_dist2(a2, a1, d1, dd1),
         _point_segment_dist2(a2 + d2, a1, d1, dd1),
     ])
-    normal = _cross(d1, d2)
-    den = _dot(normal, normal)
     w = a2 - a1
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = _dot(_cross(w, d2), normal) / den
-        v = _dot(_cross(w, d1), normal) / den
+        d2_perp = d2 - (_dot(d2, d1) / dd1)[:, None] * d1
+        w_perp = w - (_dot(w, d1) / dd1)[:, None] * d1
+        den = _dot(d2_perp, d2_perp)
+        v = -_dot(w_perp, d2_perp) / den
+        u = _dot(w + v[:, None] * d2, d1) / dd1
+    # NaN (a zero-length segment) fails every comparison.
     inside = (den > 0.0) & (u > 0.0) & (u < 1.0) & (v > 0.0) & (v < 1.0)
     if np.any(inside):
         i = np.flatnonzero(inside)
-        diff = u[i, None] * d1[i] - v[i, None] * d2[i] - w[i]
+        diff = w[i] + v[i, None] * d2[i] - u[i, None] * d1[i]
         best[i] = np.minimum(best[i], _dot(diff, diff))
     return best
 

@@ -403,8 +403,9 @@ def test_diagonal_of_points_is_exactly_one():
     assert np.all(np.diag(K)[~is_point] < 1.0)
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dim", [2, 3, 5])
 def test_pair_upper_bound_bounds_the_integral(dim):
+    # Any dimension: the estimator checks feed 10-column (5-D segment) rows.
     # Random pairs of segments, points and near-parallel segments: the bound must hold.
     rng = np.random.default_rng(dim)
     n = 3000
