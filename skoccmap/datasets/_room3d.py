@@ -149,6 +149,34 @@ class Room3D:
             occupied |= np.all((points >= lo - tol) & (points <= hi + tol), axis=1)
         return occupied.astype(np.int64)
 
+    def distance(self, points):
+        """Distance from each point to occupied space: the room's boundary or an obstacle.
+
+        Parameters
+        ----------
+        points : array-like of shape (n_points, 3)
+
+        Returns
+        -------
+        distance : ndarray of shape (n_points,)
+            Euclidean distance to the nearest occupied point; 0 in occupied space.
+
+        Examples
+        --------
+        >>> from skoccmap.datasets import Room3D
+        >>> room = Room3D(size=(4, 4, 2), obstacles=[[2, 2, 0, 3, 3, 1]])
+        >>> room.distance([[0.5, 1.0, 1.0], [2.5, 2.5, 1.2], [2.5, 2.5, 0.5], [5.0, 1.0, 1.0]])
+        array([0.5, 0.2, 0. , 0. ])
+        """
+        points = _check_points(points, 3)
+        # Everything outside the open room is occupied: inside it, the nearest occupied point
+        # lies straight across the nearest face.
+        out = np.maximum(np.minimum(points, self.size - points).min(axis=1), 0.0)
+        for lo, hi in zip(self.obstacles[:, :3], self.obstacles[:, 3:], strict=True):
+            gap = np.maximum(np.maximum(lo - points, points - hi), 0.0)
+            out = np.minimum(out, np.linalg.norm(gap, axis=1))
+        return out
+
     def _cells_occupied(self, centres, resolution):
         # A voxel is occupied when it overlaps occupied space with positive volume: faces
         # touching a wall or an obstacle (as on a grid aligned with the room) do not count.
