@@ -1,6 +1,7 @@
-"""Data sets: a laser simulator, the paper's simulated environment, a 3-D room."""
+"""Data sets: a laser simulator, the paper's simulated environment, an office, a 3-D room."""
 
 from ._carmen import flaser_angles, load_carmen
+from ._office import make_office_environment, make_office_scans
 from ._paper import make_paper_environment, make_paper_scans
 from ._room3d import Room3D, make_room3d_environment, make_room3d_scans, scanner_directions
 from ._simulator import Environment2D, simulate_scans
@@ -10,6 +11,8 @@ __all__ = [
     "Room3D",
     "flaser_angles",
     "load_carmen",
+    "make_office_environment",
+    "make_office_scans",
     "make_paper_environment",
     "make_paper_scans",
     "make_room3d_environment",
