@@ -3,18 +3,55 @@
 Real logs have no true map, so the Hilbert-map literature scores a map on held-out scans:
 their hit points are the positives, points drawn uniformly along their beams (short of the
 hit) the negatives, and the score is the ROC AUC of the predicted occupancy probabilities.
-Simulated data are also scored against the true map on a grid.
+:func:`blocks_protocol` is that protocol as published (Ramos & Ott, RSS 2015), with the
+``HILBERT_*`` constants below; :func:`split_scans` and :func:`heldout_points` allow variants.
+
+Simulated data are also scored against the true map on a grid: :func:`ground_truth_auc`, and
+:func:`map_quality` for what an AUC hides -- phantom obstacles and free space found at the
+thresholds a navigation stack uses, walls found, calibration and wall thickness.
 """
 
 import numbers
 
 import numpy as np
-from sklearn.metrics import roc_auc_score
-from sklearn.utils import check_random_state
+from sklearn.metrics import brier_score_loss, roc_auc_score
+from sklearn.utils import Bunch, check_random_state
 
+from .datasets import Environment2D, Room3D
+from .grid import ROS_FREE_THRESH, ROS_OCCUPIED_THRESH
 from .observations import Scans, _check_free_margin, as_segments
 
-__all__ = ["split_scans", "heldout_points", "heldout_auc", "ground_truth_auc"]
+__all__ = [
+    "HILBERT_BLOCK_SIZE",
+    "HILBERT_FREE_MARGIN",
+    "HILBERT_HELDOUT_FRACTION",
+    "HILBERT_MAX_BEAM_RANGE",
+    "HILBERT_N_FREE_PER_BEAM",
+    "blocks_protocol",
+    "expected_calibration_error",
+    "ground_truth_auc",
+    "heldout_auc",
+    "heldout_points",
+    "map_quality",
+    "split_scan_blocks",
+    "split_scans",
+]
+
+# The Hilbert-maps protocol (Ramos & Ott, RSS 2015), used by :func:`blocks_protocol`.
+
+#: Share of a log's scans held out for testing.
+HILBERT_HELDOUT_FRACTION = 0.1
+#: Consecutive scans per held-out block: neighbouring scans see the same walls, so scattered
+#: single test scans would be nearly copies of training scans.
+HILBERT_BLOCK_SIZE = 40
+#: Free test points per held-out beam: ``"half_range"`` is floor(r / 2), at least one, for a
+#: beam of range r metres, so that long beams weigh more, as the free space they cross does.
+HILBERT_N_FREE_PER_BEAM = "half_range"
+#: Longest beam in metres whose free space is trusted; longer readings give no free test
+#: points (their hits still count as occupied).
+HILBERT_MAX_BEAM_RANGE = 40.0
+#: Gap in metres between a beam's free test points and its hit.
+HILBERT_FREE_MARGIN = 0.1
 
 
 def _check_scans(scans, name="scans"):
@@ -62,19 +99,148 @@ def split_scans(scans, every_nth=10, *, offset=0):
     return scans[~held_out], scans[held_out]
 
 
-def heldout_points(scans, *, n_free_per_beam=1, free_margin=0.05, random_state=None):
+def _check_fraction(heldout_fraction):
+    if (
+        not isinstance(heldout_fraction, numbers.Real)
+        or isinstance(heldout_fraction, bool)
+        or not 0 < heldout_fraction < 1
+    ):
+        raise ValueError(f"heldout_fraction must be a number in (0, 1), got {heldout_fraction!r}.")
+    return float(heldout_fraction)
+
+
+def _check_positive_int(value, name):
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool) or value < 1:
+        raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+    return int(value)
+
+
+def _heldout_blocks(n_scans, heldout_fraction, block_size, rng):
+    """Boolean mask of the scans held out as non-overlapping blocks at random starts."""
+    n_blocks = max(1, round(heldout_fraction * n_scans / block_size))
+    n_rest = n_scans - n_blocks * block_size
+    if n_rest < 1:
+        raise ValueError(
+            f"{n_scans} scans are too few to hold out {n_blocks} block(s) of {block_size} "
+            "consecutive scans and keep scans for training; use a smaller block_size."
+        )
+    # Uniform over all non-overlapping placements: the blocks and the remaining scans form a
+    # sequence of n_rest + n_blocks items, and the blocks take n_blocks of its places at random.
+    places = np.sort(rng.choice(n_rest + n_blocks, size=n_blocks, replace=False))
+    starts = places + np.arange(n_blocks) * (block_size - 1)
+    held_out = np.zeros(n_scans, dtype=bool)
+    held_out[(starts[:, None] + np.arange(block_size)).ravel()] = True
+    return held_out
+
+
+def split_scan_blocks(scans, *, heldout_fraction=0.1, block_size=40, random_state=None):
+    """Hold out blocks of consecutive scans at random starts (the Hilbert-maps split).
+
+    Scans taken a moment apart see the same walls from nearly the same place, so a scan held
+    out between two training scans is almost a copy of them. Whole blocks of consecutive scans
+    held out leave the map to predict stretches of the log it has not seen.
+
+    Parameters
+    ----------
+    scans : Scans
+        The whole log, in time order.
+    heldout_fraction : float, default=0.1
+        Share of the scans to hold out, in (0, 1). The number of blocks is
+        ``round(heldout_fraction * n_scans / block_size)``, at least one.
+    block_size : int, default=40
+        Consecutive scans per block.
+    random_state : int, RandomState instance or None, default=None
+        Seed of the block starts. The blocks never overlap (they may touch); every
+        non-overlapping placement is equally likely.
+
+    Returns
+    -------
+    train_scans, test_scans : Scans
+        The remaining scans and the held-out ones, each in time order.
+
+    Raises
+    ------
+    ValueError
+        When the blocks would take every scan (a log shorter than the blocks plus one scan).
+
+    See Also
+    --------
+    blocks_protocol : This split with the protocol's test points.
+    split_scans : Every n-th scan held out.
+
+    Examples
+    --------
+    >>> from skoccmap.datasets import make_paper_scans
+    >>> from skoccmap.metrics import split_scan_blocks
+    >>> scans = make_paper_scans().scans
+    >>> train, test = split_scan_blocks(scans, block_size=5, random_state=0)
+    >>> len(train), len(test)
+    (21, 5)
+    """
+    scans = _check_scans(scans)
+    heldout_fraction = _check_fraction(heldout_fraction)
+    block_size = _check_positive_int(block_size, "block_size")
+    rng = check_random_state(random_state)
+    held_out = _heldout_blocks(len(scans), heldout_fraction, block_size, rng)
+    return scans[~held_out], scans[held_out]
+
+
+def _free_points_per_beam(n_free_per_beam, beam_range):
+    """Free points to draw on each beam of the given ranges."""
+    if isinstance(n_free_per_beam, str):
+        if n_free_per_beam != "half_range":
+            raise ValueError(
+                "n_free_per_beam must be a positive integer or 'half_range', got "
+                f"{n_free_per_beam!r}."
+            )
+        return np.maximum(np.floor(beam_range / 2), 1).astype(np.int64)
+    if (
+        not isinstance(n_free_per_beam, numbers.Integral)
+        or isinstance(n_free_per_beam, bool)
+        or n_free_per_beam < 1
+    ):
+        raise ValueError(
+            "n_free_per_beam must be a positive integer or 'half_range', got "
+            f"{n_free_per_beam!r}."
+        )
+    return int(n_free_per_beam)
+
+
+def _check_max_beam_range(max_beam_range):
+    if max_beam_range is None:
+        return np.inf
+    if (
+        not isinstance(max_beam_range, numbers.Real)
+        or isinstance(max_beam_range, bool)
+        or not 0 < max_beam_range < np.inf
+    ):
+        raise ValueError(
+            f"max_beam_range must be None or a positive number, got {max_beam_range!r}."
+        )
+    return float(max_beam_range)
+
+
+def heldout_points(
+    scans, *, n_free_per_beam=1, free_margin=0.05, max_beam_range=None, random_state=None
+):
     """Labelled test points from held-out scans: hits occupied, points along beams free.
 
     Parameters
     ----------
     scans : Scans
         Held-out scans.
-    n_free_per_beam : int, default=1
-        Free points drawn per beam.
+    n_free_per_beam : int or "half_range", default=1
+        Free points drawn per beam: that many on every beam, or with ``"half_range"``
+        floor(r / 2) (at least one) on a beam of range r metres -- the measured range of a beam
+        with a return, ``max_range`` for one without.
     free_margin : float, default=0.05
         Free points of a beam with a return are drawn uniformly from the sensor to
         ``free_margin`` short of the hit (none when the hit is within ``free_margin``); those
         of a beam without a return, uniformly from the sensor to ``max_range``.
+    max_beam_range : float, default=None
+        If given, only beams with a return at range ``<= max_beam_range`` give free points:
+        long readings are the least reliable, and a beam without a return has no known range.
+        Every hit stays a positive, however far.
     random_state : int, RandomState instance or None, default=None
         Seed of the positions along the beams.
 
@@ -92,25 +258,121 @@ def heldout_points(scans, *, n_free_per_beam=1, free_margin=0.05, random_state=N
     >>> points, labels = heldout_points(make_paper_scans().scans[:2], random_state=0)
     >>> points.shape, int(labels.sum())
     ((50, 2), 16)
+
+    The Hilbert-maps protocol's negatives: floor(r / 2) points per beam of up to 40 m.
+
+    >>> points, labels = heldout_points(
+    ...     make_paper_scans().scans[:2], n_free_per_beam="half_range", free_margin=0.1,
+    ...     max_beam_range=40.0, random_state=0)
+    >>> points.shape, int(labels.sum())
+    ((47, 2), 16)
     """
     scans = _check_scans(scans)
-    if not isinstance(n_free_per_beam, numbers.Integral) or n_free_per_beam < 1:
-        raise ValueError(f"n_free_per_beam must be a positive integer, got {n_free_per_beam!r}.")
     free_margin = _check_free_margin(free_margin)
+    max_beam_range = _check_max_beam_range(max_beam_range)
     rng = check_random_state(random_state)
 
     returned = scans.returned()
+    beam_range = np.where(returned, scans.ranges, scans.max_range)
     free_length = np.where(returned, scans.ranges - free_margin, scans.max_range)
-    has_free = free_length > 0
-    origins = np.broadcast_to(scans.origins()[:, None, :], scans.directions().shape)
-    directions, origins = scans.directions()[has_free], origins[has_free]
-    t = rng.uniform(size=(n_free_per_beam, len(directions))) * free_length[has_free]
-    free = (origins[None] + t[..., None] * directions[None]).reshape(-1, scans.n_dims)
+    usable = free_length > 0
+    if np.isfinite(max_beam_range):
+        usable &= returned & (beam_range <= max_beam_range)
+    counts = _free_points_per_beam(n_free_per_beam, beam_range[usable])
+    origins = np.broadcast_to(scans.origins()[:, None, :], scans.directions().shape)[usable]
+    directions, free_length = scans.directions()[usable], free_length[usable]
+    if isinstance(counts, int):
+        # Draw-major order: the same points for a given seed as drawing (counts, n_beams) at once.
+        beam = np.tile(np.arange(len(directions)), counts)
+    else:
+        beam = np.repeat(np.arange(len(directions)), counts)
+    t = rng.uniform(size=len(beam)) * free_length[beam]
+    free = origins[beam] + t[:, None] * directions[beam]
 
     hits = scans.hit_points()
     points = np.concatenate([hits, free])
     labels = np.r_[np.ones(len(hits), np.int64), np.zeros(len(free), np.int64)]
     return points, labels
+
+
+def blocks_protocol(scans, *, train_every=1, block_size=HILBERT_BLOCK_SIZE, random_state=None):
+    """Training scans and labelled test points of the Hilbert-maps protocol.
+
+    The protocol of Ramos & Ott (RSS 2015) for logs without a true map: hold out
+    :data:`HILBERT_HELDOUT_FRACTION` of the scans as blocks of :data:`HILBERT_BLOCK_SIZE`
+    consecutive scans at random starts (:func:`split_scan_blocks`); the positives are the
+    held-out hits, the negatives floor(r / 2) (at least one) points drawn uniformly along each
+    held-out beam of range r <= :data:`HILBERT_MAX_BEAM_RANGE` metres, stopping
+    :data:`HILBERT_FREE_MARGIN` short of the hit (:func:`heldout_points`). The map trains on
+    every ``train_every``-th remaining scan; the score is the ROC AUC of the predicted
+    probabilities at the test points, over several seeds.
+
+    Parameters
+    ----------
+    scans : Scans
+        The whole log, in time order.
+    train_every : int, default=1
+        Train on every ``train_every``-th of the remaining scans (the protocol reports 1, 10
+        and 40).
+    block_size : int, default=HILBERT_BLOCK_SIZE
+        Consecutive scans per held-out block; lower it only for logs too short for the
+        protocol's blocks.
+    random_state : int, RandomState instance or None, default=None
+        Seed of the blocks and of the free points. An int gives the same test set whatever
+        ``train_every``, so that sparser training sets are scored on the same points.
+
+    Returns
+    -------
+    protocol : sklearn.utils.Bunch
+        ``train`` (Scans) the training scans; ``test`` (Scans) the held-out scans;
+        ``points`` (n_points, D) and ``labels`` (n_points,) the test points, hits (1) first,
+        then free points (0); ``train_index`` and ``test_index`` the indices in ``scans`` of
+        the training and the held-out scans.
+
+    See Also
+    --------
+    split_scan_blocks, heldout_points
+
+    Examples
+    --------
+    >>> from sklearn.metrics import roc_auc_score
+    >>> from sklearn.neighbors import KNeighborsClassifier
+    >>> from skoccmap.datasets import make_paper_scans
+    >>> from skoccmap.metrics import blocks_protocol, heldout_points
+    >>> from skoccmap.observations import as_segments
+    >>> protocol = blocks_protocol(make_paper_scans().scans, train_every=2, block_size=5,
+    ...                            random_state=0)
+    >>> len(protocol.train), len(protocol.test), protocol.test_index.tolist()
+    (11, 5, [20, 21, 22, 23, 24])
+    >>> points, labels = heldout_points(protocol.train, n_free_per_beam=3, random_state=0)
+    >>> knn = KNeighborsClassifier(5).fit(as_segments(points), labels)
+    >>> proba = knn.predict_proba(as_segments(protocol.points))[:, 1]
+    >>> round(roc_auc_score(protocol.labels, proba), 2)
+    0.93
+    """
+    scans = _check_scans(scans)
+    train_every = _check_positive_int(train_every, "train_every")
+    block_size = _check_positive_int(block_size, "block_size")
+    # One generator for blocks then points, consumed alike whatever train_every.
+    rng = check_random_state(random_state)
+    held_out = _heldout_blocks(len(scans), HILBERT_HELDOUT_FRACTION, block_size, rng)
+    test = scans[held_out]
+    points, labels = heldout_points(
+        test,
+        n_free_per_beam=HILBERT_N_FREE_PER_BEAM,
+        free_margin=HILBERT_FREE_MARGIN,
+        max_beam_range=HILBERT_MAX_BEAM_RANGE,
+        random_state=rng,
+    )
+    train_index = np.flatnonzero(~held_out)[::train_every]
+    return Bunch(
+        train=scans[train_index],
+        test=test,
+        points=points,
+        labels=labels,
+        train_index=train_index,
+        test_index=np.flatnonzero(held_out),
+    )
 
 
 def _positive_proba(estimator, X):
@@ -146,7 +408,10 @@ def _auc(labels, proba, what):
     return float(roc_auc_score(labels, proba))
 
 
-def heldout_auc(estimator, scans, *, n_free_per_beam=1, free_margin=0.05, random_state=None):
+def heldout_auc(
+    estimator, scans, *, n_free_per_beam=1, free_margin=0.05, max_beam_range=None,
+    random_state=None,
+):
     """ROC AUC of a map on held-out scans (hit points vs. free points along their beams).
 
     Parameters
@@ -156,7 +421,7 @@ def heldout_auc(estimator, scans, *, n_free_per_beam=1, free_margin=0.05, random
         class 1.
     scans : Scans
         Held-out scans; see :func:`split_scans`.
-    n_free_per_beam, free_margin, random_state
+    n_free_per_beam, free_margin, max_beam_range, random_state
         See :func:`heldout_points`.
 
     Returns
@@ -178,7 +443,11 @@ def heldout_auc(estimator, scans, *, n_free_per_beam=1, free_margin=0.05, random
     0.96
     """
     points, labels = heldout_points(
-        scans, n_free_per_beam=n_free_per_beam, free_margin=free_margin, random_state=random_state
+        scans,
+        n_free_per_beam=n_free_per_beam,
+        free_margin=free_margin,
+        max_beam_range=max_beam_range,
+        random_state=random_state,
     )
     _check_both_classes(labels, "held-out point")
     return _auc(labels, _positive_proba(estimator, as_segments(points)), "held-out point")

@@ -4,7 +4,20 @@ from numpy.testing import assert_allclose, assert_array_equal
 from scipy import stats
 
 from skoccmap.datasets import Environment2D, make_paper_scans, make_room3d_scans
-from skoccmap.metrics import ground_truth_auc, heldout_auc, heldout_points, split_scans
+from skoccmap.metrics import (
+    HILBERT_BLOCK_SIZE,
+    HILBERT_FREE_MARGIN,
+    HILBERT_HELDOUT_FRACTION,
+    HILBERT_MAX_BEAM_RANGE,
+    HILBERT_N_FREE_PER_BEAM,
+    _heldout_blocks,
+    blocks_protocol,
+    ground_truth_auc,
+    heldout_auc,
+    heldout_points,
+    split_scan_blocks,
+    split_scans,
+)
 from skoccmap.observations import Scans
 
 
@@ -194,3 +207,198 @@ def test_ground_truth_auc_errors(paper):
     box = Environment2D([[0, 0, 1, 0]])
     with pytest.raises(ValueError, match="resolution"):
         ground_truth_auc(np.zeros(3), box, -1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# The Hilbert-maps protocol: blocks of consecutive scans, floor(r / 2) free points, 40 m
+# --------------------------------------------------------------------------------------------
+
+
+def _indexed_scans(n_scans, n_beams=1):
+    """Scans whose pose x is the scan's index, so held-out indices can be read back."""
+    poses = np.column_stack([np.arange(n_scans), np.zeros(n_scans), np.zeros(n_scans)])
+    angles = np.linspace(-1.0, 1.0, n_beams)
+    return Scans(poses, np.full((n_scans, n_beams), 3.0), angles, max_range=10.0)
+
+
+def _runs(indices):
+    """Lengths of the runs of consecutive integers in sorted ``indices``."""
+    breaks = np.flatnonzero(np.diff(indices) != 1) + 1
+    return np.diff(np.r_[0, breaks, len(indices)])
+
+
+@pytest.mark.parametrize("n_scans, n_blocks", [(41, 1), (120, 1), (1200, 3), (13631, 34)])
+def test_split_scan_blocks_contiguous_and_about_ten_percent(n_scans, n_blocks):
+    scans = _indexed_scans(n_scans)
+    for seed in range(5):
+        train, test = split_scan_blocks(scans, random_state=seed)
+        held = test.poses[:, 0].astype(int)
+        kept = train.poses[:, 0].astype(int)
+        # Every scan lands on exactly one side, in time order.
+        assert_array_equal(np.sort(np.r_[held, kept]), np.arange(n_scans))
+        assert np.all(np.diff(held) > 0) and np.all(np.diff(kept) > 0)
+        # Blocks of 40 consecutive scans (touching blocks merge into longer runs).
+        assert len(held) == 40 * n_blocks
+        assert np.all(_runs(held) % 40 == 0)
+    if n_scans > 1000:
+        assert abs(len(held) / n_scans - 0.1) < 40 / n_scans
+
+
+def test_split_scan_blocks_deterministic():
+    scans = _indexed_scans(1200)
+    a = split_scan_blocks(scans, random_state=7)[1].poses
+    b = split_scan_blocks(scans, random_state=7)[1].poses
+    c = split_scan_blocks(scans, random_state=8)[1].poses
+    assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_heldout_blocks_cover_every_placement():
+    # 50 scans, two blocks of 10: C(32, 2) = 496 non-overlapping placements, all reachable,
+    # none overlapping, and about equally likely.
+    rng = np.random.RandomState(0)
+    seen = {}
+    for _ in range(20000):
+        held = np.flatnonzero(_heldout_blocks(50, 0.4, 10, rng))
+        assert len(held) == 20 and np.all(_runs(held) % 10 == 0)
+        starts = (held[0], held[10])
+        seen[starts] = seen.get(starts, 0) + 1
+    assert len(seen) == 496
+    assert all(s2 >= s1 + 10 and s2 <= 40 for s1, s2 in seen)
+    counts = np.array(list(seen.values()))
+    assert stats.chisquare(counts).pvalue > 1e-3
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({}, "too few"),
+        ({"block_size": 0}, "block_size"),
+        ({"block_size": 2.0}, "block_size"),
+        ({"heldout_fraction": 0.0}, "heldout_fraction"),
+        ({"heldout_fraction": 1.0}, "heldout_fraction"),
+    ],
+)
+def test_split_scan_blocks_bad_input(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        split_scan_blocks(_indexed_scans(40), **kwargs)
+
+
+def _on_some_beam(points, scans, free_margin):
+    """Whether every point lies on a beam of ``scans``, within the beam's free part."""
+    origins, dirs = scans.origins(), scans.directions()
+    limit = np.where(scans.returned(), scans.ranges - free_margin, scans.max_range)
+    for p in points:
+        rel = p - origins[:, None, :]
+        t = np.einsum("sbd,sbd->sb", rel, dirs)
+        off = np.linalg.norm(rel - t[..., None] * dirs, axis=-1)
+        if not np.any((off < 1e-9) & (t >= 0) & (t <= limit + 1e-9)):
+            return False
+    return True
+
+
+def test_heldout_points_half_range_and_max_beam_range():
+    # One scan, beams east, north, west, south, north-east, south-west:
+    # r = 0.5 (one point), 5 (two), 40 (twenty: at the limit), 45 (beyond it), no return,
+    # 0.05 (within the margin: none).
+    angles = np.array([0.0, 0.5, 1.0, 1.5, 0.25, 1.25]) * np.pi
+    ranges = [[0.5, 5.0, 40.0, 45.0, np.inf, 0.05]]
+    scans = Scans([[0.0, 0.0, 0.0]], ranges, angles, max_range=80.0)
+    points, labels = heldout_points(
+        scans, n_free_per_beam="half_range", free_margin=0.1, max_beam_range=40.0,
+        random_state=0,
+    )  # fmt: skip
+    assert_allclose(points[labels == 1], scans.hit_points())
+    assert labels.sum() == 5  # every hit, the 45 m one included
+    free = points[labels == 0]
+    assert len(free) == 1 + 2 + 20
+    bearing = np.round(np.arctan2(free[:, 1], free[:, 0]) / np.pi, 6)
+    assert_array_equal(np.unique(bearing, return_counts=True)[1], [1, 2, 20])
+    assert_array_equal(np.unique(bearing), [0.0, 0.5, 1.0])
+    dist = np.linalg.norm(free, axis=1)
+    for angle, r in [(0.0, 0.5), (0.5, 5.0), (1.0, 40.0)]:
+        assert np.all(dist[bearing == angle] <= r - 0.1 + 1e-12)
+    # Without the limit: 22 points on the 45 m beam, 40 on the no-return one (80 m).
+    points, labels = heldout_points(
+        scans, n_free_per_beam="half_range", free_margin=0.1, random_state=0
+    )
+    assert (labels == 0).sum() == 1 + 2 + 20 + 22 + 40
+
+
+def test_heldout_points_half_range_on_beams_and_uniform():
+    scans = make_paper_scans().scans[3:7]
+    points, labels = heldout_points(
+        scans, n_free_per_beam="half_range", free_margin=0.1, max_beam_range=40.0,
+        random_state=0,
+    )  # fmt: skip
+    free = points[labels == 0]
+    returned = scans.returned()
+    expected = np.maximum(np.floor(scans.ranges[returned & (scans.ranges > 0.1)] / 2), 1)
+    assert len(free) == expected.sum()
+    assert _on_some_beam(free, scans, 0.1)
+    one_beam = Scans([[0.0, 0.0, 0.0]], [[2000.0]], [0.0], max_range=3000.0)
+    points, labels = heldout_points(
+        one_beam, n_free_per_beam="half_range", free_margin=0.1, random_state=0
+    )
+    assert (labels == 0).sum() == 1000
+    assert stats.kstest(points[labels == 0, 0], stats.uniform(0, 1999.9).cdf).pvalue > 1e-3
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"n_free_per_beam": "half"}, "half_range"),
+        ({"n_free_per_beam": True}, "n_free_per_beam"),
+        ({"max_beam_range": 0.0}, "max_beam_range"),
+        ({"max_beam_range": np.inf}, "max_beam_range"),
+    ],
+)
+def test_heldout_points_protocol_bad_input(paper, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        heldout_points(paper.scans, **kwargs)
+
+
+def test_blocks_protocol_constants():
+    assert HILBERT_HELDOUT_FRACTION == 0.1
+    assert HILBERT_BLOCK_SIZE == 40
+    assert HILBERT_N_FREE_PER_BEAM == "half_range"
+    assert HILBERT_MAX_BEAM_RANGE == 40.0
+    assert HILBERT_FREE_MARGIN == 0.1
+
+
+def test_blocks_protocol_same_test_set_for_every_sparsity():
+    scans = _indexed_scans(900, n_beams=3)
+    runs = {k: blocks_protocol(scans, train_every=k, random_state=3) for k in (1, 10, 40)}
+    for k, run in runs.items():
+        assert_array_equal(run.test_index, runs[1].test_index)
+        assert_array_equal(run.points, runs[1].points)
+        assert_array_equal(run.train_index, runs[1].train_index[::k])
+        assert_array_equal(run.train.poses[:, 0], run.train_index)
+        assert_array_equal(run.test.poses[:, 0], run.test_index)
+    assert len(runs[1].test_index) == 80  # round(0.1 * 900 / 40) = 2 blocks
+    assert len(runs[1].train_index) == 820
+    assert np.intersect1d(runs[1].train_index, runs[1].test_index).size == 0
+    other = blocks_protocol(scans, random_state=4)
+    assert not np.array_equal(other.test_index, runs[1].test_index)
+
+
+def test_blocks_protocol_points(paper):
+    run = blocks_protocol(paper.scans, block_size=6, random_state=0)
+    assert len(run.test) == 6 and np.all(_runs(run.test_index) % 6 == 0)
+    hits = run.test.hit_points()
+    assert_allclose(run.points[: len(hits)], hits)
+    assert_array_equal(run.labels, np.r_[np.ones(len(hits)), np.zeros(len(run.points) - len(hits))])
+    returned = run.test.returned()
+    # The paper's 8 m sensor: no beam is over 40 m, beams without a return give nothing.
+    expected = np.maximum(np.floor(run.test.ranges[returned & (run.test.ranges > 0.1)] / 2), 1)
+    assert len(run.points) - len(hits) == expected.sum()
+    assert _on_some_beam(run.points[len(hits) :], run.test, HILBERT_FREE_MARGIN)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [({"train_every": 0}, "train_every"), ({"block_size": 40}, "too few")],
+)
+def test_blocks_protocol_bad_input(paper, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        blocks_protocol(paper.scans, **kwargs)
