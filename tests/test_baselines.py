@@ -2,12 +2,15 @@ import itertools
 
 import numpy as np
 import pytest
+import sklearn
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import expit
+from sklearn.base import clone
 from sklearn.exceptions import NotFittedError
+from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
-from skoccmap.baselines import OccupancyGridMap, traverse_cells
+from skoccmap.baselines import FrequencyGridMap, OccupancyGridMap, traverse_cells
 
 
 def _cells_by_slabs(start, end, origin, res, shape):
@@ -67,6 +70,7 @@ def test_traverse_cells_matches_box_clipping(n_dims):
 def test_traverse_cells_property(coords, res):
     start, end = np.array(coords[:2]), np.array(coords[2:])
     origin = np.floor(np.minimum(start, end) / res) * res
+    origin = np.where(origin > np.minimum(start, end), origin - res, origin)  # rounding
     shape = tuple(np.floor((np.maximum(start, end) - origin) / res).astype(int) + 1)
     seg, cells = traverse_cells(start[None], end[None], origin, res, shape)
     visited = [tuple(c) for c in cells.tolist()]
@@ -248,6 +252,16 @@ def test_string_labels_larger_is_occupied():
     np.testing.assert_array_equal(est.predict(queries), ["wall", "free"])
 
 
+@pytest.mark.parametrize("estimator", [OccupancyGridMap, FrequencyGridMap])
+def test_origin_rounding_above_the_data(estimator):
+    # floor(0.85 / 0.05) * 0.05 rounds above 0.85: the grid must still hold the point.
+    X = np.array([[0.85, 0.85, 0.85, 0.85], [1.0, 1.0, 1.0, 1.0]])
+    est = estimator(resolution=0.05).fit(X, [1, 0])
+    assert np.all(est.origin_ <= 0.85) and min(est.shape_) >= 1
+    assert est.cell_index_.size == 2
+    assert est.predict_proba(X)[0, 1] > 0.5 > est.predict_proba(X)[1, 1]
+
+
 def test_chunking_does_not_change_result():
     rng = np.random.default_rng(3)
     X = rng.uniform(-3, 3, (500, 4))
@@ -289,3 +303,251 @@ def test_counting_grid_on_intel(shared_data):
     p_mid = est.predict_proba(np.hstack([middle, middle]))[:, 1]
     assert np.mean(p_hit > 0.5) > 0.6
     assert np.mean(p_mid < 0.5) > 0.9
+
+
+# --------------------------------------------------------------------------------------------
+# OccupancyGridMap: OctoMap's per-scan update
+# --------------------------------------------------------------------------------------------
+
+_HIT = [1.05, 0.05, 1.05, 0.05]  # in cell (10, 0) of a 0.1 m grid
+_BEAM = [0.0, 0.05, 2.0, 0.05]  # passes cells (0..19, 0), cell (10, 0) among them
+
+
+def _log_odds_at_hit(X, y, **fit_params):
+    est = OccupancyGridMap(resolution=0.1).fit(np.array(X), y, **fit_params)
+    return est.log_odds(np.array([_HIT]))[0]
+
+
+def test_per_scan_hit_wins_over_passes_in_the_same_scan():
+    # Scan 0: two hits in the cell and two beams through it -> one hit update, nothing else.
+    X, y = [_HIT, _BEAM, _HIT, _BEAM], [1, 0, 1, 0]
+    assert _log_odds_at_hit(X, y, scan_index=[0, 0, 0, 0]) == pytest.approx(0.85)
+    assert _log_odds_at_hit(X, y) == pytest.approx(2 * 0.85 - 2 * 0.4)
+    # A cell both beams pass, no hit: one free update in the scan.
+    est = OccupancyGridMap(resolution=0.1).fit(np.array(X), y, scan_index=[0, 0, 0, 0])
+    assert est.log_odds(np.array([[0.55, 0.05, 0.55, 0.05]]))[0] == pytest.approx(-0.4)
+    # In separate scans every row is one update again.
+    assert _log_odds_at_hit(X, y, scan_index=[0, 1, 2, 3]) == pytest.approx(2 * 0.85 - 2 * 0.4)
+
+
+def test_per_scan_clamps_after_every_scan():
+    # Five scans hit the cell (0.85 each: 3.4 after four, clamped to 3.5 after the fifth); a
+    # sixth passes it: 3.5 - 0.4. Summed, 4.25 - 0.4 = 3.85 is clamped to 3.5.
+    X, y = [_HIT] * 5 + [_BEAM], [1] * 5 + [0]
+    assert _log_odds_at_hit(X, y, scan_index=np.arange(6)) == pytest.approx(3.1)
+    assert _log_odds_at_hit(X, y) == pytest.approx(3.5)
+    # The pass first: -0.4, then 3.0, then 3.5 (clamped from 3.85) after four hits more.
+    assert _log_odds_at_hit(X, y, scan_index=[1, 2, 3, 4, 5, 0]) == pytest.approx(3.5)
+    # The lower bound: six passes reach -2.4, clamped to -2.0 after the sixth; a hit adds 0.85.
+    X, y = [_BEAM] * 6 + [_HIT], [0] * 6 + [1]
+    assert _log_odds_at_hit(X, y, scan_index=np.arange(7)) == pytest.approx(-1.15)
+    assert _log_odds_at_hit(X, y) == pytest.approx(-2.4 + 0.85)
+
+
+def test_per_scan_order_is_the_scan_index_not_the_row_order():
+    X = np.array([_HIT] * 5 + [_BEAM])
+    y = np.array([1] * 5 + [0])
+    scan = np.array([30, 10, 20, 40, 50, 60])  # any integers; the pass comes last
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        perm = rng.permutation(6)
+        assert _log_odds_at_hit(X[perm], y[perm], scan_index=scan[perm]) == pytest.approx(3.1)
+    # Integer-valued floats are scan indices too.
+    assert _log_odds_at_hit(X, y, scan_index=scan.astype(float)) == pytest.approx(3.1)
+
+
+def test_per_scan_equals_sum_without_clamping():
+    # One row per scan and bounds never reached: the same updates, summed.
+    rng = np.random.default_rng(5)
+    X = rng.uniform(-3, 3, (400, 4))
+    X[::3, 2:] = X[::3, :2]  # some hits and free points
+    y = rng.integers(0, 2, 400)
+    params = dict(resolution=0.2, l_min=-1e6, l_max=1e6)
+    summed = OccupancyGridMap(**params).fit(X, y)
+    per_scan = OccupancyGridMap(**params).fit(X, y, scan_index=rng.permutation(400))
+    np.testing.assert_array_equal(per_scan.cell_index_, summed.cell_index_)
+    np.testing.assert_allclose(per_scan.log_odds_, summed.log_odds_, atol=1e-9)
+
+
+def _per_scan_reference(X, y, scan, res, l_occ, l_free, l_min, l_max):
+    """OctoMap's update, one scan and one cell at a time (box-clipping cells)."""
+    n_dims = X.shape[1] // 2
+    low = np.floor(np.minimum(X[:, :n_dims], X[:, n_dims:]).min(axis=0) / res) * res
+    high = np.maximum(X[:, :n_dims], X[:, n_dims:]).max(axis=0)
+    shape = tuple(np.floor((high - low) / res).astype(int) + 1)
+    value = {}
+    for s in np.unique(scan):
+        occupied, free = set(), set()
+        for row, label in zip(X[scan == s], y[scan == s], strict=True):
+            start, end = row[:n_dims], row[n_dims:]
+            end_cell = tuple(np.floor((end - low) / res).astype(int))
+            if label == 1:
+                occupied.add(end_cell)
+                continue
+            cells = _cells_by_slabs(start, end, low, res, shape)
+            if len(cells) > 1:
+                cells.discard(end_cell)
+            free |= cells
+        for cell in free - occupied:
+            value[cell] = np.clip(value.get(cell, 0.0) + l_free, l_min, l_max)
+        for cell in occupied:
+            value[cell] = np.clip(value.get(cell, 0.0) + l_occ, l_min, l_max)
+    return low, value
+
+
+@pytest.mark.parametrize("chunk_size", [5, 100_000])
+def test_per_scan_matches_reference(chunk_size):
+    # A few sensors sweeping beams over a box room, 12 scans, many repeated cells.
+    rng = np.random.default_rng(6)
+    rows, labels, scans = [], [], []
+    for s in range(12):
+        sensor = rng.uniform(-0.5, 0.5, 2)
+        angle = rng.uniform(0, 2 * np.pi, 15)
+        direction = np.column_stack([np.cos(angle), np.sin(angle)])
+        reach = 1.5 / np.abs(direction).max(axis=1)
+        hit = sensor + reach[:, None] * direction
+        beam_end = hit - 0.03 * direction
+        rows += [np.hstack([np.tile(sensor, (15, 1)), beam_end]), np.hstack([hit, hit])]
+        labels += [np.zeros(15), np.ones(15)]
+        scans += [np.full(30, s)]
+    X, y, scan = np.vstack(rows), np.concatenate(labels), np.concatenate(scans)
+    params = dict(l_occ=0.9, l_free=-0.7, l_min=-1.5, l_max=2.0)
+    est = OccupancyGridMap(resolution=0.25, chunk_size=chunk_size, **params)
+    est.fit(X, y, scan_index=scan)
+    origin, ref = _per_scan_reference(X, y, scan, 0.25, **params)
+    assert len(ref) == est.cell_index_.size
+    cells = np.array(list(ref))
+    centers = origin + 0.25 * (cells + 0.5)
+    np.testing.assert_allclose(
+        est.log_odds(np.hstack([centers, centers])), list(ref.values()), atol=1e-12
+    )
+    # Evidence lost at the bounds: the per-scan map differs from the summed one here.
+    summed = OccupancyGridMap(resolution=0.25, **params).fit(X, y)
+    assert not np.allclose(summed.log_odds_, est.log_odds_)
+
+
+@pytest.mark.parametrize(
+    ("scan_index", "match"),
+    [
+        (np.arange(3), "one scan index per row"),
+        (np.arange(8).reshape(4, 2), "one scan index per row"),
+        ([0.0, 1.0, np.nan, 2.0], "NaN"),
+        ([0.0, 1.0, np.inf, 2.0], "NaN or infinite"),
+        ([0.0, 0.5, 1.0, 2.0], "integers"),
+        (["a", "b", "c", "d"], "integers"),
+    ],
+)
+def test_scan_index_errors(scan_index, match):
+    with pytest.raises(ValueError, match=match):
+        OccupancyGridMap().fit(np.zeros((4, 4)), [0, 1, 0, 1], scan_index=scan_index)
+
+
+# --------------------------------------------------------------------------------------------
+# FrequencyGridMap
+# --------------------------------------------------------------------------------------------
+
+
+def test_frequency_hand_built_rays():
+    # Three beams pass cell (5, 0) and one hit falls in it: 1 / (1 + 3). Cell (2, 0) is only
+    # passed, cell (12, 10) only hit, cell (10, 20) never observed.
+    X = np.array([_BEAM] * 3 + [[0.55, 0.05] * 2, [1.25, 1.05] * 2, [0.0, 3.05] * 2])
+    y = [0, 0, 0, 1, 1, 1]
+    est = FrequencyGridMap(resolution=0.1).fit(X, y)
+    queries = np.array([[0.55, 0.05], [0.25, 0.05], [1.25, 1.05], [1.05, 2.05], [9.0, 9.0]])
+    proba = est.predict_proba(np.hstack([queries, queries]))
+    np.testing.assert_allclose(proba[:, 1], [0.25, 0.0, 1.0, 0.5, 0.5])
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+    np.testing.assert_array_equal(est.predict(np.hstack([queries, queries])), [0, 0, 1, 0, 0])
+    # The beams' end cell (20, 0) is not passed: they end there. A free point passes its cell.
+    end = np.array([[2.0, 0.05, 2.0, 0.05]])
+    assert est.predict_proba(end)[0, 1] == 0.5
+    point = FrequencyGridMap(resolution=0.1).fit(np.vstack([end, end, [_HIT]]), [0, 0, 1])
+    assert point.predict_proba(end)[0, 1] == 0.0
+    assert point.hits_.tolist() == [1, 0] and point.passes_.tolist() == [0, 2]  # x: 1.05, 2.0
+
+
+def test_frequency_counts_match_loop_reference():
+    rng = np.random.default_rng(7)
+    sensor = rng.uniform(-1, 1, (40, 2))
+    hit = sensor + rng.uniform(-3, 3, (40, 2))
+    beam_end = hit - 0.05 * (hit - sensor) / np.linalg.norm(hit - sensor, axis=1, keepdims=True)
+    X = np.vstack([np.hstack([sensor, beam_end]), np.hstack([hit, hit])])
+    y = np.r_[np.zeros(40), np.ones(40)]
+    est = FrequencyGridMap(resolution=0.25, chunk_size=9).fit(X, y)
+    inf = dict(l_min=-np.inf, l_max=np.inf)
+    origin, hits = _loop_reference(X, y, 0.25, l_occ=1.0, l_free=0.0, **inf)
+    _, passes = _loop_reference(X, y, 0.25, l_occ=0.0, l_free=1.0, **inf)
+    cells = np.array(list(hits))
+    centers = np.hstack([origin + 0.25 * (cells + 0.5)] * 2)
+    pos = est._cell_position(centers)
+    np.testing.assert_array_equal(est.hits_[pos], list(hits.values()))
+    np.testing.assert_array_equal(est.passes_[pos], [passes[c] for c in hits])
+    h, p = np.array(list(hits.values())), np.array([passes[c] for c in hits])
+    np.testing.assert_allclose(est.predict_proba(centers)[:, 1], h / (h + p))
+    # The same cells as the log-odds grid: sharing one traversal.
+    grid = OccupancyGridMap(resolution=0.25).fit(X, y)
+    np.testing.assert_array_equal(est.cell_index_, grid.cell_index_)
+
+
+def test_frequency_does_not_saturate():
+    # 50 hits and 10 passes: 50/60, where a clamped log-odds grid sits at its bound.
+    X = np.array([_HIT] * 50 + [_BEAM] * 10)
+    y = [1] * 50 + [0] * 10
+    est = FrequencyGridMap().fit(X, y)
+    assert est.predict_proba(np.array([_HIT]))[0, 1] == pytest.approx(50 / 60)
+
+
+def test_frequency_3d_and_points_layout():
+    rng = np.random.default_rng(8)
+    points = rng.uniform(-2, 2, (300, 3))
+    y = (points[:, 2] > 1).astype(int)
+    as_points = FrequencyGridMap(resolution=0.5).fit(points, y)  # "auto": 3 columns
+    as_segments = FrequencyGridMap(resolution=0.5).fit(np.hstack([points, points]), y)
+    queries = rng.uniform(-2, 2, (50, 3))
+    np.testing.assert_allclose(
+        as_points.predict_proba(queries), as_segments.predict_proba(np.hstack([queries] * 2))
+    )
+    assert as_points.predict_proba(np.array([[0.0, 0.0, 1.5]]))[0, 1] > 0.5
+
+
+def test_frequency_bad_input():
+    with pytest.raises(ValueError, match="2 classes"):
+        FrequencyGridMap().fit(np.zeros((4, 4)), [1, 1, 1, 1])
+    with pytest.raises(ValueError, match="NaN"):
+        FrequencyGridMap().fit(np.full((4, 4), np.nan), [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="layout='segments'"):
+        FrequencyGridMap(layout="segments").fit(np.zeros((4, 3)), [0, 1, 0, 1])
+    with pytest.raises(NotFittedError):
+        FrequencyGridMap().predict_proba(np.zeros((4, 4)))
+
+
+# --------------------------------------------------------------------------------------------
+# scikit-learn's estimator checks for the estimators not in tests/test_common.py
+# --------------------------------------------------------------------------------------------
+
+CHECKED = [FrequencyGridMap()]
+
+
+@parametrize_with_checks(CHECKED)
+def test_estimator_checks(estimator, check):
+    check(estimator)
+
+
+@pytest.mark.parametrize(
+    "estimator", [*CHECKED, OccupancyGridMap()], ids=lambda est: type(est).__name__
+)
+def test_param_validation(estimator):
+    check_param_validation(type(estimator).__name__, estimator)
+
+
+def test_scan_index_is_an_optional_fit_parameter():
+    # scan_index is an optional fit parameter: every row its own scan, in row order, with
+    # bounds never reached, is the summed fit; metadata routing can request it.
+    rng = np.random.default_rng(9)
+    X, y = rng.uniform(-1, 1, (50, 4)), rng.integers(0, 2, 50)
+    est = OccupancyGridMap(l_min=-100.0, l_max=100.0)
+    np.testing.assert_allclose(
+        est.fit(X, y, scan_index=np.arange(50)).log_odds_, clone(est).fit(X, y).log_odds_
+    )
+    with sklearn.config_context(enable_metadata_routing=True):
+        assert est.set_fit_request(scan_index=True) is est
