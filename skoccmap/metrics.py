@@ -200,8 +200,7 @@ def _free_points_per_beam(n_free_per_beam, beam_range):
         or n_free_per_beam < 1
     ):
         raise ValueError(
-            "n_free_per_beam must be a positive integer or 'half_range', got "
-            f"{n_free_per_beam!r}."
+            f"n_free_per_beam must be a positive integer or 'half_range', got {n_free_per_beam!r}."
         )
     return int(n_free_per_beam)
 
@@ -409,7 +408,12 @@ def _auc(labels, proba, what):
 
 
 def heldout_auc(
-    estimator, scans, *, n_free_per_beam=1, free_margin=0.05, max_beam_range=None,
+    estimator,
+    scans,
+    *,
+    n_free_per_beam=1,
+    free_margin=0.05,
+    max_beam_range=None,
     random_state=None,
 ):
     """ROC AUC of a map on held-out scans (hit points vs. free points along their beams).
@@ -502,3 +506,416 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
         if proba.shape == scored.shape:  # one per cell of the grid: keep the scored ones
             proba = proba[scored]
     return _auc(labels, proba, what)
+
+
+# --------------------------------------------------------------------------------------------
+# Map quality against a simulator's true map
+# --------------------------------------------------------------------------------------------
+
+# Free cells farther than this (metres) from every surface are where a map has no excuse to
+# mark occupied: beyond the blur a 0.1 m grid and a few centimetres of range noise explain.
+_PHANTOM_CLEARANCE = 0.35
+# Cells within this distance (metres) of a surface count towards walls found: a wall drawn
+# one cell off is still found.
+_WALL_TOLERANCE = 0.1
+# How far (metres) the wall-thickness walk goes from a wall along its normal.
+_BAND_REACH = 2.0
+_ECE_BINS = 10
+# Rounding slack of distances and step positions.
+_TOL = 1e-9
+
+
+def _check_probabilities(proba, name="proba"):
+    proba = np.asarray(proba, dtype=np.float64)
+    if not np.all(np.isfinite(proba)):
+        raise ValueError(
+            f"{name}: {np.count_nonzero(~np.isfinite(proba))} NaN or infinite value(s); the "
+            "map cannot be scored."
+        )
+    if proba.size and (proba.min() < 0 or proba.max() > 1):
+        raise ValueError(
+            f"{name}: probabilities must lie in [0, 1], got values in "
+            f"[{proba.min():.6g}, {proba.max():.6g}]."
+        )
+    return proba
+
+
+def expected_calibration_error(y_true, proba, n_bins=10):
+    """Expected calibration error of binary probabilities, with equal-width bins.
+
+    The probabilities are put in ``n_bins`` bins of equal width on [0, 1] (bin k holds
+    ``k / n_bins <= p < (k + 1) / n_bins``; p = 1 falls in the last bin). The error is the mean
+    over bins, weighted by their share of the samples, of ``|mean p - frequency of 1|``:
+    0 for a perfectly calibrated predictor, at most 1.
+
+    Parameters
+    ----------
+    y_true : array-like of shape (n_samples,)
+        True labels, 0 or 1.
+    proba : array-like of shape (n_samples,)
+        Predicted probabilities of class 1.
+    n_bins : int, default=10
+        Number of bins.
+
+    Returns
+    -------
+    ece : float
+
+    See Also
+    --------
+    sklearn.calibration.calibration_curve : The per-bin means behind this summary.
+    sklearn.metrics.brier_score_loss : Mean squared error of the probabilities.
+
+    Examples
+    --------
+    >>> from skoccmap.metrics import expected_calibration_error
+    >>> expected_calibration_error([0, 0, 1, 1], [0.1, 0.3, 0.7, 0.9])
+    0.2
+    >>> expected_calibration_error([0, 1, 0, 1], [0.5, 0.5, 0.5, 0.5])
+    0.0
+    """
+    y_true = np.asarray(y_true)
+    proba = _check_probabilities(proba)
+    if y_true.ndim != 1 or proba.shape != y_true.shape:
+        raise ValueError(
+            "y_true and proba must be 1-D arrays of the same length, got shapes "
+            f"{y_true.shape} and {proba.shape}."
+        )
+    if y_true.size == 0:
+        raise ValueError("y_true is empty: there is nothing to score.")
+    if not np.all(np.isin(y_true, [0, 1])):
+        raise ValueError("y_true must hold only the labels 0 and 1.")
+    n_bins = _check_positive_int(n_bins, "n_bins")
+    bins = np.minimum((proba * n_bins).astype(np.int64), n_bins - 1)
+    # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
+    gap = np.bincount(bins, proba, n_bins) - np.bincount(bins, y_true.astype(float), n_bins)
+    return float(np.abs(gap).sum() / len(proba))
+
+
+def _surface_distance(environment, points):
+    """Distance from points to the environment's occupied space (0 inside it)."""
+    if isinstance(environment, Environment2D):
+        # Environment2D.distance is to the walls' centre lines.
+        h = environment.wall_thickness / 2
+        return np.maximum(environment.distance(points) - h, 0.0)
+    return environment.distance(points)
+
+
+def _cell_index(points, grid):
+    """Flat index of the grid cell holding each point; -1 outside the grid."""
+    lo = grid.extent[0::2]
+    counts = np.array(grid.shape[::-1])  # x first, like the cell order of the grid
+    cell = np.floor((points - lo) / grid.resolution).astype(np.int64)
+    inside = np.all((cell >= 0) & (cell < counts), axis=-1)
+    strides = np.cumprod(np.r_[1, counts[:-1]])
+    return np.where(inside, cell @ strides, -1)
+
+
+def _wall_bands_2d(environment, resolution):
+    """Samples every ``resolution`` along the walls' centre lines, walked both ways."""
+    a, b = environment.walls[:, :2], environment.walls[:, 2:]
+    length = np.linalg.norm(b - a, axis=1)
+    origins, normals = [], []
+    for start, end, L in zip(a, b, length, strict=True):
+        if L == 0:  # no direction, so no normal
+            continue
+        n = max(1, round(L / resolution))
+        u = (end - start) / L
+        origins.append(start + ((np.arange(n) + 0.5) * L / n)[:, None] * u)
+        normals.append(np.broadcast_to([-u[1], u[0]], (n, 2)))
+    k = round(_BAND_REACH / resolution)
+    steps = np.arange(-k, k + 1) * resolution
+    h = environment.wall_thickness / 2
+    return Bunch(
+        origins=np.concatenate(origins or [np.zeros((0, 2))]),
+        normals=np.concatenate(normals or [np.zeros((0, 2))]),
+        steps=steps,
+        # A band goes through the wall: it holds a step within half a step of the wall.
+        seeds=np.where(np.abs(steps) <= h + resolution / 2 + _TOL, np.abs(steps), np.inf),
+        own=np.maximum(np.abs(steps) - h, 0.0),  # distance of each step to this wall
+        # The cells just inside and just outside both surfaces.
+        surface=np.array([h - resolution / 2, h + resolution / 2, -h + resolution / 2,
+                          -h - resolution / 2]),
+    )  # fmt: skip
+
+
+def _face_bands_3d(room, resolution):
+    """Samples every ``resolution`` over the faces of the room and its obstacles.
+
+    A face bounds a solid whose inside no scan sees, so the walk starts half a step inside
+    the solid and goes out into free space only.
+    """
+    size = room.size
+    # (axis, position, sign of the normal into free space, lower and upper corner of the face)
+    faces = []
+    for axis in range(3):
+        faces += [(axis, 0.0, 1.0, np.zeros(3), size), (axis, size[axis], -1.0, np.zeros(3), size)]
+        for lo, hi in zip(room.obstacles[:, :3], room.obstacles[:, 3:], strict=True):
+            faces += [(axis, lo[axis], -1.0, lo, hi), (axis, hi[axis], 1.0, lo, hi)]
+    origins, normals = [], []
+    for axis, position, sign, lo, hi in faces:
+        others = [other for other in range(3) if other != axis]
+        axes = [[position]]
+        for other in others:
+            n = max(1, round((hi[other] - lo[other]) / resolution))
+            axes.append(lo[other] + (np.arange(n) + 0.5) * (hi[other] - lo[other]) / n)
+        points = np.empty((np.prod([len(x) for x in axes]), 3))
+        points[:, [axis, *others]] = np.column_stack(
+            [m.ravel() for m in np.meshgrid(*axes, indexing="ij")]
+        )
+        origins.append(points)
+        normals.append(np.broadcast_to(sign * np.eye(3)[axis], points.shape))
+    k = round(_BAND_REACH / resolution)
+    steps = (np.arange(k + 1) - 0.5) * resolution
+    return Bunch(
+        origins=np.concatenate(origins),
+        normals=np.concatenate(normals),
+        steps=steps,
+        # A band starts at the face: it holds one of the steps half a step either side.
+        seeds=np.where(steps < resolution / 2 + _TOL, np.abs(steps), np.inf),
+        own=np.maximum(steps, 0.0),
+        surface=np.array([-resolution / 2, resolution / 2]),
+    )
+
+
+def _runs(occupied, seeds):
+    """First and last step of the run of True through the best seed step, per row.
+
+    ``occupied`` is (n_rows, n_steps); ``seeds`` (n_steps,) ranks the steps a run may go
+    through (lower first, ``inf`` for the others). Returns ``start``, ``end`` and ``found``
+    (rows holding an occupied seed step; ``start`` and ``end`` are meaningless elsewhere).
+    """
+    n_rows, n_steps = occupied.shape
+    rows, index = np.arange(n_rows), np.arange(n_steps)
+    rank = np.where(occupied, seeds[None, :], np.inf)
+    seed = np.argmin(rank, axis=1)
+    found = np.isfinite(rank[rows, seed])
+    last_free = np.maximum.accumulate(np.where(occupied, -1, index), axis=1)
+    next_free = np.minimum.accumulate(np.where(occupied, n_steps, index)[:, ::-1], axis=1)
+    return last_free[rows, seed] + 1, next_free[:, ::-1][rows, seed] - 1, found
+
+
+def _probability_source(estimator_or_proba, grid, scored):
+    """P(occupied) of the scored cells and a function giving it at any points."""
+    if hasattr(estimator_or_proba, "predict_proba"):
+        estimator = estimator_or_proba
+
+        def at(points, what):
+            if len(points) == 0:
+                return np.zeros(0)
+            proba = _positive_proba(estimator, as_segments(points))
+            if proba.shape != (len(points),):
+                raise ValueError(
+                    f"predict_proba gave {proba.shape[0]} probabilities for {len(points)} {what}s."
+                )
+            return _check_probabilities(proba, f"predict_proba at the {what}s")
+
+        return at(grid.points[scored], "grid cell"), at
+
+    proba = np.asarray(estimator_or_proba, dtype=np.float64)
+    n_cells, n_scored = len(grid.points), int(scored.sum())
+    if proba.shape == tuple(grid.shape):
+        proba = proba.ravel()
+    if proba.shape == (n_cells,):
+        full = proba
+    elif proba.shape == (n_scored,):
+        full = np.full(n_cells, np.nan)  # cells not scored: unknown, never in a band
+        full[scored] = proba
+    else:
+        raise ValueError(
+            f"probabilities must have shape ({n_cells},) or {tuple(grid.shape)} (one per grid "
+            f"cell) or ({n_scored},) (one per scored cell), got {proba.shape}."
+        )
+    _check_probabilities(proba, "estimator_or_proba")
+
+    def lookup(points, what):
+        cell = _cell_index(points, grid)
+        return np.where(cell >= 0, full[cell], np.nan)
+
+    return full[scored], lookup
+
+
+def _wall_thickness(environment, grid, probability_at):
+    """Median width of the occupied band across the observed walls, and the sample counts."""
+    resolution = grid.resolution
+    if isinstance(environment, Environment2D):
+        band = _wall_bands_2d(environment, resolution)
+    else:
+        band = _face_bands_3d(environment, resolution)
+
+    # A sample counts when a cell at its surface lies in the grid (and was observed).
+    surface = band.origins[:, None, :] + band.surface[None, :, None] * band.normals[:, None, :]
+    cell = _cell_index(surface, grid)
+    known = cell >= 0 if grid.observed is None else (cell >= 0) & grid.observed[cell]
+    origins, normals = band.origins[known.any(axis=1)], band.normals[known.any(axis=1)]
+    if len(origins) == 0:
+        raise ValueError(
+            "no wall sample lies inside the grid"
+            + ("" if grid.observed is None else " where the scans observed it")
+            + ": there is no wall whose thickness could be measured."
+        )
+    walk = origins[:, None, :] + band.steps[None, :, None] * normals[:, None, :]
+    shape, flat = walk.shape[:2], walk.reshape(-1, walk.shape[2])
+    proba = probability_at(flat, "wall-band point").reshape(shape)
+    start, end, found = _runs(proba > ROS_OCCUPIED_THRESH, band.seeds)  # NaN: not occupied
+
+    # Where the walk nears another surface (corners, junctions, faces against a solid), or
+    # where the map has no value, the band cannot be told from another wall's or does not
+    # end where the map says: such samples are skipped. Checked over the band and the wall's
+    # own extent, one step beyond each.
+    nearer_other = _surface_distance(environment, flat).reshape(shape) < band.own - 1e-6
+    bad = np.pad(np.cumsum(nearer_other | np.isnan(proba), axis=1), ((0, 0), (1, 0)))
+    wall = np.flatnonzero(np.isfinite(band.seeds))
+    lo = np.maximum(np.where(found, np.minimum(start, wall[0]), wall[0]) - 1, 0)
+    hi = np.minimum(np.where(found, np.maximum(end, wall[-1]), wall[-1]) + 1, shape[1] - 1)
+    rows = np.arange(shape[0])
+    measured = bad[rows, hi + 1] == bad[rows, lo]
+    width = (end - start + 1)[measured & found] * resolution
+    thickness = float(np.median(width)) if len(width) else float("nan")
+    return thickness, int(measured.sum()), len(width)
+
+
+def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, extent=None):
+    """Thresholded and calibration scores of a map against a simulator's true map.
+
+    An AUC only ranks cells; a navigation stack thresholds them. This scores a map on the
+    cells of ``environment.ground_truth_grid(resolution, extent, scans=scans)`` at the ROS
+    map_server thresholds (occupied: p > :data:`~skoccmap.grid.ROS_OCCUPIED_THRESH` = 0.65,
+    free: p < :data:`~skoccmap.grid.ROS_FREE_THRESH` = 0.196), with the cell's true
+    occupancy (``occupied``) as the truth.
+
+    Parameters
+    ----------
+    estimator_or_proba : fitted classifier or array-like
+        A classifier whose ``predict_proba`` (column of class 1) is evaluated at the cell
+        centres and at the wall-band points, as zero-length segments; or P(occupied) per cell
+        of the grid, of shape (n_cells,) in the grid's order or the grid's ``shape`` (an
+        image), or (with ``scans``) of shape (n_observed_cells,) for the observed cells only.
+        The wall-band points of an array take the value of the cell holding them.
+    environment : Environment2D or Room3D
+        The simulated world.
+    resolution : float, default=0.1
+        Cell side in metres, and the step of the wall-band walk.
+    scans : Scans, default=None
+        If given, only the cells these scans observed are scored, and only the walls they
+        observed are measured: a map cannot know the rest.
+    extent : array-like, default=None
+        Grid extent; defaults to the environment's.
+
+    Returns
+    -------
+    scores : dict
+        - ``"auc"``: ROC AUC of the probabilities of the scored cells against the truth.
+        - ``"brier"``: Brier score (mean squared error of the probabilities,
+          :func:`sklearn.metrics.brier_score_loss`) over the scored cells.
+        - ``"ece"``: :func:`expected_calibration_error` over the scored cells (10 bins).
+        - ``"phantom_rate"``: share of the truly free scored cells farther than 0.35 m from
+          every surface that the map marks occupied (p > 0.65): phantom obstacles.
+        - ``"free_found"``: share of the same cells that the map marks free (p < 0.196); the
+          rest of them are unknown to a planner.
+        - ``"walls_found"``: share of the scored cells whose centre lies within 0.1 m of
+          occupied space (inside it included) that the map marks occupied. The set holds
+          the free cells next to a surface too (as in Room3D, whose cells touching a face
+          are free), where a map as thin as the truth scores below 1.
+        - ``"wall_thickness"``: median width in metres of the occupied band (p > 0.65)
+          across the walls. Walls are sampled every ``resolution`` along their centre lines
+          (2-D) or over the faces of the room and its box obstacles (3-D). From each sample
+          the walk goes in ``resolution`` steps along the wall's normal: up to 2 m both ways
+          in 2-D; in 3-D from half a step inside the solid out into free space, up to 2 m,
+          since the inside of a solid is never seen. The band is the run of contiguous
+          occupied steps through the wall (2-D: through a step within half a step of the
+          wall; 3-D: through one of the two steps half a step either side of the face); its
+          width is its number of steps times ``resolution``. An exact map queried as a
+          classifier scores the wall's thickness in whole steps (2-D) or one step (3-D); the
+          true grid of an Environment2D, whose cells touching a wall are occupied, scores a
+          step more on each side.
+          A sample counts when a cell at the wall's surface lies in the grid and (with
+          ``scans``) was observed, and its band can be measured: samples whose band, or
+          the wall itself, comes within a step of space nearer another surface (corners,
+          junctions, faces against another solid) or of a point where the map has no value
+          (outside the grid or, for arrays per observed cell, an unobserved cell) are
+          skipped. The median is over the counted samples with a band (NaN if there are
+          none): walls the map misses are what ``walls_found`` measures.
+        - ``"n_cells"``, ``"n_far_free_cells"``, ``"n_near_wall_cells"``: cells scored, in
+          the phantom / free-found set, and in the walls-found set; ``"n_wall_samples"``
+          and ``"n_wall_bands"``: wall samples counted, and those with a band.
+
+    Raises
+    ------
+    ValueError
+        For NaN, infinite or out-of-range probabilities, probabilities of the wrong shape,
+        an unsupported environment, scored cells all free or all occupied, or an empty set
+        of cells or of wall samples (the message says which). Zero-length walls have no
+        normal and give no wall samples.
+
+    See Also
+    --------
+    ground_truth_auc : The AUC alone.
+
+    Examples
+    --------
+    The true map itself, as probabilities per cell, on the cells the scans observed:
+
+    >>> from skoccmap.datasets import make_paper_scans
+    >>> from skoccmap.metrics import map_quality
+    >>> data = make_paper_scans()
+    >>> grid = data.environment.ground_truth_grid(0.1, scans=data.scans)
+    >>> scores = map_quality(grid.occupied, data.environment, scans=data.scans)
+    >>> scores["phantom_rate"], scores["free_found"], round(scores["walls_found"], 3)
+    (0.0, 1.0, 0.972)
+    >>> scores["ece"], scores["brier"], round(scores["wall_thickness"], 2)
+    (0.0, 0.0, 0.3)
+
+    The true grid marks the cells that touch a 0.1 m wall occupied: a band of three cells.
+    A classifier is queried at the cells and along the bands; a map that is everywhere
+    0.5 finds nothing at the thresholds:
+
+    >>> import numpy as np
+    >>> class Unsure:
+    ...     classes_ = np.array([0, 1])
+    ...     def predict_proba(self, X):
+    ...         return np.full((len(X), 2), 0.5)
+    >>> scores = map_quality(Unsure(), data.environment, scans=data.scans)
+    >>> scores["phantom_rate"], scores["free_found"], scores["walls_found"]
+    (0.0, 0.0, 0.0)
+    >>> scores["wall_thickness"], scores["n_wall_bands"], round(scores["brier"], 2)
+    (nan, 0, 0.25)
+    """
+    if not isinstance(environment, (Environment2D, Room3D)):
+        raise ValueError(
+            "environment must be a skoccmap.datasets.Environment2D or Room3D, got "
+            f"{type(environment).__name__}."
+        )
+    grid = environment.ground_truth_grid(resolution, extent, scans=scans)
+    scored = np.ones(len(grid.points), bool) if scans is None else grid.observed
+    what = "grid cell" if scans is None else "observed grid cell"
+    truth = grid.occupied[scored]
+    _check_both_classes(truth, what)
+    proba, probability_at = _probability_source(estimator_or_proba, grid, scored)
+
+    distance = _surface_distance(environment, grid.points[scored])
+    far_free = (truth == 0) & (distance > _PHANTOM_CLEARANCE)
+    near_wall = distance <= _WALL_TOLERANCE + _TOL
+    for cells, description in (
+        (far_free, f"free and farther than {_PHANTOM_CLEARANCE} m from every surface"),
+        (near_wall, f"within {_WALL_TOLERANCE} m of a surface"),
+    ):
+        if not cells.any():
+            raise ValueError(
+                f"no {what} is {description}: score a larger region, or observe more of it."
+            )
+    thickness, n_samples, n_bands = _wall_thickness(environment, grid, probability_at)
+    return {
+        "auc": _auc(truth, proba, what),
+        "brier": float(brier_score_loss(truth, proba, labels=[0, 1])),
+        "ece": expected_calibration_error(truth, proba, n_bins=_ECE_BINS),
+        "phantom_rate": float(np.mean(proba[far_free] > ROS_OCCUPIED_THRESH)),
+        "free_found": float(np.mean(proba[far_free] < ROS_FREE_THRESH)),
+        "walls_found": float(np.mean(proba[near_wall] > ROS_OCCUPIED_THRESH)),
+        "wall_thickness": thickness,
+        "n_cells": int(scored.sum()),
+        "n_far_free_cells": int(far_free.sum()),
+        "n_near_wall_cells": int(near_wall.sum()),
+        "n_wall_samples": n_samples,
+        "n_wall_bands": n_bands,
+    }

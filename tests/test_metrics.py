@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 from scipy import stats
+from sklearn.calibration import calibration_curve
 
-from skoccmap.datasets import Environment2D, make_paper_scans, make_room3d_scans
+from skoccmap.datasets import Environment2D, Room3D, make_paper_scans, make_room3d_scans
 from skoccmap.metrics import (
     HILBERT_BLOCK_SIZE,
     HILBERT_FREE_MARGIN,
@@ -12,9 +13,11 @@ from skoccmap.metrics import (
     HILBERT_N_FREE_PER_BEAM,
     _heldout_blocks,
     blocks_protocol,
+    expected_calibration_error,
     ground_truth_auc,
     heldout_auc,
     heldout_points,
+    map_quality,
     split_scan_blocks,
     split_scans,
 )
@@ -172,6 +175,7 @@ def test_ground_truth_auc(paper):
     assert ground_truth_auc(1 - grid.occupied, env, 0.5) == 0.0
     rng = np.random.default_rng(0)
     assert abs(ground_truth_auc(rng.uniform(size=grid.occupied.shape), env, 0.5) - 0.5) < 0.05
+
     # an estimator is queried at the cell centres, as zero-length segments
     class DistanceClassifier:
         def predict_proba(self, X):
@@ -387,7 +391,9 @@ def test_blocks_protocol_points(paper):
     assert len(run.test) == 6 and np.all(_runs(run.test_index) % 6 == 0)
     hits = run.test.hit_points()
     assert_allclose(run.points[: len(hits)], hits)
-    assert_array_equal(run.labels, np.r_[np.ones(len(hits)), np.zeros(len(run.points) - len(hits))])
+    assert_array_equal(
+        run.labels, np.r_[np.ones(len(hits)), np.zeros(len(run.points) - len(hits))]
+    )
     returned = run.test.returned()
     # The paper's 8 m sensor: no beam is over 40 m, beams without a return give nothing.
     expected = np.maximum(np.floor(run.test.ranges[returned & (run.test.ranges > 0.1)] / 2), 1)
@@ -402,3 +408,229 @@ def test_blocks_protocol_points(paper):
 def test_blocks_protocol_bad_input(paper, kwargs, match):
     with pytest.raises(ValueError, match=match):
         blocks_protocol(paper.scans, **kwargs)
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration and map quality against the true map
+# --------------------------------------------------------------------------------------------
+
+
+def test_expected_calibration_error_by_hand():
+    y = [0, 0, 1, 1, 1, 0]
+    p = [0.05, 0.15, 0.62, 0.68, 0.95, 0.99]
+    # bins 0, 1, 6, 6, 9, 9: |0.05 - 0|, |0.15 - 0|, 2 x |0.65 - 1|, 2 x |0.97 - 0.5|
+    assert_allclose(expected_calibration_error(y, p), (0.05 + 0.15 + 0.7 + 0.94) / 6)
+    # one bin: |mean p - mean y|; p = 1 falls in the last bin
+    assert_allclose(expected_calibration_error(y, p, n_bins=1), abs(np.mean(p) - 0.5))
+    assert_allclose(expected_calibration_error([1, 0], [1.0, 0.0]), 0.0)
+    assert_allclose(expected_calibration_error([0, 0], [1.0, 1.0]), 1.0)
+
+
+def test_expected_calibration_error_zero_when_calibrated():
+    # In every bin the frequency of 1 equals the probability.
+    p = np.repeat([0.05, 0.25, 0.55, 0.85], 20)
+    y = np.concatenate([np.arange(20) < k for k in (1, 5, 11, 17)]).astype(int)
+    assert_allclose(expected_calibration_error(y, p), 0.0, atol=1e-12)
+    assert expected_calibration_error(1 - y, p) > 0.3
+
+
+def test_expected_calibration_error_matches_calibration_curve():
+    rng = np.random.default_rng(0)
+    p = rng.uniform(size=2000)
+    y = (rng.uniform(size=2000) < p**2).astype(int)
+    prob_true, prob_pred = calibration_curve(y, p, n_bins=8)
+    counts = np.histogram(p, bins=np.linspace(0, 1, 9))[0]
+    expected = np.sum(counts[counts > 0] * np.abs(prob_true - prob_pred)) / len(p)
+    assert_allclose(expected_calibration_error(y, p, n_bins=8), expected)
+
+
+@pytest.mark.parametrize(
+    "y, p, kwargs, match",
+    [
+        ([0, 1], [0.5, np.nan], {}, "NaN"),
+        ([0, 1], [0.5, 1.2], {}, r"\[0, 1\]"),
+        ([0, 1], [0.5], {}, "same length"),
+        ([0, 2], [0.5, 0.5], {}, "labels 0 and 1"),
+        ([], [], {}, "empty"),
+        ([0, 1], [0.5, 0.5], {"n_bins": 0}, "n_bins"),
+    ],
+)
+def test_expected_calibration_error_bad_input(y, p, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        expected_calibration_error(y, p, **kwargs)
+
+
+class _ExactMap(_TruthClassifier):
+    """The simulator's true occupancy at the query points."""
+
+    def __init__(self, environment):
+        super().__init__(environment)
+        self.n_queries = 0
+
+    def predict_proba(self, X):
+        self.n_queries += len(X)
+        return super().predict_proba(X)
+
+
+class _CellMap:
+    """A per-cell map queried as a classifier: the value of the cell holding each point."""
+
+    classes_ = np.array([0, 1])
+
+    def __init__(self, grid, values, outside=0.0):
+        self.grid, self.values, self.outside = grid, np.asarray(values, float), outside
+
+    def predict_proba(self, X):
+        d = X.shape[1] // 2
+        lo = self.grid.extent[0::2]
+        counts = np.array(self.grid.shape[::-1])
+        cell = np.floor((X[:, :d] - lo) / self.grid.resolution).astype(int)
+        inside = np.all((cell >= 0) & (cell < counts), axis=1)
+        flat = np.ravel_multi_index(np.clip(cell, 0, counts - 1).T[::-1], self.grid.shape)
+        p = np.where(inside, self.values[flat], self.outside)
+        return np.column_stack([1 - p, p])
+
+
+def _thickened(environment, grid, by):
+    """A map marking occupied every cell whose centre is within ``by`` of a surface."""
+    if isinstance(environment, Environment2D):
+        d = environment.distance(grid.points) - environment.wall_thickness / 2
+    else:
+        d = environment.distance(grid.points)
+    return (d <= by + 1e-9).astype(float)
+
+
+def test_map_quality_true_map_2d(paper):
+    env = paper.environment
+    grid = env.ground_truth_grid(0.1, scans=paper.scans)
+    scores = [map_quality(grid.occupied, env, scans=scans) for scans in (None, paper.scans)]
+    for q in scores:
+        assert (q["auc"], q["brier"], q["ece"]) == (1.0, 0.0, 0.0)
+        assert (q["phantom_rate"], q["free_found"]) == (0.0, 1.0)
+        assert q["walls_found"] > 0.95
+        # 0.1 m walls plus the cell touching each side, which the true grid marks occupied
+        assert_allclose(q["wall_thickness"], 0.3)
+        assert q["n_wall_bands"] == q["n_wall_samples"] > 100
+    # The scans observe part of the world only: fewer cells and wall samples.
+    full, seen = scores
+    assert seen["n_cells"] < full["n_cells"] == len(grid.points)
+    assert seen["n_cells"] == np.count_nonzero(grid.observed)
+    assert seen["n_wall_samples"] < full["n_wall_samples"]
+
+
+def test_map_quality_exact_classifier_2d(paper):
+    env = paper.environment
+    exact = _ExactMap(env)
+    q = map_quality(exact, env, scans=paper.scans)
+    assert (q["phantom_rate"], q["free_found"]) == (0.0, 1.0)
+    assert_allclose(q["wall_thickness"], 0.1)  # the walls' own thickness, in 0.1 m steps
+    assert exact.n_queries > q["n_cells"]  # cells, then the band points
+
+
+def test_map_quality_thick_walls_2d(paper):
+    env = paper.environment
+    grid = env.ground_truth_grid(0.1)
+    thin = map_quality(grid.occupied, env, scans=paper.scans)
+    thick = map_quality(_thickened(env, grid, 0.5), env, scans=paper.scans)
+    # 0.5 m more on each side of a 0.1 m wall
+    assert_allclose(thick["wall_thickness"], 0.1 + 1.0)
+    assert thick["walls_found"] == 1.0
+    # free cells 0.35 to 0.5 m from a wall are now phantom obstacles
+    assert 0.02 < thick["phantom_rate"] < 0.2
+    assert_allclose(thick["free_found"], 1 - thick["phantom_rate"])
+    assert thick["brier"] > thin["brier"] and thick["ece"] > thin["ece"]
+    assert thick["auc"] < 1.0
+
+
+def test_map_quality_array_shapes_and_classifier_agree(paper):
+    env, scans = paper.environment, paper.scans
+    grid = env.ground_truth_grid(0.1, scans=scans)
+    values = _thickened(env, grid, 0.2)
+    by_cell = map_quality(values, env, scans=scans)
+    image = map_quality(values.reshape(grid.shape), env, scans=scans)
+    observed_only = map_quality(values[grid.observed], env, scans=scans)
+    queried = map_quality(_CellMap(grid, values), env, scans=scans)
+    assert image == by_cell
+    cell_keys = ["auc", "brier", "ece", "phantom_rate", "free_found", "walls_found", "n_cells"]
+    for other in (observed_only, queried):
+        assert {k: other[k] for k in cell_keys} == {k: by_cell[k] for k in cell_keys}
+    assert_allclose(by_cell["wall_thickness"], 0.1 + 0.4)
+    assert_allclose(queried["wall_thickness"], 0.1 + 0.4)
+    # Per observed cell, unobserved cells have no value: bands reaching them are skipped.
+    assert observed_only["n_wall_samples"] < by_cell["n_wall_samples"]
+
+
+def test_map_quality_no_band():
+    env = make_paper_scans().environment
+    grid = env.ground_truth_grid(0.2)
+    q = map_quality(np.full(len(grid.points), 0.1), env, resolution=0.2)
+    assert np.isnan(q["wall_thickness"]) and q["n_wall_bands"] == 0 and q["n_wall_samples"] > 0
+    assert (q["walls_found"], q["free_found"], q["phantom_rate"]) == (0.0, 1.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def room():
+    return make_room3d_scans()
+
+
+def test_map_quality_room3d(room):
+    env = room.environment
+    grid = env.ground_truth_grid(0.1)
+    true = map_quality(grid.occupied, env)
+    assert (true["auc"], true["ece"], true["phantom_rate"], true["free_found"]) == (1, 0, 0, 1)
+    # the cell at each face: half a step inside the solid
+    assert_allclose(true["wall_thickness"], 0.1)
+    thick = map_quality(_thickened(env, grid, 0.5), env)
+    assert_allclose(thick["wall_thickness"], 0.1 + 0.5)  # on the free side only
+    assert thick["phantom_rate"] > 0.1 and thick["walls_found"] == 1.0
+    exact = map_quality(_ExactMap(env), env, resolution=0.2, scans=room.scans)
+    assert_allclose(exact["wall_thickness"], 0.2)
+    assert (exact["phantom_rate"], exact["free_found"]) == (0.0, 1.0)
+    assert 0 < exact["n_wall_samples"] < thick["n_wall_samples"]
+
+
+def test_map_quality_room3d_skips_covered_faces():
+    # A 0.5 m cube pushed against the wall x = 0 and the floor: its faces against them and
+    # the parts of the wall and floor it covers have no free side to walk into. The same
+    # cube floating in the room has all its faces, and the room all of its own.
+    def samples(cube):
+        env = Room3D(size=(2, 2, 2), obstacles=[cube], wall_thickness=0.2)
+        q = map_quality(env.ground_truth_grid(0.1).occupied, env)
+        assert_allclose(q["wall_thickness"], 0.1)
+        return q["n_wall_samples"]
+
+    floating = samples([0.7, 0.7, 0.7, 1.2, 1.2, 1.2])
+    pushed = samples([0.0, 0.7, 0.0, 0.5, 1.2, 0.5])
+    # 2 x 25 samples of the cube and 2 x 25 of the room are covered; the rows next to them
+    # (about 60 more) walk within a step of the other solid
+    assert 100 + 40 <= floating - pushed <= 100 + 80
+
+
+def test_map_quality_errors(paper):
+    env = paper.environment
+    n = len(env.ground_truth_grid(0.5).points)
+    with pytest.raises(ValueError, match="NaN"):
+        map_quality(np.full(n, np.nan), env, resolution=0.5)
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        map_quality(np.full(n, 2.0), env, resolution=0.5)
+    with pytest.raises(ValueError, match="must have shape"):
+        map_quality(np.zeros(n + 1), env, resolution=0.5)
+    with pytest.raises(ValueError, match="Environment2D or Room3D"):
+        map_quality(np.zeros(n), object(), resolution=0.5)
+
+    class NaNMap:
+        def predict_proba(self, X):
+            return np.full((len(X), 2), np.nan)
+
+    with pytest.raises(ValueError, match="predict_proba at the grid cells: .* NaN"):
+        map_quality(NaNMap(), env, resolution=0.5)
+    # only free space: the AUC and the thresholded rates are undefined
+    with pytest.raises(ValueError, match="AUC is undefined"):
+        map_quality(np.zeros(16), env, resolution=0.5, extent=(8, 10, 5, 7))
+    # a strip along a wall: no cell is far from it
+    with pytest.raises(ValueError, match="farther than 0.35 m"):
+        map_quality(np.zeros(40), env, resolution=0.1, extent=(4.8, 5.2, 5, 6))
+    # a round post (a zero-length wall) has no normal: no wall to measure
+    post = Environment2D([[5.0, 5.0, 5.0, 5.0]], wall_thickness=0.4)
+    with pytest.raises(ValueError, match="no wall"):
+        map_quality(np.zeros(400), post, resolution=0.2, extent=(3, 7, 3, 7))
