@@ -1,32 +1,57 @@
 """``skoccmap evaluate``: held-out AUC of the mixture against the counting grid on a CARMEN log.
 
-The Hilbert-map protocol: every ``--holdout-every``-th scan is held out; the models train on
-every ``--every-nth-scan``-th of the remaining scans; positives are the held-out hit points,
-negatives points drawn uniformly along the held-out beams short of the hit
-(:func:`skoccmap.metrics.heldout_auc`).
+Two protocols choose the test scans and points (:mod:`skoccmap.metrics`):
+
+- ``--protocol every-nth`` (default): every ``--holdout-every``-th scan is held out; negatives
+  are ``--free-per-beam`` points drawn uniformly along each held-out beam short of the hit.
+- ``--protocol blocks``: the Hilbert-maps protocol (:func:`skoccmap.metrics.blocks_protocol`):
+  10 % of the scans held out as blocks of ``--block-size`` (40) consecutive scans at random
+  starts; negatives floor(r / 2) points per held-out beam of range r <= 40 m, 0.1 m short of
+  the hit.
+
+Either way the positives are the held-out hits, the models train on every
+``--train-every``-th of the remaining scans, and each of ``--seeds`` repeats the whole run
+(split, test points, mixture), printing the AUC per seed and their mean.
 """
 
 import sys
 
+import numpy as np
+
 from ._cmd_map import Stopwatch, add_model_arguments, load_scans, make_mixture
+
+# Defaults of the options that only one protocol reads (None: the option was not given).
+_EVERY_NTH_DEFAULTS = {"holdout_every": 10, "free_per_beam": 1}
+_BLOCKS_DEFAULTS = {"block_size": 40}
 
 
 def add_arguments(parser):
     parser.add_argument("log", metavar="LOG", help="CARMEN log (plain text or gzip)")
     add_model_arguments(parser)
     parser.add_argument(
+        "--protocol",
+        choices=["every-nth", "blocks"],
+        default="every-nth",
+        help="every-nth (default): hold out every K-th scan; blocks: the Hilbert-maps "
+        "protocol, 10%% of the scans held out in blocks of consecutive scans",
+    )
+    parser.add_argument(
+        "--train-every",
         "--every-nth-scan",
+        dest="train_every",
         type=int,
         default=10,
         metavar="N",
         help="train on every N-th of the remaining scans (default 10)",
     )
     parser.add_argument(
-        "--holdout-every",
+        "--seeds",
         type=int,
-        default=10,
-        metavar="K",
-        help="hold out every K-th scan for testing (default 10)",
+        nargs="+",
+        default=None,
+        metavar="S",
+        help="repeat the evaluation with each seed (split, test points, mixture) and report "
+        "the mean AUC (default: --seed)",
     )
     parser.add_argument(
         "--grid-resolution",
@@ -34,67 +59,139 @@ def add_arguments(parser):
         default=0.1,
         help="cell size of the counting-grid baseline in metres (default 0.1)",
     )
-    parser.add_argument(
+    every_nth = parser.add_argument_group("--protocol every-nth")
+    every_nth.add_argument(
+        "--holdout-every",
+        type=int,
+        default=None,
+        metavar="K",
+        help="hold out every K-th scan for testing (default 10)",
+    )
+    every_nth.add_argument(
         "--free-per-beam",
         type=int,
-        default=1,
+        default=None,
         help="free test points drawn along each held-out beam (default 1)",
     )
+    blocks = parser.add_argument_group("--protocol blocks")
+    blocks.add_argument(
+        "--block-size",
+        type=int,
+        default=None,
+        metavar="B",
+        help="consecutive scans per held-out block (default 40; lower it only for short logs)",
+    )
+
+
+def _check_options(args):
+    """Fill in the protocol's defaults; ValueError for options of the other protocol."""
+    own, other = (
+        (_EVERY_NTH_DEFAULTS, _BLOCKS_DEFAULTS)
+        if args.protocol == "every-nth"
+        else (_BLOCKS_DEFAULTS, _EVERY_NTH_DEFAULTS)
+    )
+    for name in other:
+        if getattr(args, name) is not None:
+            raise ValueError(
+                f"--{name.replace('_', '-')} does not apply to --protocol {args.protocol}"
+            )
+    for name, default in own.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
+    least = {"train_every": 1, "free_per_beam": 1, "block_size": 1, "holdout_every": 2}
+    for name, value in least.items():
+        if getattr(args, name) is not None and getattr(args, name) < value:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= {value}")
+    if not args.grid_resolution > 0:
+        raise ValueError("--grid-resolution must be positive")
+    if args.seeds is None:
+        args.seeds = [args.seed]
+    if min(args.seeds) < 0:
+        raise ValueError("--seeds must be non-negative integers")
 
 
 def run(args):
     try:
-        for name in ("every_nth_scan", "free_per_beam"):
-            if getattr(args, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-        if args.holdout_every < 2:
-            raise ValueError("--holdout-every must be >= 2")
-        if not args.grid_resolution > 0:
-            raise ValueError("--grid-resolution must be positive")
+        _check_options(args)
         return _run(args)
     except (ValueError, OSError) as exc:
         print(f"skoccmap evaluate: error: {exc}", file=sys.stderr)
         return 2
 
 
-def _run(args):
-    from .baselines import OccupancyGridMap
-    from .metrics import heldout_auc, split_scans
+def _split(scans, args, seed):
+    """Training scans, held-out scans and labelled test points of one seed."""
+    from .metrics import blocks_protocol, heldout_points, split_scans
 
-    watch = Stopwatch()
-    scans = watch("read log", load_scans, args)
+    if args.protocol == "blocks":
+        protocol = blocks_protocol(
+            scans, train_every=args.train_every, block_size=args.block_size, random_state=seed
+        )
+        return protocol.train, protocol.test, protocol.points, protocol.labels
     # Offset half a period so held-out scans sit between training scans.
     train, test = split_scans(scans, args.holdout_every, offset=args.holdout_every // 2)
-    train = train[:: args.every_nth_scan]
-    X, y, _ = train.to_observations()
-    print(
-        f"training on {len(train)} scans ({len(X)} observations), testing on {len(test)} "
-        "held-out scans"
-    )
-    models = {
-        "mixture of GP experts": make_mixture(args),
+    points, labels = heldout_points(test, n_free_per_beam=args.free_per_beam, random_state=seed)
+    return train[:: args.train_every], test, points, labels
+
+
+def _models(args, seed):
+    from .baselines import OccupancyGridMap
+
+    return {
+        "mixture of GP experts": make_mixture(args).set_params(random_state=seed),
         f"counting grid ({args.grid_resolution:g} m)": OccupancyGridMap(
             resolution=args.grid_resolution
         ),
     }
-    rows = []
-    for name, model in models.items():
-        watch(f"fit {name}", model.fit, X, y)
-        fit_s = watch.rows[-1][1]
-        auc = watch(
-            f"score {name}",
-            heldout_auc,
-            model,
-            test,
-            n_free_per_beam=args.free_per_beam,
-            random_state=args.seed,
+
+
+def _run(args):
+    from .metrics import _auc, _check_both_classes, _positive_proba
+    from .observations import as_segments
+
+    watch = Stopwatch()
+    scans = watch("read log", load_scans, args)
+    print(
+        f"protocol {args.protocol}: training on 1 in {args.train_every} of the remaining scans, "
+        f"seeds {', '.join(map(str, args.seeds))}"
+    )
+    results = {}  # model name -> list of (auc, fit s, predict s), one per seed
+    for seed in args.seeds:
+        train, test, points, labels = _split(scans, args, seed)
+        _check_both_classes(labels, "held-out point")
+        X, y, _ = train.to_observations()
+        print(
+            f"seed {seed}: training on {len(train)} scans ({len(X)} observations), testing on "
+            f"{len(test)} held-out scans ({int(labels.sum())} hits, "
+            f"{int((labels == 0).sum())} free points)"
         )
-        rows.append((name, auc, fit_s, watch.rows[-1][1]))
+        queries = as_segments(points)
+        for name, model in _models(args, seed).items():
+            watch(f"fit {name} (seed {seed})", model.fit, X, y)
+            fit_s = watch.rows[-1][1]
+            proba = watch(f"score {name} (seed {seed})", _positive_proba, model, queries)
+            auc = _auc(labels, proba, "held-out point")
+            results.setdefault(name, []).append((auc, fit_s, watch.rows[-1][1]))
     print()
-    print("| model | held-out AUC | fit s | predict s |")
-    print("|---|---|---|---|")
-    for name, auc, fit_s, predict_s in rows:
-        print(f"| {name} | {auc:.4f} | {fit_s:.1f} | {predict_s:.1f} |")
+    print(_table(results, args.seeds))
     print()
     print(watch.table())
     return 0
+
+
+def _table(results, seeds):
+    """Markdown table: the AUC per seed (and their mean when there are several), timings."""
+    if len(seeds) == 1:
+        columns = ["held-out AUC"]
+    else:
+        columns = [f"AUC seed {seed}" for seed in seeds] + ["mean AUC"]
+    lines = [
+        "| model | " + " | ".join(columns) + " | fit s | predict s |",
+        "|---" * (len(columns) + 3) + "|",
+    ]
+    for name, rows in results.items():
+        aucs, fit_s, predict_s = np.array(rows).T
+        values = list(aucs) + ([aucs.mean()] if len(seeds) > 1 else [])
+        cells = [f"{v:.4f}" for v in values] + [f"{fit_s.mean():.1f}", f"{predict_s.mean():.1f}"]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

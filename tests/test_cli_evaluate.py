@@ -1,0 +1,75 @@
+import re
+
+import numpy as np
+import pytest
+
+from skoccmap.cli import main
+from skoccmap.datasets import make_paper_scans
+
+
+@pytest.fixture(scope="module")
+def paper_log(tmp_path_factory):
+    """The paper's 26 simulated scans written as a CARMEN FLASER log (8 m sentinel)."""
+    scans = make_paper_scans(random_state=0).scans
+    path = tmp_path_factory.mktemp("log") / "paper.log"
+    lines = []
+    for t, (pose, ranges) in enumerate(zip(scans.poses, scans.ranges, strict=True)):
+        readings = np.where(np.isfinite(ranges), ranges, scans.max_range)
+        fields = ["FLASER", str(scans.n_beams), *(f"{r:.6f}" for r in readings)]
+        fields += [f"{v:.9f}" for v in pose] * 2 + [str(t), "sim", str(t)]
+        lines.append(" ".join(fields) + "\n")
+    path.write_text("".join(lines))
+    return path
+
+
+def _table(out):
+    """Rows of the results table: model name -> list of numbers."""
+    rows = re.findall(r"^\| (mixture of GP experts|counting grid \(0.1 m\)) \|(.*)\|$", out, re.M)
+    return {name: [float(v) for v in cells.split("|")] for name, cells in rows}
+
+
+def test_evaluate_blocks_protocol_several_seeds(paper_log, capsys):
+    argv = ["evaluate", str(paper_log), "--protocol", "blocks", "--block-size", "4",
+            "--train-every", "2", "--seeds", "0", "1", "--n-jobs", "1", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    # 26 scans: one block of 4 held out, every 2nd of the other 22 trained on
+    assert len(re.findall(r"^seed [01]: training on 11 scans .* testing on 4 held-out", out, re.M))
+    assert "| model | AUC seed 0 | AUC seed 1 | mean AUC | fit s | predict s |" in out
+    table = _table(out)
+    assert set(table) == {"mixture of GP experts", "counting grid (0.1 m)"}
+    for auc0, auc1, mean, _, _ in table.values():
+        assert 0.5 < auc0 <= 1 and 0.5 < auc1 <= 1
+        assert abs(mean - (auc0 + auc1) / 2) <= 1e-4
+
+
+def test_evaluate_every_nth_is_the_default(paper_log, capsys):
+    argv = ["evaluate", str(paper_log), "--holdout-every", "4", "--train-every", "3",
+            "--n-jobs", "1", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "protocol every-nth" in out
+    # scans 2, 6, ..., 22 held out; every 3rd of the other 20 trained on
+    assert "training on 7 scans" in out and "testing on 6 held-out scans" in out
+    assert "| model | held-out AUC | fit s | predict s |" in out
+    assert all(0.5 < row[0] <= 1 for row in _table(out).values())
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--protocol", "blocks"], "too few"),  # 26 scans, blocks of 40
+        (["--protocol", "blocks", "--holdout-every", "5"], "--holdout-every does not apply"),
+        (["--protocol", "blocks", "--free-per-beam", "2"], "--free-per-beam does not apply"),
+        (["--block-size", "4"], "--block-size does not apply to --protocol every-nth"),
+        (["--protocol", "blocks", "--block-size", "0"], "--block-size must be >= 1"),
+        (["--train-every", "0"], "--train-every must be >= 1"),
+        (["--every-nth-scan", "0"], "--train-every must be >= 1"),
+        (["--holdout-every", "1"], "--holdout-every must be >= 2"),
+        (["--seeds", "-1"], "--seeds must be non-negative"),
+        (["--grid-resolution", "0"], "--grid-resolution must be positive"),
+    ],
+)
+def test_evaluate_bad_options(paper_log, capsys, options, message):
+    assert main(["evaluate", str(paper_log), *options, "--quiet"]) == 2
+    assert message in capsys.readouterr().err
