@@ -24,7 +24,8 @@ from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .combine import COMBINERS, combine
-from .observations import HIT, NO_RETURN, RETURN
+from ._shared_kernel import learn_shared_kernel, warn_at_bounds
+from .observations import HIT, NO_RETURN, RETURN, split_segments
 
 __all__ = ["MixtureGPOccupancyMap"]
 
@@ -40,6 +41,8 @@ _NO_RETURN_PAIRS = 1 << 18
 _NO_RETURN_FIRST = 4
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
+# Experts whose summed evidence learns the shared hyperparameters.
+_SHARED_PIECES = 16
 
 
 def _as_segment_rows(X, layout):
@@ -524,6 +527,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "max_cluster_samples": [Interval(Integral, 2, None, closed="left"), None],
         "min_expert_size": [Interval(Integral, 1, None, closed="left")],
         "max_expert_size": [Interval(Integral, 2, None, closed="left"), None],
+        "max_beam_length": [Interval(Real, 0, None, closed="neither"), None],
         "share_hyperparameters": ["boolean"],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
@@ -543,6 +547,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         max_cluster_samples=4000,
         min_expert_size=20,
         max_expert_size=400,
+        max_beam_length=2.0,
         share_hyperparameters=True,
         gating_threshold=1e-3,
         return_radius=0.1,
@@ -558,6 +563,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.max_cluster_samples = max_cluster_samples
         self.min_expert_size = min_expert_size
         self.max_expert_size = max_expert_size
+        self.max_beam_length = max_beam_length
         self.share_hyperparameters = share_hyperparameters
         self.gating_threshold = gating_threshold
         self.return_radius = return_radius
@@ -610,11 +616,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             f"clustering done: {self.cluster_ids_.size} cluster(s), "
             f"{self.n_clusters_} after merging small ones ({time.perf_counter() - start:.1f} s)",
         )
-        labels = self._split_clusters(X, labels, anchor)
+        # Beams are cut after the assignment: every piece stays with its beam's expert,
+        # and experts are sized by the rows they are fitted on (pieces).
+        pieces, source = split_segments(X, self.max_beam_length)
+        n_pieces = np.bincount(source, minlength=X.shape[0])
+        labels = self._split_clusters(X, labels, anchor, n_pieces)
         self.cluster_labels_ = labels
         self.n_experts_ = int(self.expert_cluster_.size)
-
-        self.experts_ = self._fit_experts(X, y_enc, labels, expert, rng)
+        self._expert_sizes = np.bincount(labels, weights=n_pieces, minlength=self.n_experts_)
+        self.experts_ = self._fit_experts(pieces, y_enc[source], labels[source], expert, rng)
         _log(
             self.verbose,
             f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
@@ -691,22 +701,24 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.n_clusters_ = int(self.cluster_merge_.max() + 1)
         return self.cluster_merge_[labels], anchor
 
-    def _split_clusters(self, X, labels, anchor):
+    def _split_clusters(self, X, labels, anchor, row_weight):
         """Split clusters above ``max_expert_size``; returns expert labels per row.
 
-        The split is of the cluster's hits, each weighted by the rows anchored to it, and
-        every row joins the piece of its anchor hit: cutting the rows themselves would
-        part walls from the beams that saw them and leave one-class pieces.
+        The split is of the cluster's hits, each weighted by the training rows (beam
+        pieces) anchored to it, and every row joins the piece of its anchor hit: cutting
+        the rows themselves would part walls from the beams that saw them and leave
+        one-class pieces.
         """
         mids = _midpoints(X)
         dim = X.shape[1] // 2
-        rows_per_hit = np.bincount(anchor, minlength=X.shape[0])
+        rows_per_hit = np.bincount(anchor, weights=row_weight, minlength=X.shape[0])
         expert_labels = np.empty_like(labels)
         expert_cluster, piece_gates = [], []
         for c in range(self.n_clusters_):
             rows = np.flatnonzero(labels == c)
             first = len(expert_cluster)
-            if self.max_expert_size is None or rows.size <= self.max_expert_size:
+            size = row_weight[rows].sum()
+            if self.max_expert_size is None or size <= self.max_expert_size:
                 pieces = [np.arange(rows.size)]
             else:
                 hits = rows[anchor[rows] == rows]
@@ -772,23 +784,24 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 "share_hyperparameters=True needs an expert with 'kernel' and 'optimizer' "
                 f"parameters; {type(expert).__name__} lacks them."
             )
-        two_class = [k for k, r in enumerate(rows) if 0 < y[r].sum() < r.size]
         todo = list(range(len(rows)))
+        two_class = [k for k, r in enumerate(rows) if 0 < y[r].sum() < r.size]
         if not two_class:
             return expert, fitted, todo
-        # A uniform sample of all observations, as large as the largest piece (the same
-        # cost): it spans every cluster, so the kernel suits the whole map rather than the
-        # walls of one piece. On Intel (every 10th scan) single pieces learned length
-        # scales from 0.5 to 2.3 m; a spanning sample learns about 0.5 m.
-        n_sample = max(rows[k].size for k in two_class)
-        sample = np.sort(rng.choice(X.shape[0], min(n_sample, X.shape[0]), replace=False))
-        if not 0 < y[sample].sum() < sample.size:
-            sample = rows[max(two_class, key=lambda k: rows[k].size)]
-        _log(self.verbose, f"learning shared hyperparameters on {sample.size} observations")
+        # The summed evidence of experts' own (compact) pieces, on a random subset of them:
+        # each term is one expert's fit, so a few dozen pieces fix a handful of
+        # hyperparameters at a bounded cost however large the map.
+        chosen = np.sort(
+            rng.choice(two_class, min(len(two_class), _SHARED_PIECES), replace=False)
+        )
+        _log(self.verbose, f"learning shared hyperparameters on {chosen.size} expert(s)")
         learner = clone(expert)
         if "random_state" in learner.get_params():
             learner.set_params(random_state=rng.randint(np.iinfo(np.int32).max))
-        self.shared_kernel_ = learner.fit(X[sample], y[sample]).kernel_
+        self.shared_kernel_ = learn_shared_kernel(
+            learner, [(X[rows[k]], y[rows[k]]) for k in chosen], n_jobs=self.n_jobs
+        )
+        warn_at_bounds(self.shared_kernel_, "shared kernel")
         base = clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
         return base, fitted, todo
 
@@ -896,7 +909,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """Merged prediction (proba, mean, variance) over query chunks."""
         X = self._validate_queries(X)
         needs_prior = self.combiner in ("bcm", "rbcm")
-        largest = max(int(np.bincount(self.cluster_labels_).max()), 1)
+        largest = max(int(self._expert_sizes.max()), 1)
         # Each query row costs a kernel row against the biggest expert (plus workspace).
         row_bytes = 8 * (4 * largest + 8 * self.n_experts_)
         chunk = int(get_config()["working_memory"] * 2**20 // row_bytes)

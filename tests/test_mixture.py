@@ -32,7 +32,7 @@ from skoccmap.mixture import (
     _bisect,
     _ConstantExpert,
 )
-from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
+from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments, split_segments
 
 
 def _fast_expert(length_scale=1.5):
@@ -190,10 +190,15 @@ def test_small_clusters_are_merged_and_their_gates_summed(paper, grid):
     )
 
 
-def test_single_cluster_mixture_equals_its_expert(paper, grid):
+@pytest.mark.parametrize("max_beam_length", [None, 1.0])
+def test_single_cluster_mixture_equals_its_expert(paper, grid, max_beam_length):
     _, Q = grid
-    model = _mixture(clusterer=KMeans(1, n_init=1), max_expert_size=None).fit(paper.X, paper.y)
-    single = _fast_expert().fit(paper.X, paper.y)
+    model = _mixture(
+        clusterer=KMeans(1, n_init=1), max_expert_size=None, max_beam_length=max_beam_length
+    ).fit(paper.X, paper.y)
+    # The expert sees the beams cut into pieces of at most max_beam_length.
+    pieces, source = split_segments(paper.X, max_beam_length)
+    single = _fast_expert().fit(pieces, paper.y[source])
     mean, var = single.latent_mean_and_variance(Q)
     for combiner in ["moe", "poe", "gpoe", "bcm"]:
         model.set_params(combiner=combiner)
@@ -297,12 +302,21 @@ def test_share_hyperparameters_learns_once():
     for e in fitted:
         assert e.kernel_ == learned
         assert e.optimizer is None
-    # Learned on a sample spanning the map: the pieces' own evidence prefers other values.
-    sizes = np.bincount(model.cluster_labels_)
-    rows = np.flatnonzero(model.cluster_labels_ == np.argmax(sizes))
-    own = clone(expert).fit(data.X[rows], data.y[rows]).kernel_
-    assert not np.allclose(own.theta, learned.theta)
-
+    # The paper's data give fewer two-class experts than the pieces the sum may use, so
+    # the learned kernel is a stationary point of the summed evidence of all of them.
+    total = np.zeros_like(learned.theta)
+    for e in fitted:
+        total += e.log_marginal_likelihood(learned.theta, eval_gradient=True)[1]
+    bounds = learned.bounds
+    interior = (learned.theta > bounds[:, 0] + 1e-3) & (learned.theta < bounds[:, 1] - 1e-3)
+    assert interior.any()
+    scale = sum(abs(e.log_marginal_likelihood_value_) for e in fitted)
+    assert np.all(np.abs(total[interior]) < 1e-3 * scale)
+    # ... and not the optimum of one expert alone.
+    pieces, source = split_segments(data.X, model.max_beam_length)
+    rows = model.cluster_labels_[source] == np.argmax(np.bincount(model.cluster_labels_))
+    own = clone(expert).fit(pieces[rows], data.y[source][rows]).kernel_
+    assert not np.allclose(own.theta, learned.theta, atol=1e-2)
 
 def test_share_hyperparameters_needs_kernel_param(paper):
     model = _mixture(expert=_NoKernelExpert(), share_hyperparameters=True)
@@ -574,3 +588,19 @@ def test_similarity_length_scale(kernel, expected):
     from skoccmap.mixture import _similarity_length_scale
 
     np.testing.assert_allclose(np.atleast_1d(_similarity_length_scale(kernel, 2)), expected)
+
+
+def test_beams_are_cut_into_pieces_that_stay_with_their_beam(paper):
+    model = _mixture(max_beam_length=1.0).fit(paper.X, paper.y)
+    pieces, source = split_segments(paper.X, 1.0)
+    labels = model.cluster_labels_[source]
+    assert pieces.shape[0] > paper.X.shape[0]
+    for k, expert in enumerate(model.experts_):
+        if isinstance(expert, _ConstantExpert):
+            continue
+        X_train = expert.base_estimator_.X_train_
+        # The expert holds exactly the pieces of its rows, none longer than the bound.
+        np.testing.assert_array_equal(X_train, pieces[labels == k])
+        assert np.all(np.linalg.norm(X_train[:, 2:] - X_train[:, :2], axis=1) <= 1.0 + 1e-12)
+    # A beam's hit and all of its pieces share an expert: the expert of the hit's anchor.
+    assert np.all(model.cluster_labels_[source] == labels)

@@ -17,6 +17,7 @@ from skoccmap.observations import (
     segment_endpoints,
     segment_lengths,
     segment_midpoints,
+    split_segments,
 )
 
 
@@ -323,3 +324,30 @@ def test_segment_helpers():
         as_segments([[np.nan, 1.0]])
     with pytest.raises(ValueError, match="even number of columns"):
         segment_lengths([[0.0, 1.0, 2.0]])
+
+
+def test_split_segments_cuts_long_segments_into_equal_pieces():
+    X = np.array([[0.0, 0.0, 3.0, 4.0], [1.0, 1.0, 1.0, 1.0], [0.0, 0.0, 0.5, 0.0]])
+    pieces, source = split_segments(X, 2.0)
+    # 5 m -> 3 pieces of 5/3 m; a point and a short segment stay whole.
+    np.testing.assert_array_equal(source, [0, 0, 0, 1, 2])
+    np.testing.assert_allclose(segment_lengths(pieces), [5 / 3] * 3 + [0.0, 0.5])
+    # Consecutive pieces join, and together they span their segment.
+    np.testing.assert_allclose(pieces[:2, 2:], pieces[1:3, :2])
+    np.testing.assert_allclose(pieces[0, :2], X[0, :2])
+    np.testing.assert_allclose(pieces[2, 2:], X[0, 2:])
+    np.testing.assert_array_equal(pieces[3:], X[1:])
+
+
+@pytest.mark.parametrize("max_length", [None, np.inf])
+def test_split_segments_without_bound_keeps_segments(max_length):
+    X = np.array([[0.0, 0.0, 0.0, 30.0, 0.0, 0.0]])
+    pieces, source = split_segments(X, max_length)
+    np.testing.assert_array_equal(pieces, X)
+    np.testing.assert_array_equal(source, [0])
+
+
+@pytest.mark.parametrize("max_length", [0.0, -1.0, np.nan])
+def test_split_segments_rejects_bad_bound(max_length):
+    with pytest.raises(ValueError, match="max_length"):
+        split_segments([[0.0, 0.0, 1.0, 0.0]], max_length)
