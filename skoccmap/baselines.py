@@ -21,11 +21,15 @@ from numbers import Integral, Real
 import numpy as np
 from scipy.special import expit
 from sklearn.base import BaseEstimator, ClassifierMixin
+from sklearn.kernel_approximation import Nystroem
+from sklearn.linear_model import SGDClassifier
+from sklearn.utils import check_random_state
 from sklearn.utils._param_validation import Interval, StrOptions
 from sklearn.utils.multiclass import check_classification_targets, type_of_target
+from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-__all__ = ["FrequencyGridMap", "OccupancyGridMap", "traverse_cells"]
+__all__ = ["FrequencyGridMap", "HilbertMap", "OccupancyGridMap", "traverse_cells"]
 
 # Above this many cells in the bounding box the counts are accumulated sparsely (sort + unique)
 # instead of in a dense array.
@@ -672,3 +676,350 @@ class FrequencyGridMap(_CountingGridBase):
         occupied = np.zeros(pos.size, dtype=bool)
         occupied[seen] = self.hits_[pos[seen]] > self.passes_[pos[seen]]
         return occupied
+
+
+# --------------------------------------------------------------------------------------------
+# Hilbert map
+# --------------------------------------------------------------------------------------------
+
+# Query rows turned into Nystroem features at once (n_components float64 columns each).
+_FEATURE_BATCH = 8192
+
+
+def _free_points_per_row(starts, ends, spacing):
+    """Number of points sampled along each free row: one per ``spacing``, at least one."""
+    length = np.linalg.norm(ends - starts, axis=1)
+    # The cap only keeps absurdly long rows from overflowing the count.
+    return np.maximum(1, np.ceil(np.minimum(length / spacing, 1e12))).astype(np.int64)
+
+
+def _points_along(starts, ends, counts, index):
+    """The ``index``-th of all points along the rows, ``counts[i]`` per row in row order.
+
+    Row ``i`` is cut into ``counts[i]`` equal pieces and holds the pieces' centres.
+    """
+    offsets = np.cumsum(counts)
+    row = np.searchsorted(offsets, index, side="right")
+    k = index - (offsets[row] - counts[row])
+    t = ((k + 0.5) / counts[row])[:, None]
+    return starts[row] + t * (ends[row] - starts[row])
+
+
+class HilbertMap(ClassifierMixin, BaseEstimator):
+    """Hilbert map: logistic regression on kernel features (Ramos & Ott, RSS 2015).
+
+    The continuous occupancy map of Ramos & Ott, assembled from scikit-learn parts: the
+    training points are mapped to :class:`~sklearn.kernel_approximation.Nystroem` features of
+    an RBF kernel ``exp(-gamma * |x - x'|^2)``, and a logistic regression on those features is
+    fitted by stochastic gradient descent (:class:`~sklearn.linear_model.SGDClassifier` with
+    ``loss="log_loss"``). Occupancy probabilities are the classifier's ``predict_proba``.
+
+    Training points, from segment rows ``[start, end]``:
+
+    - every row of the occupied class (the larger label, ``classes_[1]``) gives its end point
+      (hits are zero-length segments);
+    - every free row gives ``max(1, ceil(length / free_spacing))`` points, the centres of as
+      many equal pieces of the row: one point every ``free_spacing`` metres at most, one point
+      for a zero-length free row.
+
+    When there are more than ``max_samples`` such points, ``max_samples`` of them are drawn
+    uniformly without replacement, within each class in proportion to its size (at least one
+    of each), so that the fit costs the same whatever the size of the log. Nystroem draws its
+    ``n_components`` landmarks uniformly from the training points. Queries are segments looked
+    up at their midpoints (a point is a zero-length segment).
+
+    Free points outnumber hits (about ten to one on laser logs). By default the classes are
+    not reweighted, as in the paper's code: the probabilities then follow the data's class
+    frequencies, and far from all data the map returns to the intercept, which leans towards
+    free. ``class_weight="balanced"`` weights the two classes equally instead.
+
+    Works in any dimension ``D`` (``2 * D`` columns).
+
+    Parameters
+    ----------
+    gamma : float, default=1.0
+        RBF kernel coefficient, in 1/m^2: ``gamma = 1 / (2 * l^2)`` for a length scale ``l``.
+        1.0 (``l`` = 0.71 m) is the default of the reference implementation's CARMEN example;
+        on the ACES log it beat 0.5, 2 and 5 at 2000 components and tied 0.5 at 1000.
+    n_components : int, default=1000
+        Nystroem landmarks (features), as in the paper. The landmarks must cover the mapped
+        area within a few length scales, so large maps want more: on ACES (57 m x 57 m), 2000
+        components raised the held-out AUC by about 0.02 at 2.5 times the fit time. At most
+        the number of training points are used.
+    alpha : float, default=1e-6
+        Regularisation strength of the SGD classifier. The reference code's 1e-4 underfits
+        at a kernel length scale under a metre (held-out AUC 0.83 against 0.91 for 1e-6 on
+        ACES); 1e-7 gained little more at three times the iterations.
+    penalty : {"l2", "l1", "elasticnet"} or None, default="l2"
+        Regularisation of the SGD classifier. The paper's code uses ``"elasticnet"``; on ACES it
+        gave the same AUC as ``"l2"`` at about 1.5 times the fit time.
+    l1_ratio : float, default=0.15
+        Elastic-net mixing (``penalty="elasticnet"`` only); 0.15 as in the paper's code.
+    free_spacing : float, default=0.5
+        Largest spacing in metres of the points sampled along free rows: under the kernel's
+        length scale, so that no stretch of a beam goes unconstrained. (The paper's code draws
+        one random point per 2 m of beam; with ``max_samples`` bounding the total, ACES gave
+        the same AUC at 0.5, 1 and 2 m.)
+    max_samples : int or None, default=50_000
+        Training points kept (hits and free points together); ``None`` keeps all. 50 000
+        points at 1000 components fit in seconds on one core and store 200 MB of float32
+        features; on ACES, 100 000 did not raise the AUC.
+    class_weight : dict, "balanced" or None, default=None
+        Passed to the SGD classifier; dictionary keys are class labels of ``y``. ``None``:
+        no reweighting, as in the paper's code (see above).
+    max_iter : int, default=100
+        Passes (epochs) over the training points at most. At ``alpha=1e-6`` the classifier
+        stopped after 30-40 epochs on ACES; reaching ``max_iter`` raises a
+        :class:`~sklearn.exceptions.ConvergenceWarning`.
+    tol : float or None, default=1e-3
+        Stopping criterion of the SGD classifier (scikit-learn's default).
+    layout : {"auto", "segments", "points"}, default="auto"
+        How rows of ``X`` are read; see :class:`OccupancyGridMap`.
+    random_state : int, RandomState instance or None, default=None
+        Seeds the sampling of the training points, the landmarks and the SGD passes.
+
+    Attributes
+    ----------
+    classes_ : ndarray of shape (2,)
+        Class labels; ``classes_[1]`` is the occupied class.
+    nystroem_ : sklearn.kernel_approximation.Nystroem
+        The fitted feature map; its ``components_`` are the landmarks.
+    classifier_ : sklearn.linear_model.SGDClassifier
+        The logistic regression on the features, fitted on labels 0 (free) and 1 (occupied).
+    n_training_points_ : int
+        Training points used (at most ``max_samples``).
+    n_iter_ : int
+        Epochs the SGD classifier ran.
+    extent_ : ndarray of shape (2 * n_dims,)
+        ``[min_1, max_1, ..., min_D, max_D]`` of the rows seen in fit, for
+        :class:`skoccmap.OccupancyGrid`.
+    n_features_in_ : int
+        Number of columns seen in fit (``2 * n_dims``).
+
+    See Also
+    --------
+    FrequencyGridMap : The counting grid the Hilbert-map papers compare against.
+
+    References
+    ----------
+    F. Ramos and L. Ott, "Hilbert maps: scalable continuous occupancy mapping with stochastic
+    gradient descent", Robotics: Science and Systems, 2015.
+
+    Examples
+    --------
+    Beams from the origin to a wall at x = 2:
+
+    >>> import numpy as np
+    >>> from skoccmap.baselines import HilbertMap
+    >>> y_wall = np.linspace(-1.0, 1.0, 21)
+    >>> hits = np.column_stack([np.full(21, 2.0), y_wall])
+    >>> beams = np.hstack([np.zeros((21, 2)), hits - [0.05, 0.0]])
+    >>> X = np.vstack([beams, np.hstack([hits, hits])])
+    >>> y = np.r_[np.zeros(21), np.ones(21)]
+    >>> hm = HilbertMap(n_components=100, random_state=0).fit(X, y)
+    >>> queries = np.array([[2.0, 0.0, 2.0, 0.0], [0.8, 0.0, 0.8, 0.0]])
+    >>> hm.predict(queries)
+    array([1., 0.])
+    """
+
+    _parameter_constraints: dict = {
+        "gamma": [Interval(Real, 0, None, closed="neither")],
+        "n_components": [Interval(Integral, 1, None, closed="left")],
+        "alpha": [Interval(Real, 0, None, closed="left")],
+        "penalty": [StrOptions({"l2", "l1", "elasticnet"}), None],
+        "l1_ratio": [Interval(Real, 0, 1, closed="both")],
+        "free_spacing": [Interval(Real, 0, None, closed="neither")],
+        "max_samples": [Interval(Integral, 2, None, closed="left"), None],
+        "class_weight": [StrOptions({"balanced"}), dict, None],
+        "max_iter": [Interval(Integral, 1, None, closed="left")],
+        "tol": [Interval(Real, None, None, closed="neither"), None],
+        "layout": [StrOptions({"auto", "segments", "points"})],
+        "random_state": ["random_state"],
+    }
+
+    def __init__(
+        self,
+        gamma=1.0,
+        *,
+        n_components=1000,
+        alpha=1e-6,
+        penalty="l2",
+        l1_ratio=0.15,
+        free_spacing=0.5,
+        max_samples=50_000,
+        class_weight=None,
+        max_iter=100,
+        tol=1e-3,
+        layout="auto",
+        random_state=None,
+    ):
+        self.gamma = gamma
+        self.n_components = n_components
+        self.alpha = alpha
+        self.penalty = penalty
+        self.l1_ratio = l1_ratio
+        self.free_spacing = free_spacing
+        self.max_samples = max_samples
+        self.class_weight = class_weight
+        self.max_iter = max_iter
+        self.tol = tol
+        self.layout = layout
+        self.random_state = random_state
+
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.classifier_tags.multi_class = False
+        # Columns are coordinates of segment end points and the kernel's length scale is in
+        # metres; on generic features (the checks' blobs) the score need not be good.
+        tags.classifier_tags.poor_score = True
+        return tags
+
+    def fit(self, X, y):
+        """Sample training points from the rows and fit the features and the classifier.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, 2 * n_dims)
+            Segment rows ``[start, end]``; hits are zero-length segments.
+        y : array-like of shape (n_samples,)
+            Two classes; the larger label (``classes_[1]``) marks hits.
+
+        Returns
+        -------
+        self : HilbertMap
+            The fitted map.
+        """
+        self._validate_params()
+        X, y = validate_data(self, X, y, dtype=np.float64)
+        self.classes_, y_idx = _binary_classes(y, type(self).__name__)
+        class_weight = self._class_weight()
+        starts, ends = _split_rows(X, self.layout)
+        self.extent_ = np.column_stack(
+            [
+                np.minimum(starts.min(axis=0), ends.min(axis=0)),
+                np.maximum(starts.max(axis=0), ends.max(axis=0)),
+            ]
+        ).ravel()
+        rng = check_random_state(self.random_state)
+        points, labels = self._training_points(starts, ends, y_idx == 1, rng)
+        self.n_training_points_ = labels.size
+
+        self.nystroem_ = Nystroem(
+            kernel="rbf",
+            gamma=self.gamma,
+            n_components=min(self.n_components, labels.size),
+            random_state=rng.randint(np.iinfo(np.int32).max),
+        ).fit(points)
+        # float32 features halve the memory; the classifier fits in float32 (same AUC).
+        features = np.empty((labels.size, self.nystroem_.n_components), dtype=np.float32)
+        for lo in range(0, labels.size, _FEATURE_BATCH):
+            features[lo : lo + _FEATURE_BATCH] = self.nystroem_.transform(
+                points[lo : lo + _FEATURE_BATCH]
+            )
+        self.classifier_ = SGDClassifier(
+            loss="log_loss",
+            penalty=self.penalty,
+            alpha=self.alpha,
+            l1_ratio=self.l1_ratio,
+            max_iter=self.max_iter,
+            tol=self.tol,
+            class_weight=class_weight,
+            random_state=rng.randint(np.iinfo(np.int32).max),
+        ).fit(features, labels)
+        self.n_iter_ = int(self.classifier_.n_iter_)
+        return self
+
+    def _class_weight(self):
+        """``class_weight`` with the labels of ``y`` replaced by 0 (free) and 1 (occupied)."""
+        if not isinstance(self.class_weight, dict):
+            return self.class_weight
+        weights = {}
+        for label, weight in self.class_weight.items():
+            matches = np.flatnonzero(self.classes_ == label)
+            if matches.size == 0:
+                raise ValueError(
+                    f"class_weight has a weight for class {label!r}, which is not in y "
+                    f"(classes {self.classes_.tolist()})."
+                )
+            weights[int(matches[0])] = weight
+        return weights
+
+    def _training_points(self, starts, ends, hit, rng):
+        """Hit end points and points along the free rows, at most ``max_samples`` of them."""
+        hits = ends[hit]
+        free_starts, free_ends = starts[~hit], ends[~hit]
+        counts = _free_points_per_row(free_starts, free_ends, float(self.free_spacing))
+        n_hit, n_free = hits.shape[0], int(counts.sum())
+        take_hit, take_free = n_hit, n_free
+        if self.max_samples is not None and n_hit + n_free > self.max_samples:
+            take_hit = int(round(self.max_samples * n_hit / (n_hit + n_free)))
+            take_hit = min(max(take_hit, 1), n_hit, self.max_samples - 1)
+            take_free = self.max_samples - take_hit
+        if take_hit < n_hit:
+            hits = hits[np.sort(sample_without_replacement(n_hit, take_hit, random_state=rng))]
+        if take_free < n_free:
+            index = np.sort(sample_without_replacement(n_free, take_free, random_state=rng))
+        else:
+            index = np.arange(n_free)
+        free = _points_along(free_starts, free_ends, counts, index)
+        labels = np.r_[np.ones(hits.shape[0], np.int64), np.zeros(free.shape[0], np.int64)]
+        return np.vstack([hits, free]), labels
+
+    def _batches(self, X):
+        """Features of the query rows' midpoints, in batches (validated before the first)."""
+        check_is_fitted(self)
+        X = validate_data(self, X, reset=False, dtype=np.float64)
+        starts, ends = _split_rows(X, self.layout)
+        mid = 0.5 * (starts + ends)
+        return (
+            self.nystroem_.transform(mid[lo : lo + _FEATURE_BATCH])
+            for lo in range(0, mid.shape[0], _FEATURE_BATCH)
+        )
+
+    def decision_function(self, X):
+        """Log-odds of occupancy at the query segments' midpoints.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * n_dims)
+            Query segment rows; points are zero-length segments.
+
+        Returns
+        -------
+        log_odds : ndarray of shape (n_queries,)
+            Positive where ``classes_[1]`` (occupied) is more probable.
+        """
+        parts = [self.classifier_.decision_function(f) for f in self._batches(X)]
+        return np.concatenate(parts).astype(np.float64) if parts else np.zeros(0)
+
+    def predict_proba(self, X):
+        """Occupancy probability at the query segments' midpoints.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * n_dims)
+            Query segment rows; points are zero-length segments.
+
+        Returns
+        -------
+        proba : ndarray of shape (n_queries, 2)
+            Column 1 is P(occupied), the SGD classifier's ``predict_proba``.
+        """
+        parts = [self.classifier_.predict_proba(f) for f in self._batches(X)]
+        return np.vstack(parts).astype(np.float64) if parts else np.zeros((0, 2))
+
+    def predict(self, X):
+        """Most probable class at the query segments' midpoints.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * n_dims)
+            Query segment rows.
+
+        Returns
+        -------
+        y : ndarray of shape (n_queries,)
+            ``classes_[1]`` where the log-odds are positive, else ``classes_[0]``.
+        """
+        occupied = self.decision_function(X) > 0
+        return self.classes_[occupied.astype(int)]

@@ -8,9 +8,10 @@ from hypothesis import strategies as st
 from scipy.special import expit
 from sklearn.base import clone
 from sklearn.exceptions import NotFittedError
+from sklearn.metrics import roc_auc_score
 from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
-from skoccmap.baselines import FrequencyGridMap, OccupancyGridMap, traverse_cells
+from skoccmap.baselines import FrequencyGridMap, HilbertMap, OccupancyGridMap, traverse_cells
 
 
 def _cells_by_slabs(start, end, origin, res, shape):
@@ -522,10 +523,140 @@ def test_frequency_bad_input():
 
 
 # --------------------------------------------------------------------------------------------
+# HilbertMap
+# --------------------------------------------------------------------------------------------
+
+
+def _room_scans(n_poses, n_beams, rng, n_dims=2, half=2.0):
+    """Beams from random poses inside a box room to its walls: rows, labels, the hits."""
+    sensors = rng.uniform(-0.6 * half, 0.6 * half, (n_poses, n_dims))
+    direction = rng.normal(size=(n_poses, n_beams, n_dims))
+    direction /= np.linalg.norm(direction, axis=2, keepdims=True)
+    # Distance to the first wall along each beam.
+    with np.errstate(divide="ignore"):
+        reach = np.min((half - np.sign(direction) * sensors[:, None]) / np.abs(direction), axis=2)
+    hits = (sensors[:, None] + reach[..., None] * direction).reshape(-1, n_dims)
+    direction = direction.reshape(-1, n_dims)
+    starts = np.repeat(sensors, n_beams, axis=0)
+    beam_ends = hits - 0.05 * direction
+    X = np.vstack([np.hstack([starts, beam_ends]), np.hstack([hits, hits])])
+    y = np.r_[np.zeros(len(hits)), np.ones(len(hits))]
+    return X, y, hits
+
+
+def _wall_and_free_auc(est, rng, n_dims=2, half=2.0):
+    """AUC on fresh hits on the walls against fresh points inside the room."""
+    _, _, wall = _room_scans(10, 30, rng, n_dims, half)
+    inside = rng.uniform(-0.8 * half, 0.8 * half, (len(wall), n_dims))
+    points = np.vstack([wall, inside])
+    labels = np.r_[np.ones(len(wall)), np.zeros(len(inside))]
+    return roc_auc_score(labels, est.predict_proba(np.hstack([points, points]))[:, 1])
+
+
+def test_hilbert_map_separates_walls_from_free_space():
+    rng = np.random.default_rng(10)
+    X, y, _ = _room_scans(20, 40, rng)
+    est = HilbertMap(n_components=300, random_state=0).fit(X, y)
+    assert _wall_and_free_auc(est, rng) > 0.9
+    proba = est.predict_proba(X)
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+    np.testing.assert_allclose(proba[:, 1], expit(est.decision_function(X)), atol=1e-6)
+    assert est.n_iter_ >= 1 and est.n_training_points_ <= 50_000
+
+
+def test_hilbert_map_is_deterministic_with_random_state():
+    rng = np.random.default_rng(11)
+    X, y, _ = _room_scans(10, 30, rng)
+    queries = rng.uniform(-2, 2, (200, 2))
+    queries = np.hstack([queries, queries])
+    params = dict(n_components=100, max_samples=500)
+    a = HilbertMap(random_state=3, **params).fit(X, y).predict_proba(queries)
+    b = HilbertMap(random_state=3, **params).fit(X, y).predict_proba(queries)
+    c = HilbertMap(random_state=4, **params).fit(X, y).predict_proba(queries)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+
+
+def test_hilbert_map_3d():
+    rng = np.random.default_rng(12)
+    X, y, _ = _room_scans(10, 200, rng, n_dims=3)
+    est = HilbertMap(n_components=300, random_state=0).fit(X, y)
+    assert est.nystroem_.components_.shape == (300, 3)
+    assert _wall_and_free_auc(est, rng, n_dims=3) > 0.85
+
+
+def test_hilbert_map_training_points():
+    # A hit, a 2 m free beam (4 points, one every 0.5 m: the centres of 4 equal pieces) and a
+    # zero-length free row (1 point). With as many landmarks, the landmarks are all of them.
+    X = np.array([[2.1, 0.0, 2.1, 0.0], [0.0, 0.0, 2.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
+    est = HilbertMap(n_components=10, free_spacing=0.5, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 6
+    landmarks = sorted(map(tuple, est.nystroem_.components_.round(9).tolist()))
+    expected = [(0.0, 1.0), (0.25, 0.0), (0.75, 0.0), (1.25, 0.0), (1.75, 0.0), (2.1, 0.0)]
+    assert landmarks == expected
+    # A spacing that does not divide the length: ceil(2 / 0.8) = 3 points.
+    est = HilbertMap(n_components=10, free_spacing=0.8, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 5
+
+
+def test_hilbert_map_max_samples_keeps_both_classes():
+    # One hit among 4000 free points: a draw of 20 still holds the hit.
+    X = np.array([[9.0, 0.0, 9.0, 0.0]] + [[0.0, 0.0, 0.0, 50.0]] * 40)
+    y = [1] + [0] * 40
+    est = HilbertMap(n_components=20, free_spacing=0.5, max_samples=20, random_state=0)
+    est.fit(X, y)
+    assert est.n_training_points_ == 20
+    assert [9.0, 0.0] in est.nystroem_.components_.tolist()
+    every = HilbertMap(n_components=20, max_samples=None, random_state=0).fit(X, y)
+    assert every.n_training_points_ == 1 + 40 * 100
+
+
+def test_hilbert_map_labels_and_class_weight():
+    rng = np.random.default_rng(13)
+    X, y, _ = _room_scans(5, 20, rng)
+    labels = np.where(y == 1, "wall", "free")
+    weights = {"free": 1.0, "wall": 5.0}
+    params = dict(n_components=50, alpha=1e-3, random_state=0)
+    est = HilbertMap(class_weight=weights, **params).fit(X, labels)
+    np.testing.assert_array_equal(est.classes_, ["free", "wall"])
+    assert est.classifier_.class_weight == {0: 1.0, 1: 5.0}
+    assert set(est.predict(X)) <= {"free", "wall"}
+    # More weight on the walls raises the probabilities over the room.
+    plain = HilbertMap(**params).fit(X, labels)
+    queries = rng.uniform(-2, 2, (500, 2))
+    queries = np.hstack([queries, queries])
+    assert (
+        est.predict_proba(queries)[:, 1].mean() > plain.predict_proba(queries)[:, 1].mean() + 0.05
+    )
+    with pytest.raises(ValueError, match="class_weight has a weight for class 'door'"):
+        HilbertMap(class_weight={"door": 2.0}).fit(X, labels)
+
+
+def test_hilbert_map_bad_input():
+    X = np.zeros((4, 4))
+    with pytest.raises(ValueError, match="2 classes"):
+        HilbertMap().fit(X, [1, 1, 1, 1])
+    with pytest.raises(ValueError, match="Only binary"):
+        HilbertMap().fit(X, [0, 1, 2, 1])
+    with pytest.raises(ValueError, match="NaN"):
+        HilbertMap().fit(np.full((4, 4), np.nan), [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="free_spacing"):
+        HilbertMap(free_spacing=0.0).fit(X, [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="max_samples"):
+        HilbertMap(max_samples=1).fit(X, [0, 1, 0, 1])
+    with pytest.raises(NotFittedError):
+        HilbertMap().predict(X)
+    est = HilbertMap(n_components=4, random_state=0).fit(X + np.arange(4)[:, None], [0, 1, 0, 1])
+    with pytest.raises(ValueError, match="features"):
+        est.predict_proba(np.zeros((2, 6)))
+
+
+# --------------------------------------------------------------------------------------------
 # scikit-learn's estimator checks for the estimators not in tests/test_common.py
 # --------------------------------------------------------------------------------------------
 
-CHECKED = [FrequencyGridMap()]
+# Small: the checks' data sets have tens of rows.
+CHECKED = [FrequencyGridMap(), HilbertMap(n_components=50)]
 
 
 @parametrize_with_checks(CHECKED)
