@@ -603,12 +603,23 @@ def test_hilbert_map_max_samples_keeps_both_classes():
     # One hit among 4000 free points: a draw of 20 still holds the hit.
     X = np.array([[9.0, 0.0, 9.0, 0.0]] + [[0.0, 0.0, 0.0, 50.0]] * 40)
     y = [1] + [0] * 40
-    est = HilbertMap(n_components=20, free_spacing=0.5, max_samples=20, random_state=0)
-    est.fit(X, y)
+    params = dict(n_components=20, max_free_length=None, random_state=0)
+    est = HilbertMap(free_spacing=0.5, max_samples=20, **params).fit(X, y)
     assert est.n_training_points_ == 20
     assert [9.0, 0.0] in est.nystroem_.components_.tolist()
-    every = HilbertMap(n_components=20, max_samples=None, random_state=0).fit(X, y)
+    every = HilbertMap(max_samples=None, **params).fit(X, y)
     assert every.n_training_points_ == 1 + 40 * 100
+
+
+def test_hilbert_map_skips_free_rows_beyond_max_free_length():
+    # A 50 m beam (no return) and a 2 m one: by default only the short one gives points.
+    X = np.array([[2.1, 0.0, 2.1, 0.0], [0.0, 0.0, 2.0, 0.0], [0.0, 0.0, 0.0, 50.0]])
+    est = HilbertMap(n_components=10, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 1 + 4
+    est = HilbertMap(n_components=10, max_free_length=None, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 1 + 4 + 100
+    with pytest.raises(ValueError, match="every free row is longer than max_free_length=1"):
+        HilbertMap(max_free_length=1.0).fit(X, [1, 0, 0])
 
 
 def test_hilbert_map_labels_and_class_weight():
@@ -659,6 +670,9 @@ def test_hilbert_map_bad_input():
 CHECKED = [FrequencyGridMap(), HilbertMap(n_components=50)]
 
 
+# check_class_weight_classifiers weights one class 10^7 times the other; SGD then need not
+# settle within max_iter.
+@pytest.mark.filterwarnings("ignore::sklearn.exceptions.ConvergenceWarning")
 @parametrize_with_checks(CHECKED)
 def test_estimator_checks(estimator, check):
     check(estimator)
