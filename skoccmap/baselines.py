@@ -977,6 +977,7 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
         n_hit, n_free = hits.shape[0], int(counts.sum())
         take_hit, take_free = n_hit, n_free
         if self.max_samples is not None and n_hit + n_free > self.max_samples:
+            # Per class in proportion, at least one of each (then take_free <= n_free too).
             take_hit = int(round(self.max_samples * n_hit / (n_hit + n_free)))
             take_hit = min(max(take_hit, 1), n_hit, self.max_samples - 1)
             take_free = self.max_samples - take_hit
@@ -986,9 +987,9 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
             index = np.sort(sample_without_replacement(n_free, take_free, random_state=rng))
         else:
             index = np.arange(n_free)
-        free = _points_along(free_starts, free_ends, counts, index)
-        labels = np.r_[np.ones(hits.shape[0], np.int64), np.zeros(free.shape[0], np.int64)]
-        return np.vstack([hits, free]), labels
+        free_points = _points_along(free_starts, free_ends, counts, index)
+        labels = np.r_[np.ones(len(hits), np.int64), np.zeros(len(free_points), np.int64)]
+        return np.vstack([hits, free_points]), labels
 
     def _batches(self, X):
         """Features of the query rows' midpoints, in batches (validated before the first)."""
