@@ -1,16 +1,18 @@
-"""The benchmark suite in one command: workloads B1-B3 with the baselines, same run.
+"""The benchmark suite in one command: workloads B1-B4 with the baselines, same run.
 
 Run::
 
-    python benchmarks/run.py              # full: B1, B2 (1k..64k), B3 (all, 10th, 40th scan)
-    python benchmarks/run.py --quick      # smoke run, a few minutes
+    python benchmarks/run.py              # full: B1, B2 (1k..64k), B3 (all, 10th, 40th scan), B4
+    python benchmarks/run.py --quick      # smoke run, a few minutes per workload
     python benchmarks/run.py --only B3 --skip-full-log   # B3 on every 10th and 40th only
+    python benchmarks/run.py --only B4 --n-jobs 2        # map quality only (the longest)
 
 Every process runs one BLAS thread (set below, before numpy is imported). Prints one
 markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_paper.json``,
-``bench_mixture.json`` (B2, written by ``bench_mixture.py``), ``b3_intel.json`` and a
-summary ``run.json`` (``run_B1_B3.json`` and so on for a partial run); ``--quick`` writes
-them to ``benchmarks/results/quick/``.
+``bench_mixture.json`` (B2, written by ``bench_mixture.py``), ``b3_intel.json``,
+``bench_quality.json`` (B4, written by ``bench_quality.py``) and a summary ``run.json``
+(``run_B1_B3.json`` and so on for a partial run); ``--quick`` writes them to
+``benchmarks/results/quick/``.
 
 - **B1**, the paper's simulation (``skoccmap.experiment.run_paper_experiment``): mixture of
   GP experts, BCM and our single ``EPGaussianProcessClassifier`` with ``IntegralKernel``,
@@ -29,6 +31,10 @@ them to ``benchmarks/results/quick/``.
   (``OccupancyGrid.from_estimator``, probability and variance).
   The single GP and scikit-learn's GPC are not run on B3: they are cubic in n, and every
   40th scan already gives ~7k observations (~30k points for the GPC).
+- **B4**, map quality: ``benchmarks/bench_quality.py`` run as a subprocess (simulated worlds
+  scored against their true maps at the ROS thresholds; Intel and ACES on the Hilbert-maps
+  protocol; against the frequency grid, the per-scan log-odds grid and the Hilbert map).
+  ``--skip-full-log`` passes ``--logs-every 10 40`` (no training on all scans).
 """
 
 import os
@@ -62,7 +68,7 @@ from skoccmap.observations import as_segments  # noqa: E402
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 INTEL = HERE.parents[1] / "shared" / "data" / "intel.gfs.log"
-WORKLOADS = ("B1", "B2", "B3")
+WORKLOADS = ("B1", "B2", "B3", "B4")
 
 
 def timed(func, *args, **kwargs):
@@ -310,6 +316,33 @@ def run_b3(args):
 
 
 # ---------------------------------------------------------------------------------------
+# B4: map quality (bench_quality.py)
+# ---------------------------------------------------------------------------------------
+
+
+def run_b4(args):
+    print("\nB4: map quality (benchmarks/bench_quality.py) ...", flush=True)
+    command = [
+        sys.executable,
+        str(HERE / "bench_quality.py"),
+        "--n-jobs",
+        str(args.n_jobs),
+        "--out",
+        str(args.results),
+    ]
+    if args.quick:
+        command.append("--quick")
+    elif args.skip_full_log:
+        command += ["--logs-every", "10", "40"]
+    completed = subprocess.run(command, env=os.environ.copy(), check=False)
+    path = args.results / "bench_quality.json"
+    if completed.returncode != 0 or not path.is_file():
+        print(f"B4 failed (exit status {completed.returncode})", flush=True)
+        return {"benchmark": "B4 map quality", "error": completed.returncode}
+    return json.loads(path.read_text())
+
+
+# ---------------------------------------------------------------------------------------
 
 
 def parse_args(argv=None):
@@ -321,7 +354,7 @@ def parse_args(argv=None):
     parser.add_argument(
         "--skip-full-log",
         action="store_true",
-        help="B3 without training on all training scans (saves ~3 min)",
+        help="B3 and B4 without training on all training scans (saves ~3 min in B3)",
     )
     parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
     parser.add_argument(
@@ -361,7 +394,7 @@ def main(argv=None):
         "blas_threads": 1,
         "workloads": {},
     }
-    runners = {"B1": run_b1, "B2": run_b2, "B3": run_b3}
+    runners = {"B1": run_b1, "B2": run_b2, "B3": run_b3, "B4": run_b4}
     files = {"B1": "b1_paper.json", "B3": "b3_intel.json"}
     for workload in WORKLOADS:
         if workload not in args.only:

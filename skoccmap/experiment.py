@@ -51,8 +51,8 @@ def _signal_and_integral_kernel():
 
     from .kernels import IntegralKernel
 
-    # The mixture's default expert kernel, so the single GP differs from the experts only in
-    # the data it sees.
+    # The paper's kernel, signal variance and length scale learned, for the single GP and the
+    # experts alike: they differ only in the data they see.
     return ConstantKernel(1.0, (1e-3, 1e3)) * IntegralKernel()
 
 
@@ -125,8 +125,14 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                     kernel=single_kernel, optimizer=None, random_state=random_state
                 )
         else:
+            # The paper's model: whole beams, both hyperparameters learned.
             models[method] = MixtureGPOccupancyMap(
-                combiner=method, n_jobs=n_jobs, random_state=random_state
+                expert=EPGaussianProcessClassifier(kernel=_signal_and_integral_kernel()),
+                combiner=method,
+                max_beam_length=None,
+                beam_end_length=None,
+                n_jobs=n_jobs,
+                random_state=random_state,
             )
     return models
 

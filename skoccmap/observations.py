@@ -565,24 +565,34 @@ def segment_lengths(X):
     return np.linalg.norm(end - start, axis=1)
 
 
-def split_segments(X, max_length):
-    """Cut segments longer than ``max_length`` into equal pieces no longer than it.
+def split_segments(X, max_length, *, end_length=None, graded=None):
+    """Cut segments into pieces no longer than ``max_length``, shorter towards their end.
 
     A whole beam is one observation of the *average* of the latent function along it
     under :class:`~skoccmap.IntegralKernel`, which barely constrains the function near the
-    beam's end, next to the wall it hit. Bounded pieces keep that free-space evidence local.
+    beam's end, next to the wall it hit. Bounded pieces keep that free-space evidence local;
+    pieces that halve in length towards the end (down to ``end_length``) make it finest
+    where it matters, next to the wall, for a number of pieces that grows with the
+    logarithm of the beam's length there.
 
     Parameters
     ----------
     X : array-like of shape (n_segments, 2 * D)
         Segment rows ``[start, end]``; points (zero-length rows) are kept as they are.
-    max_length : float
-        Longest piece in metres, > 0; ``None`` or ``inf`` keeps every segment whole.
+    max_length : float or None
+        Longest piece in metres, > 0; ``None`` or ``inf`` sets no bound.
+    end_length : float or None, default=None
+        Length of the last piece of a graded segment; the pieces before it are twice as
+        long each, up to ``max_length``, and the rest is cut into equal pieces no longer
+        than ``max_length``. ``None`` cuts every segment into equal pieces.
+    graded : array-like of bool of shape (n_segments,), default=None
+        Segments cut with pieces shrinking towards their end (e.g. beams with a return);
+        ``None`` means all of them, when ``end_length`` is given.
 
     Returns
     -------
     pieces : ndarray of shape (n_pieces, 2 * D)
-        The pieces, in the order of their segments and along each segment.
+        The pieces, in the order of their segments and from start to end along each.
     source : ndarray of shape (n_pieces,), dtype intp
         Row of ``X`` each piece comes from (``X[source]`` repeats labels, scans, ...).
 
@@ -597,22 +607,58 @@ def split_segments(X, max_length):
            [1.        , 1.        , 1.        , 1.        ]])
     >>> source
     array([0, 0, 0, 1])
+    >>> pieces, _ = split_segments([[0.0, 0.0, 5.0, 0.0]], 2.0, end_length=0.5)
+    >>> pieces[:, [0, 2]]  # pieces of 0.5 and 1 m at the end, 3.5 m cut in two before
+    array([[0.  , 1.75],
+           [1.75, 3.5 ],
+           [3.5 , 4.5 ],
+           [4.5 , 5.  ]])
     """
     X = check_segments(X, allow_empty=True)
-    n_pieces = np.ones(X.shape[0], dtype=np.intp)
-    if max_length is not None:
-        max_length = float(max_length)
-        if not max_length > 0:
-            raise ValueError(f"max_length must be > 0 or None, got {max_length!r}.")
-        if np.isfinite(max_length):
-            n_pieces = np.maximum(np.ceil(segment_lengths(X) / max_length), 1).astype(np.intp)
+    max_length = _check_piece_length(max_length, "max_length", allow_none=True)
+    lengths = segment_lengths(X)
+    # Boundaries of the graded pieces, as distances from the end: 0, e, 3e, 7e, ...
+    ends = np.zeros(1)
+    if end_length is not None and X.shape[0]:
+        end_length = _check_piece_length(end_length, "end_length")
+        n_graded = int(np.ceil(np.log2(max(lengths.max(), end_length) / end_length))) + 1
+        piece = end_length * 2.0 ** np.arange(n_graded)
+        ends = np.r_[0.0, np.cumsum(piece[piece < max_length])]
+    is_graded = np.ones(X.shape[0], bool) if graded is None else np.asarray(graded, bool)
+    if is_graded.shape != (X.shape[0],):
+        raise ValueError(f"graded must have shape ({X.shape[0]},), got {is_graded.shape}.")
+    # Graded pieces that fit strictly inside each segment, then equal pieces for the rest.
+    n_end = np.where(is_graded, np.sum(ends[None, 1:] < lengths[:, None], axis=1), 0)
+    rest = lengths - ends[n_end]
+    n_rest = np.ones(X.shape[0], dtype=np.intp)
+    if np.isfinite(max_length):
+        n_rest = np.maximum(np.ceil(rest / max_length), 1).astype(np.intp)
+    n_pieces = n_end + n_rest
     source = np.repeat(np.arange(X.shape[0]), n_pieces)
-    # Index of each piece along its segment: 0 .. n_pieces - 1.
+    # Index of each piece counted from its segment's end: 0 .. n_pieces - 1.
     first = np.cumsum(n_pieces) - n_pieces
-    k = np.arange(source.size) - first[source]
+    p = n_pieces[source] - 1 - (np.arange(source.size) - first[source])
+    in_end = p < n_end[source]
+    u = np.where(in_end, 0, p - n_end[source])
+    base, step = ends[n_end[source]], rest[source] / n_rest[source]
+    near = np.where(in_end, ends[np.minimum(p, ends.size - 1)], base + u * step)
+    far = np.where(in_end, ends[np.minimum(p + 1, ends.size - 1)], base + (u + 1) * step)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t0 = np.nan_to_num(1.0 - far / lengths[source])[:, None]
+        t1 = np.nan_to_num(1.0 - near / lengths[source], nan=1.0)[:, None]
     d = X.shape[1] // 2
     start, end = X[source, :d], X[source, d:]
-    t0 = (k / n_pieces[source])[:, None]
-    t1 = ((k + 1) / n_pieces[source])[:, None]
     pieces = np.concatenate([start + t0 * (end - start), start + t1 * (end - start)], axis=1)
     return pieces, source
+
+
+def _check_piece_length(value, name, allow_none=False):
+    if value is None and allow_none:
+        return np.inf
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number > 0, got {value!r}.") from None
+    if not value > 0:
+        raise ValueError(f"{name} must be > 0, got {value!r}.")
+    return value

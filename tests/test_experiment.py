@@ -122,8 +122,14 @@ def test_single_gp_reuses_the_mixture_kernel(result):
 def test_moe_and_bcm_share_clusters_and_differ_in_merging():
     models = make_models(["moe", "bcm"], random_state=3)
     assert models["moe"].combiner == "moe" and models["bcm"].combiner == "bcm"
-    params = {k: v for k, v in models["moe"].get_params().items() if k != "combiner"}
-    assert params == {k: v for k, v in models["bcm"].get_params().items() if k != "combiner"}
+    # Same parameters, estimators compared by their own parameters.
+    params = [
+        {k: repr(v) for k, v in m.get_params().items() if k != "combiner"}
+        for m in (models["moe"], models["bcm"])
+    ]
+    assert params[0] == params[1]
+    # The paper's model: whole beams.
+    assert models["moe"].max_beam_length is None and models["moe"].beam_end_length is None
 
 
 @pytest.mark.parametrize(

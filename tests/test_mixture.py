@@ -53,8 +53,9 @@ def paper():
 
 @pytest.fixture(scope="module")
 def grid(paper):
-    # The cells a map can know about, at a coarse resolution to keep the tests fast.
-    g = paper.environment.ground_truth_grid(0.5, scans=paper.scans)
+    # The cells a map can know about, at 0.2 m: coarser cells that touch a wall count as
+    # occupied although most of them is free, which rewards thick walls.
+    g = paper.environment.ground_truth_grid(0.2, scans=paper.scans)
     return g.occupied[g.observed], as_segments(g.points[g.observed])
 
 
@@ -174,7 +175,8 @@ def test_small_clusters_are_merged_and_their_gates_summed(paper, grid):
     _, Q = grid
     model = _mixture(clusterer=GaussianMixture(12, random_state=0), min_expert_size=60)
     model.fit(paper.X, paper.y)
-    sizes = np.bincount(model.cluster_labels_)
+    # Sizes of the merged clusters (before big ones are split into experts).
+    sizes = np.bincount(model.expert_cluster_[model.cluster_labels_])
     assert model.cluster_ids_.size > model.n_clusters_ > 1
     assert sizes.min() >= 60
     # Every clusterer cluster maps to one merged cluster whose gate is the sum.
@@ -190,14 +192,20 @@ def test_small_clusters_are_merged_and_their_gates_summed(paper, grid):
     )
 
 
-@pytest.mark.parametrize("max_beam_length", [None, 1.0])
-def test_single_cluster_mixture_equals_its_expert(paper, grid, max_beam_length):
+@pytest.mark.parametrize("max_beam_length, end_length", [(None, None), (1.0, None), (1.0, 0.25)])
+def test_single_cluster_mixture_equals_its_expert(paper, grid, max_beam_length, end_length):
     _, Q = grid
     model = _mixture(
-        clusterer=KMeans(1, n_init=1), max_expert_size=None, max_beam_length=max_beam_length
+        clusterer=KMeans(1, n_init=1),
+        max_expert_size=None,
+        max_beam_length=max_beam_length,
+        beam_end_length=end_length,
     ).fit(paper.X, paper.y)
-    # The expert sees the beams cut into pieces of at most max_beam_length.
-    pieces, source = split_segments(paper.X, max_beam_length)
+    # The expert sees the beams cut into pieces of at most max_beam_length, return beams
+    # graded towards their hit.
+    pieces, source = split_segments(
+        paper.X, max_beam_length, end_length=end_length, graded=paper.kind == RETURN
+    )
     single = _fast_expert().fit(pieces, paper.y[source])
     mean, var = single.latent_mean_and_variance(Q)
     for combiner in ["moe", "poe", "gpoe", "bcm"]:
@@ -229,8 +237,10 @@ def test_split_pieces_keep_each_hit_with_its_beams(paper):
     assert model.n_experts_ >= int(np.ceil(X.shape[0] / 60))
     hits = np.flatnonzero(kind == HIT)
     for row in np.flatnonzero(kind == RETURN):
-        nearest = hits[np.argmin(np.linalg.norm(X[hits, :2] - X[row, 2:], axis=1))]
-        assert labels[row] == labels[nearest]
+        # Several scans can hit the very same point: any of the nearest hits will do.
+        dist = np.linalg.norm(X[hits, :2] - X[row, 2:], axis=1)
+        nearest = hits[dist <= dist.min() + 1e-12]
+        assert labels[row] in labels[nearest]
     for k in range(model.n_experts_):
         assert 0 < paper.y[labels == k].mean() < 1, k
     assert not any(isinstance(e, _ConstantExpert) for e in model.experts_)
@@ -591,8 +601,8 @@ def test_similarity_length_scale(kernel, expected):
 
 
 def test_beams_are_cut_into_pieces_that_stay_with_their_beam(paper):
-    model = _mixture(max_beam_length=1.0).fit(paper.X, paper.y)
-    pieces, source = split_segments(paper.X, 1.0)
+    model = _mixture(max_beam_length=1.0, beam_end_length=0.25).fit(paper.X, paper.y)
+    pieces, source = split_segments(paper.X, 1.0, end_length=0.25, graded=paper.kind == RETURN)
     labels = model.cluster_labels_[source]
     assert pieces.shape[0] > paper.X.shape[0]
     for k, expert in enumerate(model.experts_):
