@@ -24,6 +24,8 @@ _LAZY = {
     "MixtureGPOccupancyMap": "mixture",
     "OccupancyGrid": "grid",
     "OccupancyGridMap": "baselines",
+    "FrequencyGridMap": "baselines",
+    "HilbertMap": "baselines",
     "scans_to_observations": "observations",
     "as_segments": "observations",
     "Scans": "observations",
