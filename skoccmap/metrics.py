@@ -813,10 +813,11 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
           every surface that the map marks occupied (p > 0.65): phantom obstacles.
         - ``"free_found"``: share of the same cells that the map marks free (p < 0.196); the
           rest of them are unknown to a planner.
-        - ``"walls_found"``: share of the scored cells whose centre lies within 0.1 m of
-          occupied space (inside it included) that the map marks occupied. The set holds
-          the free cells next to a surface too (as in Room3D, whose cells touching a face
-          are free), where a map as thin as the truth scores below 1.
+        - ``"walls_found"``: share of the truly occupied scored cells whose centre lies
+          within 0.1 m of occupied space (inside it included) that the map marks occupied.
+          Only truly occupied cells count: the free cells beside a wall belong to the
+          phantom side of the ledger, and counting them would reward thick walls (a map as
+          thin as the truth would score below 1).
         - ``"wall_thickness"``: median width in metres of the occupied band (p > 0.65)
           across the walls. Walls are sampled every ``resolution`` along their centre lines
           (2-D) or over the faces of the room and its box obstacles (3-D). From each sample
@@ -861,8 +862,8 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
     >>> data = make_paper_scans()
     >>> grid = data.environment.ground_truth_grid(0.1, scans=data.scans)
     >>> scores = map_quality(grid.occupied, data.environment, scans=data.scans)
-    >>> scores["phantom_rate"], scores["free_found"], round(scores["walls_found"], 3)
-    (0.0, 1.0, 0.972)
+    >>> scores["phantom_rate"], scores["free_found"], scores["walls_found"]
+    (0.0, 1.0, 1.0)
     >>> scores["ece"], scores["brier"], round(scores["wall_thickness"], 2)
     (0.0, 0.0, 0.3)
 
@@ -895,10 +896,10 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
 
     distance = _surface_distance(environment, grid.points[scored])
     far_free = (truth == 0) & (distance > _PHANTOM_CLEARANCE)
-    near_wall = distance <= _WALL_TOLERANCE + _TOL
+    near_wall = (truth == 1) & (distance <= _WALL_TOLERANCE + _TOL)
     for cells, description in (
         (far_free, f"free and farther than {_PHANTOM_CLEARANCE} m from every surface"),
-        (near_wall, f"within {_WALL_TOLERANCE} m of a surface"),
+        (near_wall, f"occupied and within {_WALL_TOLERANCE} m of a surface"),
     ):
         if not cells.any():
             raise ValueError(

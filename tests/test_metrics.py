@@ -634,3 +634,26 @@ def test_map_quality_errors(paper):
     post = Environment2D([[5.0, 5.0, 5.0, 5.0]], wall_thickness=0.4)
     with pytest.raises(ValueError, match="no wall"):
         map_quality(np.zeros(400), post, resolution=0.2, extent=(3, 7, 3, 7))
+
+
+@pytest.mark.parametrize("make", [make_paper_scans, make_room3d_scans])
+def test_walls_found_counts_truly_occupied_cells_only(make):
+    data = make()
+    res = 0.1 if make is make_paper_scans else 0.2
+    grid = data.environment.ground_truth_grid(res, scans=data.scans)
+    truth = grid.occupied.astype(float)
+    # The true map finds every wall, however thin.
+    assert map_quality(truth, data.environment, resolution=res, scans=data.scans)[
+        "walls_found"
+    ] == 1.0
+    # Marking the free cells beside the walls occupied too finds no more walls ...
+    near = data.environment.distance(grid.points) <= 0.1 + 1e-9
+    thick = map_quality(
+        np.maximum(truth, near), data.environment, resolution=res, scans=data.scans
+    )
+    assert thick["walls_found"] == 1.0
+    # ... and clearing the occupied cells loses them all.
+    cleared = map_quality(
+        np.where(near, 0.0, truth), data.environment, resolution=res, scans=data.scans
+    )
+    assert cleared["walls_found"] == 0.0
