@@ -756,7 +756,14 @@ def _wall_thickness(environment, grid, probability_at):
         )
     walk = origins[:, None, :] + band.steps[None, :, None] * normals[:, None, :]
     shape, flat = walk.shape[:2], walk.reshape(-1, walk.shape[2])
-    proba = probability_at(flat, "wall-band point").reshape(shape)
+    proba = probability_at(flat, "wall-band point")
+    if grid.observed is not None:
+        # Space no scan observed is the map's unknown region, not its wall: the band ends
+        # there (the wall's own inside is never observed and keeps the map's value).
+        cell = _cell_index(flat, grid)
+        unobserved = (cell < 0) | ~grid.observed[np.maximum(cell, 0)]
+        proba = np.where(unobserved & (_surface_distance(environment, flat) > 0), 0.0, proba)
+    proba = proba.reshape(shape)
     start, end, found = _runs(proba > ROS_OCCUPIED_THRESH, band.seeds)  # NaN: not occupied
 
     # Where the walk nears another surface (corners, junctions, faces against a solid), or
@@ -830,6 +837,9 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
           classifier scores the wall's thickness in whole steps (2-D) or one step (3-D); the
           true grid of an Environment2D, whose cells touching a wall are occupied, scores a
           step more on each side.
+          With ``scans``, steps outside the walls in cells no scan observed end the band:
+          a map's extrapolation into space no sensor saw (behind a wall seen from one side)
+          is its unknown region, not its wall.
           A sample counts when a cell at the wall's surface lies in the grid and (with
           ``scans``) was observed, and its band can be measured: samples whose band, or
           the wall itself, comes within a step of space nearer another surface (corners,
@@ -865,9 +875,10 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
     >>> scores["phantom_rate"], scores["free_found"], scores["walls_found"]
     (0.0, 1.0, 1.0)
     >>> scores["ece"], scores["brier"], round(scores["wall_thickness"], 2)
-    (0.0, 0.0, 0.3)
+    (0.0, 0.0, 0.2)
 
-    The true grid marks the cells that touch a 0.1 m wall occupied: a band of three cells.
+    The true grid marks the cells that touch a 0.1 m wall occupied: a band of three cells,
+    of which the scans see the wall and the cell on their side.
     A classifier is queried at the cells and along the bands; a map that is everywhere
     0.5 finds nothing at the thresholds:
 
