@@ -7,10 +7,11 @@ matplotlib is imported only when something is drawn; install it with
 import numpy as np
 
 from .grid import OccupancyGrid
+from .uncertainty import probability_std
 
 __all__ = ["OccupancyMapDisplay"]
 
-_KINDS = ("probability", "variance", "both")
+_KINDS = ("probability", "std", "variance", "both")
 
 
 def _import_pyplot():
@@ -82,7 +83,7 @@ class OccupancyMapDisplay:
         ----------
         grid : OccupancyGrid
             A 2-D grid, or a 3-D grid of which the horizontal slice at height ``z`` is drawn.
-        kind : {"probability", "variance", "both"} or None, default=None
+        kind : {"probability", "std", "variance", "both"} or None, default=None
             Panels to draw; ``None``: both when the grid has a variance, else probability.
         z : float or None, default=None
             Height of the slice of a 3-D grid (``None``: the middle slice).
@@ -130,7 +131,7 @@ class OccupancyMapDisplay:
         estimator : fitted estimator with ``predict_proba`` (``predict_var`` optional)
         extent, resolution, unknown_variance, chunk_size, verbose
             See :meth:`skoccmap.OccupancyGrid.from_estimator`.
-        kind : {"probability", "variance", "both"} or None, default=None
+        kind : {"probability", "std", "variance", "both"} or None, default=None
             Panels; ``None``: both when the estimator has ``predict_var``.
         ax : matplotlib Axes, sequence of two Axes or None, default=None
             Where to draw; ``None`` makes a new figure.
@@ -169,12 +170,17 @@ class OccupancyMapDisplay:
         ----------
         ax : matplotlib Axes, sequence of two Axes or None, default=None
             A single Axes for one panel, two for ``kind="both"``; ``None`` makes a new figure.
-        kind : {"probability", "variance", "both"} or None, default=None
-            ``None``: both when a variance is available, else probability.
+        kind : {"probability", "std", "variance", "both"} or None, default=None
+            ``"std"``: the standard deviation of the occupancy probability under the
+            latent Gaussian (:func:`skoccmap.uncertainty.probability_std`), in
+            ``[0, 1/2]`` whatever the kernel, so one threshold fits every map;
+            ``"variance"``: the latent variance, in the latent's units; ``"both"``:
+            probability and std. ``None``: both when a variance is available, else
+            probability.
         cmap : str, default="gray_r"
             Colour map of the probability (occupied dark, free light, as printed maps are).
         variance_cmap : str, default="viridis"
-            Colour map of the variance.
+            Colour map of the std and the variance.
         unknown_color : color, default="#9ecae1"
             Colour of unknown cells on the probability panel.
         colorbar : bool, default=True
@@ -202,13 +208,24 @@ class OccupancyMapDisplay:
                 f"kind={kind!r} needs a variance; the estimator or grid has none (no "
                 "predict_var). Use kind='probability'."
             )
-        panels = ["probability", "variance"] if kind == "both" else [kind]
+        panels = ["probability", "std"] if kind == "both" else [kind]
         axes = self._axes(plt, ax, len(panels))
         images = []
         for panel, panel_ax in zip(panels, axes, strict=True):
             if panel == "probability":
                 image = self._draw_probability(plt, panel_ax, probability, cmap, unknown_color)
                 label = "P(occupied)"
+            elif panel == "std":
+                image = panel_ax.imshow(
+                    probability_std(probability, np.asarray(self.variance, dtype=np.float64)),
+                    origin="lower",
+                    extent=self.extent,
+                    cmap=variance_cmap,
+                    vmin=0.0,
+                    vmax=0.5,
+                    interpolation="nearest",
+                )
+                label = "std of P(occupied)"
             else:
                 image = panel_ax.imshow(
                     np.asarray(self.variance, dtype=np.float64),

@@ -6,6 +6,7 @@ import pytest
 from skoccmap import OccupancyGrid
 from skoccmap.baselines import OccupancyGridMap
 from skoccmap.plotting import OccupancyMapDisplay
+from skoccmap.uncertainty import probability_std
 
 matplotlib = pytest.importorskip("matplotlib")
 matplotlib.use("Agg")
@@ -49,8 +50,15 @@ def test_from_grid_both_panels():
     np.testing.assert_allclose(disp.im_.get_extent(), grid.extent)
     np.testing.assert_array_equal(np.ma.getmaskarray(shown), grid.unknown)
     np.testing.assert_allclose(shown.data, grid.probability)
-    np.testing.assert_allclose(disp.images_[1].get_array(), grid.variance)
-    assert disp.axes_[1].get_title() == "predictive variance"
+    # The second panel is the std of P(occupied), on a fixed [0, 1/2] scale.
+    std = probability_std(grid.probability, grid.variance)
+    np.testing.assert_allclose(disp.images_[1].get_array(), std)
+    assert disp.images_[1].get_clim() == (0.0, 0.5)
+    assert disp.axes_[1].get_title() == "std of P(occupied)"
+    # The latent variance stays available.
+    disp = OccupancyMapDisplay.from_grid(grid, kind="variance")
+    np.testing.assert_allclose(disp.im_.get_array(), grid.variance)
+    assert disp.ax_.get_title() == "predictive variance"
 
 
 def test_from_estimator_and_user_axes():
