@@ -32,6 +32,12 @@ def add_arguments(parser):
         help="cells with a larger predictive variance are unknown; 'auto' (default): 90%% of "
         "the largest variance on the map; 'none': no unknown cells",
     )
+    parser.add_argument(
+        "--keep-unobserved",
+        action="store_true",
+        help="draw the map's extrapolation into cells no training beam crossed (by default "
+        "they are unknown, as on a counting grid)",
+    )
 
 
 def add_model_arguments(parser):
@@ -164,6 +170,7 @@ def _run(args, unknown_variance):
         extent,
         args.resolution,
         unknown_variance=unknown_variance,
+        observed_by=None if args.keep_unobserved else train,
         chunk_size=8192,  # small chunks: frequent progress, bounded memory
         verbose=0 if args.quiet else 1,
     )

@@ -177,6 +177,7 @@ class OccupancyGrid:
         resolution=0.1,
         *,
         unknown_variance="auto",
+        observed_by=None,
         chunk_size=65_536,
         verbose=0,
     ):
@@ -203,6 +204,12 @@ class OccupancyGrid:
             variance hid 43 % of the cells the map calls free; 90 % hides none of them and
             still marks the outside of the building unknown). ``None``, or an estimator
             without ``predict_var``: no cell is unknown.
+        observed_by : Scans or None, default=None
+            The training scans: cells that none of their beams crossed (sensor to hit, or to
+            the maximum range) and that hold none of their hits are unknown as well. A
+            continuous map extrapolates into space no sensor saw -- behind a wall seen from
+            one side it stays confidently occupied for about a length scale -- which this
+            draws as unknown, as a counting grid would.
         chunk_size : int, default=65536
             At most this many query rows are built and predicted at once.
         verbose : int, default=0
@@ -246,6 +253,9 @@ class OccupancyGrid:
             auto = unknown_variance == "auto"
             threshold = _AUTO_UNKNOWN * var.max() if auto else float(unknown_variance)
             unknown = var > threshold
+        if observed_by is not None:
+            unseen = ~_observed_by(observed_by, origin, resolution, counts).reshape(shape)
+            unknown = unseen if unknown is None else unknown | unseen
         return cls(proba, origin, resolution, variance=var, unknown=unknown)
 
     # -- export -----------------------------------------------------------------------------
@@ -504,6 +514,19 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
     if not np.all(np.isfinite(proba)):
         raise ValueError("the estimator predicted NaN or infinite probabilities.")
     return np.clip(proba, 0.0, 1.0), var
+
+
+def _observed_by(scans, origin, resolution, counts):
+    """Cells of the grid that a beam of ``scans`` crossed or that hold one of their hits."""
+    from .datasets._simulator import _observed_cells
+    from .observations import Scans
+
+    if not isinstance(scans, Scans) or scans.n_dims != len(counts):
+        raise ValueError(
+            f"observed_by must be a {len(counts)}-D skoccmap.observations.Scans, got "
+            f"{type(scans).__name__}."
+        )
+    return _observed_cells(scans, np.asarray(origin, float), float(resolution), counts)
 
 
 def _read_simple_yaml(path):

@@ -45,6 +45,8 @@ def test_map_writes_a_usable_map(paper_log, tmp_path, capsys):
     assert auc > 0.85
     reloaded = OccupancyGrid.load_map_server(out / "paper.yaml")
     np.testing.assert_array_equal(reloaded.trinary(), grid.trinary())
+    # Cells no training beam reached are unknown (the training scans are the log's scans).
+    assert np.all(grid.unknown.ravel()[~observed])
 
 
 def test_map_every_nth_scan(paper_log, tmp_path, capsys):

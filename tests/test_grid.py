@@ -120,6 +120,30 @@ def test_unknown_variance_rules():
     assert no_var.variance is None and no_var.unknown is None
 
 
+def test_cells_no_beam_observed_are_unknown():
+    from skoccmap.observations import Scans
+
+    # One scan from (0.5, 0.5) looking along +x: a beam hitting at x = 2.5 and a no-return
+    # beam along +y up to 2 m.
+    scans = Scans([[0.5, 0.5, 0.0]], [[2.0, np.inf]], [0.0, np.pi / 2], max_range=2.0)
+    extent = (0.0, 4.0, 0.0, 4.0)
+    grid = OccupancyGrid.from_estimator(
+        _ProbaOnly(), extent, 1.0, unknown_variance=None, observed_by=scans
+    )
+    # Cells [y, x]: the beam's row y = 0 up to the hit cell x = 2, the column x = 0 up to
+    # y = 2; everything else (behind the hit, away from the beams) is unknown.
+    observed = np.zeros((4, 4), bool)
+    observed[0, :3] = True
+    observed[:3, 0] = True
+    np.testing.assert_array_equal(grid.unknown, ~observed)
+    # Combined with the variance rule.
+    both = OccupancyGrid.from_estimator(_FieldEstimator(), extent, 1.0, observed_by=scans)
+    var_only = OccupancyGrid.from_estimator(_FieldEstimator(), extent, 1.0)
+    np.testing.assert_array_equal(both.unknown, var_only.unknown | ~observed)
+    with pytest.raises(ValueError, match="observed_by"):
+        OccupancyGrid.from_estimator(_ProbaOnly(), extent, 1.0, observed_by=np.zeros((2, 4)))
+
+
 def test_verbose_reports_progress(capsys):
     OccupancyGrid.from_estimator(_FieldEstimator(), (0, 1, 0, 1), 0.1, chunk_size=10, verbose=1)
     err = capsys.readouterr().err
