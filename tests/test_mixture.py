@@ -614,3 +614,14 @@ def test_beams_are_cut_into_pieces_that_stay_with_their_beam(paper):
         assert np.all(np.linalg.norm(X_train[:, 2:] - X_train[:, :2], axis=1) <= 1.0 + 1e-12)
     # A beam's hit and all of its pieces share an expert: the expert of the hit's anchor.
     assert np.all(model.cluster_labels_[source] == labels)
+
+
+def test_shared_hyperparameter_at_its_bound_warns(paper):
+    from sklearn.exceptions import ConvergenceWarning
+
+    # Occupancy data are nearly separable: the evidence keeps growing with the signal
+    # variance, which then ends at a tight upper bound.
+    expert = GaussianProcessClassifier(C(1.0, (1e-2, 2.0)) * RBF(1.0, (1e-2, 1e2)))
+    with pytest.warns(ConvergenceWarning, match="shared kernel hyperparameter k1__constant"):
+        model = _mixture(expert=expert).fit(paper.X, paper.y)
+    np.testing.assert_allclose(model.shared_kernel_.k1.constant_value, 2.0, rtol=1e-2)
