@@ -5,6 +5,7 @@ Writes, into ``--out``: ``<name>.pgm`` + ``<name>.yaml`` (ROS map_server, trinar
 when matplotlib is installed, ``<name>.png`` (probability and uncertainty panels).
 """
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -61,6 +62,20 @@ def add_model_arguments(parser):
         help="rule merging the experts (default rbcm)",
     )
     parser.add_argument(
+        "--max-beam-length",
+        type=_length_or_none,
+        default=1.0,
+        help="beams are cut into pieces no longer than this, in metres ('none': whole beams, "
+        "the paper's model; default 1)",
+    )
+    parser.add_argument(
+        "--beam-end-length",
+        type=_length_or_none,
+        default=0.5,
+        help="pieces of a beam halve in length towards its hit down to this, in metres "
+        "('none': equal pieces; default 0.5)",
+    )
+    parser.add_argument(
         "--learn-all-hyperparameters",
         action="store_true",
         help="learn kernel hyperparameters per expert (slow) instead of once, shared",
@@ -75,12 +90,28 @@ def add_model_arguments(parser):
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
+def _length_or_none(text):
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a length in metres or 'none', got {text!r}"
+        ) from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive length, got {text!r}")
+    return value
+
+
 def make_mixture(args):
     from .mixture import MixtureGPOccupancyMap
 
     return MixtureGPOccupancyMap(
         combiner=args.combiner,
         max_expert_size=args.max_expert_size,
+        max_beam_length=args.max_beam_length,
+        beam_end_length=args.beam_end_length,
         share_hyperparameters=not args.learn_all_hyperparameters,
         n_jobs=args.n_jobs,
         random_state=args.seed,

@@ -99,3 +99,25 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
     # ... and not much more: the bounding box snapped outwards to whole cells.
     span = np.ptp(hits, axis=0) / grid.resolution
     assert np.all(np.asarray(grid.shape[::-1]) <= np.ceil(span) + 2)
+
+
+@pytest.mark.parametrize(
+    "options, expected",
+    [([], (1.0, 0.5)), (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None))],
+)
+def test_beam_piece_options_reach_the_mixture(options, expected):
+    from skoccmap._cmd_map import make_mixture
+    from skoccmap.cli import build_parser
+
+    args = build_parser().parse_args(["map", "log.txt", *options])
+    model = make_mixture(args)
+    assert (model.max_beam_length, model.beam_end_length) == expected
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "long"])
+def test_bad_beam_piece_option_is_refused(value, capsys):
+    from skoccmap.cli import build_parser
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["map", "log.txt", "--max-beam-length", value])
+    assert "--max-beam-length" in capsys.readouterr().err
