@@ -14,7 +14,10 @@ import numpy as np
 import scipy.optimize
 from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
+from sklearn.utils.optimize import _check_optimize_result
 from sklearn.utils.parallel import Parallel, delayed
+
+from .classifier import _is_stationary
 
 __all__ = ["learn_shared_kernel", "warn_at_bounds"]
 
@@ -78,9 +81,13 @@ def learn_shared_kernel(expert, pieces, *, n_jobs=None):
     if callable(optimizer):
         theta = optimizer(obj_func, kernel.theta, bounds=kernel.bounds)[0]
     else:
-        theta = scipy.optimize.minimize(
+        result = scipy.optimize.minimize(
             obj_func, kernel.theta, method="L-BFGS-B", jac=True, bounds=kernel.bounds
-        ).x
+        )
+        # A failed line search on a flat optimum is convergence; anything else is not.
+        if not _is_stationary(result, kernel.bounds):
+            _check_optimize_result("lbfgs", result)
+        theta = result.x
     return kernel.clone_with_theta(theta)
 
 

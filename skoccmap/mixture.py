@@ -169,6 +169,35 @@ def _assign_no_return(
     return labels
 
 
+def _beam_pieces(X, kinds, max_length, end_length):
+    """Training rows cut into pieces, and the row each piece comes from.
+
+    Return beams: pieces no longer than ``max_length``, halving in length towards their
+    hit down to ``end_length``. No-return beams: pieces doubling in length away from the
+    sensor, the first ``max_length`` long -- their evidence stays local near the robot,
+    while a beam that leaves the map for the sensor's maximum range (82 m on the Intel log)
+    costs a few rows rather than one per metre. ``max_length=None`` keeps no-return beams
+    whole. Hits and free points stay as they are.
+    """
+    d = X.shape[1] // 2
+    no_return = kinds == NO_RETURN
+    near, near_source = split_segments(
+        X[~no_return], max_length, end_length=end_length, graded=kinds[~no_return] == RETURN
+    )
+    parts, sources = [near], [np.flatnonzero(~no_return)[near_source]]
+    if np.any(no_return):
+        # From the far end, pieces double towards the sensor: split the reversed segments.
+        reversed_rows = np.hstack([X[no_return, d:], X[no_return, :d]])
+        far, far_source = split_segments(
+            reversed_rows, None, end_length=None if max_length is None else max_length
+        )
+        parts.append(np.hstack([far[:, d:], far[:, :d]]))
+        sources.append(np.flatnonzero(no_return)[far_source])
+    pieces, source = np.vstack(parts), np.concatenate(sources)
+    order = np.argsort(source, kind="stable")
+    return pieces[order], source[order]
+
+
 # ---------------------------------------------------------------------------------------
 # Merging small clusters, splitting big ones
 # ---------------------------------------------------------------------------------------
@@ -656,11 +685,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         )
         # Beams are cut after the assignment: every piece stays with its beam's expert,
         # and experts are sized by the rows they are fitted on (pieces).
-        pieces, source = split_segments(
-            X,
-            self.max_beam_length,
-            end_length=self.beam_end_length,
-            graded=self.observation_kind_ == RETURN,
+        pieces, source = _beam_pieces(
+            X, self.observation_kind_, self.max_beam_length, self.beam_end_length
         )
         n_pieces = np.bincount(source, minlength=X.shape[0])
         labels = self._split_clusters(X, labels, anchor, n_pieces)

@@ -29,10 +29,11 @@ from skoccmap.kernels import IntegralKernel
 from skoccmap.mixture import (
     MixtureGPOccupancyMap,
     _assign_no_return,
+    _beam_pieces,
     _bisect,
     _ConstantExpert,
 )
-from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments, split_segments
+from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
 
 
 def _fast_expert(length_scale=1.5):
@@ -201,11 +202,8 @@ def test_single_cluster_mixture_equals_its_expert(paper, grid, max_beam_length, 
         max_beam_length=max_beam_length,
         beam_end_length=end_length,
     ).fit(paper.X, paper.y)
-    # The expert sees the beams cut into pieces of at most max_beam_length, return beams
-    # graded towards their hit.
-    pieces, source = split_segments(
-        paper.X, max_beam_length, end_length=end_length, graded=paper.kind == RETURN
-    )
+    # The expert sees the beams cut into pieces (see the test of _beam_pieces).
+    pieces, source = _beam_pieces(paper.X, paper.kind, max_beam_length, end_length)
     single = _fast_expert().fit(pieces, paper.y[source])
     mean, var = single.latent_mean_and_variance(Q)
     for combiner in ["moe", "poe", "gpoe", "bcm"]:
@@ -263,7 +261,7 @@ def test_weighted_bisection_bounds_piece_weight():
 
 def test_gating_threshold_skips_experts(paper, grid):
     _, Q = grid
-    model = _mixture(gating_threshold=0.05).fit(paper.X, paper.y)
+    model = _mixture(combiner="moe", gating_threshold=0.05).fit(paper.X, paper.y)
     calls = []
     for k, expert in enumerate(model.experts_):
         original = expert.latent_mean_and_variance
@@ -303,7 +301,8 @@ def test_merge_matches_combine_on_expert_outputs(paper, grid):
 
 def test_share_hyperparameters_learns_once():
     data = make_paper_scans(random_state=0)
-    expert = GaussianProcessClassifier(C(1.0) * RBF(1.0))
+    # The signal variance fixed: on separable data the evidence keeps growing with it.
+    expert = GaussianProcessClassifier(C(4.0, "fixed") * RBF(1.0))
     model = _mixture(expert=expert, share_hyperparameters=True).fit(data.X, data.y)
     learned = model.shared_kernel_
     assert learned != expert.kernel  # it did learn
@@ -323,7 +322,9 @@ def test_share_hyperparameters_learns_once():
     scale = sum(abs(e.log_marginal_likelihood_value_) for e in fitted)
     assert np.all(np.abs(total[interior]) < 1e-3 * scale)
     # ... and not the optimum of one expert alone.
-    pieces, source = split_segments(data.X, model.max_beam_length)
+    pieces, source = _beam_pieces(
+        data.X, data.kind, model.max_beam_length, model.beam_end_length
+    )
     rows = model.cluster_labels_[source] == np.argmax(np.bincount(model.cluster_labels_))
     own = clone(expert).fit(pieces[rows], data.y[source][rows]).kernel_
     assert not np.allclose(own.theta, learned.theta, atol=1e-2)
@@ -602,16 +603,15 @@ def test_similarity_length_scale(kernel, expected):
 
 def test_beams_are_cut_into_pieces_that_stay_with_their_beam(paper):
     model = _mixture(max_beam_length=1.0, beam_end_length=0.25).fit(paper.X, paper.y)
-    pieces, source = split_segments(paper.X, 1.0, end_length=0.25, graded=paper.kind == RETURN)
+    pieces, source = _beam_pieces(paper.X, paper.kind, 1.0, 0.25)
     labels = model.cluster_labels_[source]
     assert pieces.shape[0] > paper.X.shape[0]
     for k, expert in enumerate(model.experts_):
         if isinstance(expert, _ConstantExpert):
             continue
         X_train = expert.base_estimator_.X_train_
-        # The expert holds exactly the pieces of its rows, none longer than the bound.
+        # The expert holds exactly the pieces of its rows.
         np.testing.assert_array_equal(X_train, pieces[labels == k])
-        assert np.all(np.linalg.norm(X_train[:, 2:] - X_train[:, :2], axis=1) <= 1.0 + 1e-12)
     # A beam's hit and all of its pieces share an expert: the expert of the hit's anchor.
     assert np.all(model.cluster_labels_[source] == labels)
 
@@ -625,3 +625,31 @@ def test_shared_hyperparameter_at_its_bound_warns(paper):
     with pytest.warns(ConvergenceWarning, match="shared kernel hyperparameter k1__constant"):
         model = _mixture(expert=expert).fit(paper.X, paper.y)
     np.testing.assert_allclose(model.shared_kernel_.k1.constant_value, 2.0, rtol=1e-2)
+
+
+def test_beam_pieces_shrink_towards_hits_and_grow_away_from_the_sensor():
+    X = np.array(
+        [
+            [0.0, 0.0, 82.0, 0.0],  # no-return beam to the 82 m maximum range
+            [0.0, 0.0, 3.0, 0.0],  # return beam ...
+            [3.05, 0.0, 3.05, 0.0],  # ... and its hit
+        ]
+    )
+    kinds = np.array([NO_RETURN, RETURN, HIT])
+    pieces, source = _beam_pieces(X, kinds, 1.0, 0.5)
+    np.testing.assert_array_equal(source, [0] * 7 + [1] * 4 + [2])
+    lengths = np.linalg.norm(pieces[:, 2:] - pieces[:, :2], axis=1)
+    # No-return: 1, 2, 4, ... m from the sensor, the rest in one piece (7 rows, not 82).
+    starts = pieces[source == 0, 0]
+    np.testing.assert_allclose(np.sort(starts), [0, 1, 3, 7, 15, 31, 63])
+    np.testing.assert_allclose(np.sort(lengths[source == 0]), [1, 2, 4, 8, 16, 19, 32])
+    # Return: 0.5 m at the hit, the other 2.5 m in pieces of at most 1 m.
+    np.testing.assert_allclose(np.sort(lengths[source == 1]), [0.5, 2.5 / 3, 2.5 / 3, 2.5 / 3])
+    assert pieces[source == 1][:, 2].max() == pytest.approx(3.0)
+    np.testing.assert_array_equal(pieces[source == 2], X[2:])
+    # Pieces cover every beam exactly.
+    for row in (0, 1):
+        np.testing.assert_allclose(lengths[source == row].sum(), X[row, 2])
+    # No bound: every row whole.
+    pieces, source = _beam_pieces(X, kinds, None, None)
+    np.testing.assert_array_equal(pieces, X)
