@@ -410,7 +410,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         learned. Occupancy data are nearly separable, so the EP evidence grows with the
         signal variance until the map saturates (on every tuning set it ended at the old
         upper bound 1e3); fixing it there keeps the sharpest walls and calibration (office
-        ECE 0.02 against 0.04 at 1e2) without a learned value pinned at a bound.
+        tuning seed, 0.25 m end pieces: ECE 0.020 against 0.040 at 1e2) without a learned
+        value pinned at a bound.
     gating : {"clusterer", "gpc"}, default="clusterer"
         ``"clusterer"``: the clusterer's posterior responsibilities at the query's
         midpoint. ``"gpc"``: a GP classifier over the expert labels of the training
@@ -419,12 +420,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="rbcm"
         Merging rule, see :mod:`skoccmap.combine`. The robust BCM is the default by
         measurement on tuning data (ACES, blocks protocol, every 10th scan, seed 100;
-        the office world, noise seed 100): ACES held-out AUC rbcm 0.954, bcm 0.953, poe
-        0.957, gpoe 0.948, moe 0.937; office walls found rbcm 0.93, bcm 0.91, poe 0.91,
-        gpoe 0.90, moe 0.83 at ECE 0.021 / 0.019 / 0.020 / 0.033 / 0.055. The mixture
-        (``"moe"``, the paper's rule) lets an expert that knows nothing about a query
-        (latent mean 0, probability 1/2) dilute one that does; the product rules weigh
-        experts by their confidence.
+        the office and the paper's world, noise seed 100): ACES held-out AUC rbcm 0.948,
+        bcm 0.954, poe 0.955, gpoe 0.950, moe 0.950; walls found on the office (paper's
+        world) rbcm 0.93 (0.86), bcm 0.91 (0.84), poe 0.91 (0.84), gpoe 0.90 (0.84), moe
+        0.84 (0.80), at ECE 0.021 / 0.019 / 0.020 / 0.034 / 0.058 on the office. The
+        product rules rank ACES' held-out points slightly better; rbcm finds more of the
+        walls at the same calibration. The mixture (``"moe"``, the paper's rule) lets an
+        expert that knows nothing about a query (latent mean 0, probability 1/2) dilute
+        one that does; the product rules weigh experts by their confidence.
     max_cluster_samples : int or None, default=4000
         The clusterer is fitted on at most this many hit points, drawn uniformly without
         replacement; every hit is then labelled by the clusterer's ``predict``. Clustering
@@ -447,8 +450,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         time grows about linearly with the number of observations. ``None`` disables
         splitting (the paper's model; cubic cost in the cluster size). Sizes count the
         rows experts are fitted on (beam pieces). On the tuning data 200 / 400 / 800 give
-        ACES held-out AUC 0.940 / 0.954 / 0.954 (fit 10 / 21 / 46 s) and office walls
-        found 0.92 / 0.93 / 0.93.
+        ACES held-out AUC 0.949 / 0.948 / 0.955 (fit 7 / 25 / 44 s) and office walls
+        found 0.93 / 0.93 / 0.93: 800 ranks ACES a little better at twice the cost per
+        observation.
     max_beam_length : float or None, default=1.0
         Beams longer than this (metres) are cut into pieces no longer than it after the
         assignment; every piece stays with its beam's expert. Under the integral kernel a
@@ -458,10 +462,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         whole (the paper's model). Chosen on tuning data (the office world with noise seed
         100, and the ACES log; ``benchmarks/bench_quality.py`` reports other seeds and
         Intel). Office, equal pieces: whole beams / 2 m / 1 m / 0.5 m mark 15 % / 1.6 % /
-        0.1 % / 0.1 % of the far free cells occupied, with ECE 0.31 / 0.13 / 0.06 / 0.01;
-        ACES (blocks protocol, every 10th scan, signal variance learned then) held-out
-        AUC 0.902 / 0.945 / 0.954 / - (frequency grid 0.837); 0.5 m pieces fit 9x
-        slower than 1 m pieces (310 s against 35 s on the Intel log's every 10th scan).
+        0.1 % / 0.1 % of the far free cells occupied, with ECE 0.31 / 0.13 / 0.06 / 0.01.
+        ACES (blocks protocol, every 10th scan), with 0.5 m end pieces: held-out AUC
+        0.903 (whole beams) / 0.916 / 0.948 / 0.947 (frequency grid 0.837); 0.5 m pieces
+        need 1.5 times the experts of 1 m (224 against 154).
     beam_end_length : float or None, default=0.5
         Beams with a return are cut into pieces that halve in length towards their hit,
         down to this length (metres), before the ``max_beam_length`` pieces: the
@@ -469,8 +473,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         and the probabilities calibrated. On the office (tuning seed, 1 m pieces) ``None``
         / 0.5 / 0.25 give ECE 0.058 / 0.021 / 0.020 and find 97 % / 93 % / 74 % of the
         truly occupied cells at walls (shorter end pieces draw walls thinner than the
-        0.1 m cells that overlap them); ACES held-out AUC 0.954 / 0.952 / 0.947. ``None``
-        cuts beams into equal pieces only.
+        0.1 m cells that overlap them); ACES held-out AUC 0.958 / 0.948 / 0.945. ``None``
+        cuts beams into equal pieces only. No-return beams are cut the other way: pieces
+        double in length away from the sensor, from ``max_beam_length``, so that a beam
+        leaving the map for the sensor's maximum range costs a few rows.
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
         kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to
@@ -482,8 +488,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     gating_threshold : float, default=1e-3
         Experts whose gating weight at a query is below this are skipped there (the
         expert with the largest weight is always kept). On the tuning data (ACES, every
-        10th scan) 1e-1 / 1e-2 / 1e-3 / 1e-4 give held-out AUC 0.944 / 0.952 / 0.954 /
-        0.953 at 116 / 157 / 165 / 253 us per query point.
+        10th scan) 1e-1 / 1e-2 / 1e-3 / 1e-4 give held-out AUC 0.940 / 0.948 / 0.948 /
+        0.949 at 126 / 170 / 236 / 256 us per query point.
     return_radius : float, default=0.1
         A beam is a *return* beam when a hit lies within this distance (metres) of its
         end; it then joins that hit's cluster. Other beams are *no-return* beams and join
