@@ -458,8 +458,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         assignment; every piece stays with its beam's expert. Under the integral kernel a
         whole beam observes only the *average* of the latent function along it, which
         leaves the function free to stay high next to the wall the beam ended at: walls
-        drawn 0.5-1 m thick and truly free cells marked occupied. ``None`` keeps beams
-        whole (the paper's model). Chosen on tuning data (the office world with noise seed
+        drawn 0.5-1 m thick and truly free cells marked occupied. ``None`` sets no bound;
+        with ``beam_end_length=None`` too, beams stay whole (the paper's model). Chosen on tuning data (the office world with noise seed
         100, and the ACES log; ``benchmarks/bench_quality.py`` reports other seeds and
         Intel). Office, equal pieces: whole beams / 2 m / 1 m / 0.5 m mark 15 % / 1.6 % /
         0.1 % / 0.1 % of the far free cells occupied, with ECE 0.31 / 0.13 / 0.06 / 0.01.
@@ -876,7 +876,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.shared_kernel_ = learn_shared_kernel(
             learner, [(X[rows[k]], y[rows[k]]) for k in chosen], n_jobs=self.n_jobs
         )
-        warn_at_bounds(self.shared_kernel_, "shared kernel")
+        if learner.get_params()["optimizer"] is not None:
+            warn_at_bounds(self.shared_kernel_, "shared kernel")
         base = clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
         return base, fitted, todo
 

@@ -616,11 +616,12 @@ def split_segments(X, max_length, *, end_length=None, graded=None):
     """
     X = check_segments(X, allow_empty=True)
     max_length = _check_piece_length(max_length, "max_length", allow_none=True)
+    if end_length is not None:
+        end_length = _check_piece_length(end_length, "end_length")
     lengths = segment_lengths(X)
     # Boundaries of the graded pieces, as distances from the end: 0, e, 3e, 7e, ...
     ends = np.zeros(1)
     if end_length is not None and X.shape[0]:
-        end_length = _check_piece_length(end_length, "end_length")
         n_graded = int(np.ceil(np.log2(max(lengths.max(), end_length) / end_length))) + 1
         piece = end_length * 2.0 ** np.arange(n_graded)
         ends = np.r_[0.0, np.cumsum(piece[piece < max_length])]
@@ -632,7 +633,8 @@ def split_segments(X, max_length, *, end_length=None, graded=None):
     rest = lengths - ends[n_end]
     n_rest = np.ones(X.shape[0], dtype=np.intp)
     if np.isfinite(max_length):
-        n_rest = np.maximum(np.ceil(rest / max_length), 1).astype(np.intp)
+        # (The tolerance keeps a segment of exactly k pieces' length, up to rounding, in k.)
+        n_rest = np.maximum(np.ceil(rest / max_length - 1e-9), 1).astype(np.intp)
     n_pieces = n_end + n_rest
     source = np.repeat(np.arange(X.shape[0]), n_pieces)
     # Index of each piece counted from its segment's end: 0 .. n_pieces - 1.

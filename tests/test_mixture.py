@@ -653,3 +653,13 @@ def test_beam_pieces_shrink_towards_hits_and_grow_away_from_the_sensor():
     # No bound: every row whole.
     pieces, source = _beam_pieces(X, kinds, None, None)
     np.testing.assert_array_equal(pieces, X)
+
+
+def test_fixed_shared_kernel_at_a_bound_does_not_warn(paper):
+    from sklearn.exceptions import ConvergenceWarning
+
+    # Nothing is learned (optimizer=None): a starting value on a bound is no convergence issue.
+    expert = GaussianProcessClassifier(C(2.0, (1e-2, 2.0)) * RBF(1.0), optimizer=None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        _mixture(expert=expert).fit(paper.X, paper.y)

@@ -351,3 +351,11 @@ def test_split_segments_without_bound_keeps_segments(max_length):
 def test_split_segments_rejects_bad_bound(max_length):
     with pytest.raises(ValueError, match="max_length"):
         split_segments([[0.0, 0.0, 1.0, 0.0]], max_length)
+
+
+def test_split_segments_exact_multiples_and_bad_end_length():
+    # 0.3 m is three 0.1 m pieces, although 0.3 / 0.1 rounds above 3.
+    pieces, _ = split_segments([[0.0, 0.0, 0.3, 0.0]], 0.1)
+    assert len(pieces) == 3
+    with pytest.raises(ValueError, match="end_length"):
+        split_segments(np.empty((0, 4)), 1.0, end_length=-1.0)

@@ -29,6 +29,8 @@ def test_probability_std_limits():
     np.testing.assert_allclose(probability_std(0.5, 1.0), 1 / np.sqrt(12))
     # Huge variance: Phi(f) is 0 or 1, a coin flip at p = 1/2.
     np.testing.assert_allclose(probability_std(0.5, 1e12), 0.5, atol=1e-5)
+    # Infinite variance: Phi(f) is 0 or 1 with probability 1 - p and p.
+    np.testing.assert_allclose(probability_std([0.5, 0.7], np.inf), np.sqrt([0.25, 0.21]))
     std = probability_std(np.linspace(0, 1, 11)[:, None], np.logspace(-3, 3, 7)[None, :])
     assert std.shape == (11, 7) and np.all((std >= 0) & (std <= 0.5))
 
