@@ -757,12 +757,13 @@ def _wall_thickness(environment, grid, probability_at):
     walk = origins[:, None, :] + band.steps[None, :, None] * normals[:, None, :]
     shape, flat = walk.shape[:2], walk.reshape(-1, walk.shape[2])
     proba = probability_at(flat, "wall-band point")
+    distance = _surface_distance(environment, flat)
     if grid.observed is not None:
         # Space no scan observed is the map's unknown region, not its wall: the band ends
         # there (the wall's own inside is never observed and keeps the map's value).
         cell = _cell_index(flat, grid)
         unobserved = (cell < 0) | ~grid.observed[np.maximum(cell, 0)]
-        proba = np.where(unobserved & (_surface_distance(environment, flat) > 0), 0.0, proba)
+        proba = np.where(unobserved & (distance > 0), 0.0, proba)
     proba = proba.reshape(shape)
     start, end, found = _runs(proba > ROS_OCCUPIED_THRESH, band.seeds)  # NaN: not occupied
 
@@ -770,7 +771,7 @@ def _wall_thickness(environment, grid, probability_at):
     # where the map has no value, the band cannot be told from another wall's or does not
     # end where the map says: such samples are skipped. Checked over the band and the wall's
     # own extent, one step beyond each.
-    nearer_other = _surface_distance(environment, flat).reshape(shape) < band.own - 1e-6
+    nearer_other = distance.reshape(shape) < band.own - 1e-6
     bad = np.pad(np.cumsum(nearer_other | np.isnan(proba), axis=1), ((0, 0), (1, 0)))
     wall = np.flatnonzero(np.isfinite(band.seeds))
     lo = np.maximum(np.where(found, np.minimum(start, wall[0]), wall[0]) - 1, 0)
