@@ -11,13 +11,11 @@ map is not, and was seen to learn a 70 m length scale on the Intel log.
 import warnings
 
 import numpy as np
-import scipy.optimize
 from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
-from sklearn.utils.optimize import _check_optimize_result
 from sklearn.utils.parallel import Parallel, delayed
 
-from .classifier import _is_stationary
+from .classifier import _minimize_in_bounds
 
 __all__ = ["learn_shared_kernel", "warn_at_bounds"]
 
@@ -78,16 +76,7 @@ def learn_shared_kernel(expert, pieces, *, n_jobs=None):
         value, grad = _negative_sum(theta, fitted, n_jobs)
         return (value, grad) if eval_gradient else value
 
-    if callable(optimizer):
-        theta = optimizer(obj_func, kernel.theta, bounds=kernel.bounds)[0]
-    else:
-        result = scipy.optimize.minimize(
-            obj_func, kernel.theta, method="L-BFGS-B", jac=True, bounds=kernel.bounds
-        )
-        # A failed line search on a flat optimum is convergence; anything else is not.
-        if not _is_stationary(result, kernel.bounds):
-            _check_optimize_result("lbfgs", result)
-        theta = result.x
+    theta = _minimize_in_bounds(optimizer, obj_func, kernel.theta, kernel.bounds)[0]
     return kernel.clone_with_theta(theta)
 
 

@@ -47,6 +47,25 @@ def _is_stationary(opt_res, bounds):
     return bool(np.max(np.abs(free), initial=0.0) <= _STATIONARY_RTOL * max(1.0, abs(opt_res.fun)))
 
 
+def _minimize_in_bounds(optimizer, obj_func, initial_theta, bounds):
+    """Minimise ``obj_func`` over log-hyperparameters within ``bounds``; ``(theta, value)``.
+
+    ``optimizer`` is ``"fmin_l_bfgs_b"`` (L-BFGS-B with the analytic gradient) or a callable
+    ``optimizer(obj_func, initial_theta, bounds=bounds)``, as in scikit-learn's GPs.
+    """
+    if optimizer == "fmin_l_bfgs_b":
+        opt_res = scipy.optimize.minimize(
+            obj_func, initial_theta, method="L-BFGS-B", jac=True, bounds=bounds
+        )
+        # EP's evidence is exact only to EP's tolerance, so near a flat optimum (often at a
+        # bound, on separable data) the line search can fail although the projected
+        # gradient vanishes: that is convergence, not a warning.
+        if not _is_stationary(opt_res, bounds):
+            _check_optimize_result("lbfgs", opt_res)
+        return opt_res.x, opt_res.fun
+    return optimizer(obj_func, initial_theta, bounds=bounds)
+
+
 class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     """Binary GP classifier with a probit likelihood, fitted by Expectation Propagation.
 
@@ -313,17 +332,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         return lml, ep_log_marginal_likelihood_gradient(K_gradient, result.posterior)
 
     def _constrained_optimization(self, obj_func, initial_theta, bounds):
-        if self.optimizer == "fmin_l_bfgs_b":
-            opt_res = scipy.optimize.minimize(
-                obj_func, initial_theta, method="L-BFGS-B", jac=True, bounds=bounds
-            )
-            # EP's evidence is exact only to EP's tolerance, so near a flat optimum (often
-            # at a bound, on separable data) the line search can fail although the
-            # projected gradient vanishes: that is convergence, not a warning.
-            if not _is_stationary(opt_res, bounds):
-                _check_optimize_result("lbfgs", opt_res)
-            return opt_res.x, opt_res.fun
-        return self.optimizer(obj_func, initial_theta, bounds=bounds)
+        return _minimize_in_bounds(self.optimizer, obj_func, initial_theta, bounds)
 
     def log_marginal_likelihood(self, theta=None, eval_gradient=False, clone_kernel=True):
         """EP log marginal likelihood of the training data (R&W eq. 3.65).
