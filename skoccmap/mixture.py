@@ -23,8 +23,8 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from .combine import COMBINERS, combine
 from ._shared_kernel import learn_shared_kernel, warn_at_bounds
+from .combine import COMBINERS, combine
 from .observations import HIT, NO_RETURN, RETURN, split_segments
 
 __all__ = ["MixtureGPOccupancyMap"]
@@ -459,10 +459,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         whole beam observes only the *average* of the latent function along it, which
         leaves the function free to stay high next to the wall the beam ended at: walls
         drawn 0.5-1 m thick and truly free cells marked occupied. ``None`` sets no bound;
-        with ``beam_end_length=None`` too, beams stay whole (the paper's model). Chosen on tuning data (the office world with noise seed
-        100, and the ACES log; ``benchmarks/bench_quality.py`` reports other seeds and
-        Intel). Office, equal pieces: whole beams / 2 m / 1 m / 0.5 m mark 15 % / 1.6 % /
-        0.1 % / 0.1 % of the far free cells occupied, with ECE 0.31 / 0.13 / 0.06 / 0.01.
+        with ``beam_end_length=None`` too, beams stay whole (the paper's model). Chosen on
+        tuning data (the office world with noise seed 100, and the ACES log;
+        ``benchmarks/bench_quality.py`` reports other seeds and Intel). Office, equal
+        pieces: whole beams / 2 m / 1 m / 0.5 m mark 15 % / 1.6 % / 0.1 % / 0.1 % of the far
+        free cells occupied, with ECE 0.31 / 0.13 / 0.06 / 0.01.
         ACES (blocks protocol, every 10th scan), with 0.5 m end pieces: held-out AUC
         0.903 (whole beams) / 0.916 / 0.948 / 0.947 (frequency grid 0.837); 0.5 m pieces
         need 1.5 times the experts of 1 m (224 against 154).

@@ -6,7 +6,9 @@ from scipy.special import ndtr
 from skoccmap.uncertainty import probability_std
 
 
-@pytest.mark.parametrize("mu, var", [(0.3, 2.0), (-1.5, 0.5), (2.0, 10.0), (0.0, 100.0), (4.0, 1e-3)])
+@pytest.mark.parametrize(
+    "mu, var", [(0.3, 2.0), (-1.5, 0.5), (2.0, 10.0), (0.0, 100.0), (4.0, 1e-3)]
+)
 def test_probability_std_against_quadrature(mu, var):
     sd = np.sqrt(var)
 
