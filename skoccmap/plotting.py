@@ -215,26 +215,23 @@ class OccupancyMapDisplay:
             if panel == "probability":
                 image = self._draw_probability(plt, panel_ax, probability, cmap, unknown_color)
                 label = "P(occupied)"
-            elif panel == "std":
-                image = panel_ax.imshow(
-                    probability_std(probability, np.asarray(self.variance, dtype=np.float64)),
-                    origin="lower",
-                    extent=self.extent,
-                    cmap=variance_cmap,
-                    vmin=0.0,
-                    vmax=0.5,
-                    interpolation="nearest",
-                )
-                label = "std of P(occupied)"
             else:
+                variance = np.asarray(self.variance, dtype=np.float64)
+                if panel == "std":
+                    values, limits = probability_std(probability, variance), (0.0, 0.5)
+                    label = "std of P(occupied)"
+                else:
+                    values, limits = variance, (None, None)
+                    label = "predictive variance"
                 image = panel_ax.imshow(
-                    np.asarray(self.variance, dtype=np.float64),
+                    values,
                     origin="lower",
                     extent=self.extent,
                     cmap=variance_cmap,
+                    vmin=limits[0],
+                    vmax=limits[1],
                     interpolation="nearest",
                 )
-                label = "predictive variance"
             panel_ax.set_title(label)
             panel_ax.set_xlabel("x [m]")
             panel_ax.set_ylabel("y [m]")
