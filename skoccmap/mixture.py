@@ -188,9 +188,7 @@ def _beam_pieces(X, kinds, max_length, end_length):
     if np.any(no_return):
         # From the far end, pieces double towards the sensor: split the reversed segments.
         reversed_rows = np.hstack([X[no_return, d:], X[no_return, :d]])
-        far, far_source = split_segments(
-            reversed_rows, None, end_length=None if max_length is None else max_length
-        )
+        far, far_source = split_segments(reversed_rows, None, end_length=max_length)
         parts.append(np.hstack([far[:, d:], far[:, :d]]))
         sources.append(np.flatnonzero(no_return)[far_source])
     pieces, source = np.vstack(parts), np.concatenate(sources)
