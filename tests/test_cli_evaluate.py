@@ -1,25 +1,8 @@
 import re
 
-import numpy as np
 import pytest
 
 from skoccmap.cli import main
-from skoccmap.datasets import make_paper_scans
-
-
-@pytest.fixture(scope="module")
-def paper_log(tmp_path_factory):
-    """The paper's 26 simulated scans written as a CARMEN FLASER log (8 m sentinel)."""
-    scans = make_paper_scans(random_state=0).scans
-    path = tmp_path_factory.mktemp("log") / "paper.log"
-    lines = []
-    for t, (pose, ranges) in enumerate(zip(scans.poses, scans.ranges, strict=True)):
-        readings = np.where(np.isfinite(ranges), ranges, scans.max_range)
-        fields = ["FLASER", str(scans.n_beams), *(f"{r:.6f}" for r in readings)]
-        fields += [f"{v:.9f}" for v in pose] * 2 + [str(t), "sim", str(t)]
-        lines.append(" ".join(fields) + "\n")
-    path.write_text("".join(lines))
-    return path
 
 
 def _table(out):
@@ -29,7 +12,7 @@ def _table(out):
 
 
 def test_evaluate_blocks_protocol_several_seeds(paper_log, capsys):
-    argv = ["evaluate", str(paper_log), "--protocol", "blocks", "--block-size", "4",
+    argv = ["evaluate", str(paper_log[0]), "--protocol", "blocks", "--block-size", "4",
             "--train-every", "2", "--seeds", "0", "1", "--n-jobs", "1", "--quiet"]  # fmt: skip
     assert main(argv) == 0
     out = capsys.readouterr().out
@@ -44,7 +27,7 @@ def test_evaluate_blocks_protocol_several_seeds(paper_log, capsys):
 
 
 def test_evaluate_every_nth_is_the_default(paper_log, capsys):
-    argv = ["evaluate", str(paper_log), "--holdout-every", "4", "--train-every", "3",
+    argv = ["evaluate", str(paper_log[0]), "--holdout-every", "4", "--train-every", "3",
             "--n-jobs", "1", "--quiet"]  # fmt: skip
     assert main(argv) == 0
     out = capsys.readouterr().out
@@ -71,5 +54,5 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
     ],
 )
 def test_evaluate_bad_options(paper_log, capsys, options, message):
-    assert main(["evaluate", str(paper_log), *options, "--quiet"]) == 2
+    assert main(["evaluate", str(paper_log[0]), *options, "--quiet"]) == 2
     assert message in capsys.readouterr().err

@@ -6,24 +6,7 @@ from sklearn.metrics import roc_auc_score
 
 from skoccmap import OccupancyGrid
 from skoccmap.cli import main
-from skoccmap.datasets import flaser_angles, load_carmen, make_paper_scans
-
-
-@pytest.fixture(scope="module")
-def paper_log(tmp_path_factory):
-    """The paper's simulated scans written as a CARMEN FLASER log (8 m sentinel)."""
-    data = make_paper_scans(random_state=0)
-    scans = data.scans
-    np.testing.assert_allclose(scans.angles, flaser_angles(scans.n_beams))
-    path = tmp_path_factory.mktemp("log") / "paper.log"
-    lines = ["# simulated FLASER log\n"]
-    for t, (pose, ranges) in enumerate(zip(scans.poses, scans.ranges, strict=True)):
-        readings = np.where(np.isfinite(ranges), ranges, scans.max_range)
-        fields = ["FLASER", str(scans.n_beams), *(f"{r:.6f}" for r in readings)]
-        fields += [f"{v:.9f}" for v in pose] * 2 + [str(t), "sim", str(t)]
-        lines.append(" ".join(fields) + "\n")
-    path.write_text("".join(lines))
-    return path, data
+from skoccmap.datasets import load_carmen
 
 
 def test_map_writes_a_usable_map(paper_log, tmp_path, capsys):
