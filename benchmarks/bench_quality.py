@@ -59,6 +59,7 @@ from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _tables import print_table  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
 from skoccmap import baselines  # noqa: E402
@@ -315,15 +316,6 @@ def fmt(value, spec):
     if value is None or (isinstance(value, float) and not np.isfinite(value)):
         return ""
     return format(value, spec)
-
-
-def print_table(title, header, rows):
-    print(f"\n### {title}\n")
-    print("| " + " | ".join(header) + " |")
-    print("|" + "---|" * len(header))
-    for row in rows:
-        print("| " + " | ".join(str(cell) for cell in row) + " |")
-    sys.stdout.flush()
 
 
 def aggregate(rows, keys):
