@@ -62,8 +62,7 @@ import numpy as np  # noqa: E402
 from _tables import print_table  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
-from skoccmap import baselines  # noqa: E402
-from skoccmap.baselines import FrequencyGridMap, OccupancyGridMap  # noqa: E402
+from skoccmap.baselines import FrequencyGridMap, HilbertMap, OccupancyGridMap  # noqa: E402
 from skoccmap.datasets import (  # noqa: E402
     load_carmen,
     make_office_scans,
@@ -73,10 +72,6 @@ from skoccmap.datasets import (  # noqa: E402
 from skoccmap.metrics import blocks_protocol, map_quality  # noqa: E402
 from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
-
-# The Hilbert map may not be part of skoccmap.baselines yet: it is only required when its
-# results are asked for (``--methods``), and then the run stops at once if it is missing.
-HilbertMap = getattr(baselines, "HilbertMap", None)
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
@@ -164,25 +159,13 @@ class Method:
     per_scan: bool = False  # fit(X, y, scan_index=...)
 
 
-def _whole_beams():
-    """Parameters that keep every beam one observation (the paper's beams), the rest default.
-
-    ``max_beam_length=None``, and ``beam_end_length=None`` where the estimator has it (a
-    separate piece at the hit). Only the beams differ from the defaults, so the two rows
-    compare beam pieces against whole beams.
-    """
-    params = MixtureGPOccupancyMap().get_params()
-    return {k: None for k in ("max_beam_length", "beam_end_length") if k in params}
-
-
-WHOLE_BEAMS = _whole_beams()
+# The paper's beams: every beam one observation, all else default, so that the two mixture
+# rows compare beam pieces against whole beams.
+WHOLE_BEAMS = {"max_beam_length": None, "beam_end_length": None}
 
 
 def _hilbert(seed, n_jobs):
-    if HilbertMap is None:
-        raise ImportError("skoccmap.baselines has no HilbertMap")
-    params = HilbertMap().get_params()
-    return HilbertMap(**({"random_state": seed} if "random_state" in params else {}))
+    return HilbertMap(random_state=seed)
 
 
 def sim_methods(families):
@@ -941,12 +924,6 @@ def parse_args(argv=None):
         parser.error("--logs-every takes positive integers")
     if args.stability_every is None:
         args.stability_every = [1, 10] if 1 in args.logs_every else [10, 40]
-    if "hilbert" in args.methods and HilbertMap is None:
-        parser.error(
-            "the Hilbert map was asked for (--methods) but skoccmap.baselines has no "
-            "HilbertMap; run without it: --methods "
-            + " ".join(f for f in FAMILIES if f != "hilbert")
-        )
     if args.out is None:
         args.out = RESULTS / "quick" if args.quick else RESULTS
     args.out = Path(args.out)
