@@ -168,68 +168,51 @@ def _hilbert(seed, n_jobs):
     return HilbertMap(random_state=seed)
 
 
+MIXTURE = Method(
+    "mixture",
+    "mixture",
+    "mixture of GP experts (defaults)",
+    lambda s, j: MixtureGPOccupancyMap(random_state=s, n_jobs=j),
+)
+WHOLE_BEAM_MIXTURE = Method(
+    "mixture_whole_beams",
+    "whole-beams",
+    "mixture, whole beams",
+    lambda s, j: MixtureGPOccupancyMap(random_state=s, n_jobs=j, **WHOLE_BEAMS),
+)
+HILBERT = Method("hilbert", "hilbert", "Hilbert map", _hilbert)
+
+
+def _frequency(r):
+    return Method(
+        f"frequency_{r}",
+        "frequency",
+        f"frequency grid ({r} m)",
+        lambda s, j: FrequencyGridMap(resolution=r),
+    )
+
+
+def _octomap(r):
+    return Method(
+        f"octomap_{r}",
+        "octomap",
+        f"log-odds grid per scan ({r} m)",
+        lambda s, j: OccupancyGridMap(resolution=r),
+        per_scan=True,
+    )
+
+
 def sim_methods(families):
-    methods = [
-        Method(
-            "mixture",
-            "mixture",
-            "mixture of GP experts (defaults)",
-            lambda s, j: MixtureGPOccupancyMap(random_state=s, n_jobs=j),
-        ),
-        Method(
-            "mixture_whole_beams",
-            "whole-beams",
-            "mixture, whole beams",
-            lambda s, j: MixtureGPOccupancyMap(random_state=s, n_jobs=j, **WHOLE_BEAMS),
-        ),
-    ]
-    for r in GRID_RESOLUTIONS:
-        methods.append(
-            Method(
-                f"frequency_{r}",
-                "frequency",
-                f"frequency grid ({r} m)",
-                lambda s, j, r=r: FrequencyGridMap(resolution=r),
-            )
-        )
-    for r in GRID_RESOLUTIONS:
-        methods.append(
-            Method(
-                f"octomap_{r}",
-                "octomap",
-                f"log-odds grid per scan ({r} m)",
-                lambda s, j, r=r: OccupancyGridMap(resolution=r),
-                per_scan=True,
-            )
-        )
-    methods.append(Method("hilbert", "hilbert", "Hilbert map", _hilbert))
+    methods = [MIXTURE, WHOLE_BEAM_MIXTURE]
+    methods += [_frequency(r) for r in GRID_RESOLUTIONS]
+    methods += [_octomap(r) for r in GRID_RESOLUTIONS]
+    methods.append(HILBERT)
     return [m for m in methods if m.family in families]
 
 
 def log_methods(families):
     r = LOG_GRID_RESOLUTION
-    methods = [
-        Method(
-            "mixture",
-            "mixture",
-            "mixture of GP experts (defaults)",
-            lambda s, j: MixtureGPOccupancyMap(random_state=s, n_jobs=j),
-        ),
-        Method(
-            f"frequency_{r}",
-            "frequency",
-            f"frequency grid ({r} m)",
-            lambda s, j: FrequencyGridMap(resolution=r),
-        ),
-        Method(
-            f"octomap_{r}",
-            "octomap",
-            f"log-odds grid per scan ({r} m)",
-            lambda s, j: OccupancyGridMap(resolution=r),
-            per_scan=True,
-        ),
-        Method("hilbert", "hilbert", "Hilbert map", _hilbert),
-    ]
+    methods = [MIXTURE, _frequency(r), _octomap(r), HILBERT]
     return [m for m in methods if m.family in families]
 
 
