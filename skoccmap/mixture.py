@@ -832,36 +832,30 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 est.set_params(random_state=int(seeds[k]))
             return est
 
-        fitted = [None] * n_experts
-        todo = list(range(n_experts))
         self.shared_kernel_ = None
         base = expert
         if self.share_hyperparameters:
-            base, fitted, todo = self._learn_shared(X, y, rows, expert, fitted, rng)
+            base = self._learn_shared(X, y, rows, expert, rng)
 
-        if todo:
-            _log(self.verbose, f"fitting {len(todo)} expert(s) with n_jobs={self.n_jobs}")
+        _log(self.verbose, f"fitting {n_experts} expert(s) with n_jobs={self.n_jobs}")
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]]) for k in todo
+            delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]])
+            for k in range(n_experts)
         )
-        caught = []
-        for k, (est, expert_warnings) in zip(todo, results, strict=True):
-            fitted[k] = est
-            caught.append(expert_warnings)
-        _warn_once_each(caught, n_experts)
-        return fitted
+        _warn_once_each([expert_warnings for _, expert_warnings in results], n_experts)
+        return [est for est, _ in results]
 
-    def _learn_shared(self, X, y, rows, expert, fitted, rng):
+    def _learn_shared(self, X, y, rows, expert, rng):
+        """The expert with the shared kernel, fixed (or ``expert`` if no piece can learn)."""
         params = expert.get_params()
         if "kernel" not in params or "optimizer" not in params:
             raise ValueError(
                 "share_hyperparameters=True needs an expert with 'kernel' and 'optimizer' "
                 f"parameters; {type(expert).__name__} lacks them."
             )
-        todo = list(range(len(rows)))
         two_class = [k for k, r in enumerate(rows) if 0 < y[r].sum() < r.size]
         if not two_class:
-            return expert, fitted, todo
+            return expert
         # The summed evidence of experts' own (compact) pieces, on a random subset of them:
         # each term is one expert's fit, so a few dozen pieces fix a handful of
         # hyperparameters at a bounded cost however large the map.
@@ -875,10 +869,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.shared_kernel_ = learn_shared_kernel(
             learner, [(X[rows[k]], y[rows[k]]) for k in chosen], n_jobs=self.n_jobs
         )
-        if learner.get_params()["optimizer"] is not None:
+        if params["optimizer"] is not None:
             warn_at_bounds(self.shared_kernel_, "shared kernel")
-        base = clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
-        return base, fitted, todo
+        return clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
 
     def _fit_gpc_gate(self, X, labels, rng):
         """GP classifier over the expert labels of the observations' midpoints.
