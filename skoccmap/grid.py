@@ -323,6 +323,85 @@ class OccupancyGrid:
             "data": data.ravel(),
         }
 
+    def to_ros_message(self, *, frame_id="map", trinary=False, stamp=None, ros_version=2):
+        """The map as a ``nav_msgs/OccupancyGrid`` message of the ``rosbags`` package.
+
+        Needs ``rosbags`` (``pip install "skoccmap[ros]"``); no ROS installation.
+
+        Parameters
+        ----------
+        frame_id : str, default="map"
+            ``header.frame_id``.
+        trinary : bool, default=False
+            ``data`` holds 0 (free) / 100 (occupied) / -1 (unknown) at the map_server
+            thresholds (see :meth:`trinary`) instead of ``round(100 * probability)``, with -1
+            for unknown cells either way (see :meth:`to_ros_occupancy_grid`).
+        stamp : float or None, default=None
+            ``header.stamp`` and ``info.map_load_time`` in seconds; ``None``: now.
+        ros_version : {1, 2}, default=2
+            Message definitions of ROS 1 (Noetic) or ROS 2 (Humble); serialise the message
+            with the matching ``rosbags`` type store.
+
+        Returns
+        -------
+        message : nav_msgs__msg__OccupancyGrid
+            ``info.origin`` is the pose of the lower-left corner of cell ``(0, 0)``; ``data`` is
+            row-major from the row at the origin.
+
+        Examples
+        --------
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.1, 0.9], [0.5, 0.0]], origin=(-1.0, 2.0), resolution=0.5)
+        >>> msg = grid.to_ros_message(stamp=0.0, trinary=True)
+        >>> msg.info.width, msg.info.height, msg.info.origin.position.x, msg.data.tolist()
+        (2, 2, -1.0, [0, 100, -1, 0])
+        """
+        from .datasets._rosbag import occupancy_grid_message
+
+        fields = self.to_ros_occupancy_grid(frame_id=frame_id, trinary=trinary)
+        return occupancy_grid_message(fields, stamp=stamp, ros_version=ros_version)
+
+    def write_rosbag(
+        self,
+        path,
+        *,
+        topic="/map",
+        frame_id="map",
+        trinary=False,
+        stamp=None,
+        ros_version=2,
+        storage="sqlite3",
+    ):
+        """Write the map into a new ROS bag, one ``nav_msgs/OccupancyGrid`` on a latched topic.
+
+        The topic is offered as map_server offers ``/map``: latched in ROS 1 (``latching=1``
+        in the connection header), ``transient_local`` durability, reliable, history depth 1
+        in ROS 2, so that a node subscribing after ``ros2 bag play`` / ``rosbag play``
+        started still receives the map. Needs ``rosbags`` (``pip install "skoccmap[ros]"``).
+
+        Parameters
+        ----------
+        path : str or path-like
+            The new bag: a ``.bag`` file for ROS 1, a directory for ROS 2. It must not exist.
+        topic : str, default="/map"
+            Topic of the map.
+        frame_id, trinary, stamp, ros_version
+            As in :meth:`to_ros_message`.
+        storage : {"sqlite3", "mcap"}, default="sqlite3"
+            ROS 2 storage plugin.
+
+        Returns
+        -------
+        path : pathlib.Path
+            The bag written.
+        """
+        from .datasets._rosbag import write_occupancy_grid
+
+        fields = self.to_ros_occupancy_grid(frame_id=frame_id, trinary=trinary)
+        return write_occupancy_grid(
+            fields, path, topic=topic, stamp=stamp, ros_version=ros_version, storage=storage
+        )
+
     def to_points(self, occupied_threshold=ROS_OCCUPIED_THRESH):
         """Centres of the occupied cells (known, P(occupied) above the threshold).
 
