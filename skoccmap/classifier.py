@@ -1,4 +1,8 @@
-"""Binary Gaussian-process classification by Expectation Propagation."""
+"""Gaussian-process classification by Expectation Propagation.
+
+Binary problems are solved by EP; more classes by one-vs-rest or one-vs-one binary
+problems, as in scikit-learn's ``GaussianProcessClassifier``.
+"""
 
 import warnings
 from numbers import Integral, Real
@@ -8,8 +12,9 @@ import scipy.optimize
 from scipy.special import ndtr
 from sklearn.base import BaseEstimator, ClassifierMixin, _fit_context, clone
 from sklearn.exceptions import ConvergenceWarning
-from sklearn.gaussian_process.kernels import RBF, Kernel
+from sklearn.gaussian_process.kernels import RBF, CompoundKernel, Kernel
 from sklearn.gaussian_process.kernels import ConstantKernel as C
+from sklearn.multiclass import OneVsOneClassifier, OneVsRestClassifier
 from sklearn.utils import check_random_state, gen_batches
 from sklearn.utils._param_validation import Interval, StrOptions
 from sklearn.utils.multiclass import check_classification_targets
@@ -28,6 +33,18 @@ _PREDICT_BLOCK_ELEMENTS = 2**22
 # Floor of the latent variance; predictions promise a strictly positive variance.
 _VAR_FLOOR = 1e-12
 
+# Fitted attributes of a binary fit, and of a multi-class fit (beyond classes_ and the
+# like): a refit of the other kind removes them.
+_BINARY_ATTRIBUTES = (
+    "X_train_",
+    "y_train_",
+    "site_precision_",
+    "site_nu_",
+    "_posterior",
+    "_rng",
+)
+_MULTI_CLASS_ATTRIBUTES = ("_multi_class_estimator",)
+
 
 # Projected gradient (of -log evidence) below this, relative to max(1, |value|), counts as
 # a stationary point.
@@ -45,6 +62,41 @@ def _is_stationary(opt_res, bounds):
     pressing = ((x <= bounds[:, 0]) & (grad > 0)) | ((x >= bounds[:, 1]) & (grad < 0))
     free = np.where(pressing, 0.0, grad)
     return bool(np.max(np.abs(free), initial=0.0) <= _STATIONARY_RTOL * max(1.0, abs(opt_res.fun)))
+
+
+# A learnt log-hyperparameter this close to a bound counts as at the bound: scikit-learn's
+# np.isclose tolerance (rtol 1e-5), widened to 1e-3 in log space (0.1 % of the value),
+# because L-BFGS-B stops on EP's flat evidence near a bound a step of ~1e-4 away from it.
+_AT_BOUND_RTOL = 1e-5
+_AT_BOUND_ATOL = 1e-3
+
+
+def _warn_at_bounds(kernel):
+    """scikit-learn's ConvergenceWarning for each learnt hyperparameter at its bound."""
+    close = np.isclose(
+        kernel.bounds, kernel.theta[:, None], rtol=_AT_BOUND_RTOL, atol=_AT_BOUND_ATOL
+    )
+    idx = 0
+    for hyp in kernel.hyperparameters:
+        if hyp.fixed:
+            continue
+        bounds = np.atleast_2d(hyp.bounds)
+        for dim in range(hyp.n_elements):
+            at_lower, at_upper = close[idx]
+            idx += 1
+            if at_lower:
+                side, bound, verb = "lower", bounds[dim][0], "Decreasing"
+            elif at_upper:
+                side, bound, verb = "upper", bounds[dim][1], "Increasing"
+            else:
+                continue
+            warnings.warn(
+                f"The optimal value found for dimension {dim} of parameter {hyp.name} is "
+                f"close to the specified {side} bound {bound}. {verb} the bound and calling "
+                "fit again may find a better value.",
+                ConvergenceWarning,
+                stacklevel=4,
+            )
 
 
 def _minimize_in_bounds(optimizer, obj_func, initial_theta, bounds):
@@ -67,13 +119,18 @@ def _minimize_in_bounds(optimizer, obj_func, initial_theta, bounds):
 
 
 class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
-    """Binary GP classifier with a probit likelihood, fitted by Expectation Propagation.
+    """GP classifier with a probit likelihood, fitted by Expectation Propagation.
 
     The posterior over the latent function is approximated by EP (Rasmussen & Williams 2006,
     Algorithm 3.5) in the numerically stable ``B = I + S^1/2 K S^1/2`` form; predictions follow
     Algorithm 3.6 and the kernel hyperparameters maximise the EP approximation of the log
     marginal likelihood (eq. 3.65) with its analytic gradient (eq. 5.27). The EP math lives in
     :mod:`skoccmap.ep`.
+
+    With more than two classes, one binary classifier of this kind is fitted per class
+    against the rest or per pair of classes (``multi_class``), each with its own
+    hyperparameters, as scikit-learn's ``GaussianProcessClassifier`` does: this is not a
+    true multi-class EP approximation.
 
     Parameters
     ----------
@@ -106,26 +163,51 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     copy_X_train : bool, default=True
         Whether ``X_train_`` is a copy of the training data or a reference to it.
     random_state : int, RandomState instance or None, default=None
-        Draws the starting points of the optimiser restarts.
+        Draws the starting points of the optimiser restarts. Every binary problem of a
+        multi-class fit gets the same ``random_state``.
+    multi_class : {"one_vs_rest", "one_vs_one"}, default="one_vs_rest"
+        How more than two classes are handled: ``"one_vs_rest"`` fits one binary classifier
+        per class against all others (probabilities are their normalised positive-class
+        probabilities); ``"one_vs_one"`` fits one per pair of classes and predicts by their
+        votes, without probability estimates. Ignored for two classes.
+    n_jobs : int, default=None
+        Number of jobs fitting and predicting the binary problems of a multi-class fit in
+        parallel. None means 1 unless in a :obj:`joblib.parallel_backend` context; -1 means
+        all processors. Ignored for two classes.
 
     Attributes
     ----------
+    base_estimator_ : estimator
+        The fitted binary problem(s). For two classes the classifier itself, which holds the
+        binary attributes below; for more, a
+        :class:`~sklearn.multiclass.OneVsRestClassifier` or
+        :class:`~sklearn.multiclass.OneVsOneClassifier` whose ``estimators_`` are fitted
+        binary ``EPGaussianProcessClassifier`` instances.
     kernel_ : kernel instance
-        The kernel with the learnt (or fixed) hyperparameters.
-    classes_ : ndarray of shape (2,)
-        The two class labels; ``classes_[1]`` is the positive class (latent ``f > 0``).
+        The kernel with the learnt (or fixed) hyperparameters. For more than two classes a
+        :class:`~sklearn.gaussian_process.kernels.CompoundKernel` of the binary
+        classifiers' kernels, in the order of ``base_estimator_.estimators_``.
+    classes_ : ndarray of shape (n_classes,)
+        The class labels, sorted. With two, ``classes_[1]`` is the positive class (latent
+        ``f > 0``).
+    n_classes_ : int
+        Number of classes.
     X_train_ : ndarray of shape (n_samples, n_features)
-        Training inputs, needed for predictions.
+        Training inputs, needed for predictions. Two classes only, as ``y_train_``,
+        ``site_precision_`` and ``site_nu_``; with more, the binary classifiers in
+        ``base_estimator_.estimators_`` hold theirs.
     y_train_ : ndarray of shape (n_samples,)
         Training labels as -1 / +1 (+1 for ``classes_[1]``).
     site_precision_ : ndarray of shape (n_samples,)
         EP site precisions tau (R&W's tau-tilde), all ``>= 0``.
     site_nu_ : ndarray of shape (n_samples,)
         EP site natural means nu = tau * site mean (R&W's nu-tilde).
+    n_iter_ : int or ndarray of shape (n_estimators,)
+        Number of EP sweeps of the final EP run, at ``kernel_``'s hyperparameters; for more
+        than two classes, one per binary classifier of ``base_estimator_.estimators_``.
     log_marginal_likelihood_value_ : float
-        EP log marginal likelihood at ``kernel_.theta``.
-    n_iter_ : int
-        Number of EP sweeps of the final EP run, at ``kernel_``'s hyperparameters.
+        EP log marginal likelihood at ``kernel_.theta``; for more than two classes the mean
+        over the binary classifiers.
     n_features_in_ : int
         Number of columns seen in fit.
 
@@ -136,7 +218,13 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     Notes
     -----
     No ``decision_function`` is provided: the latent mean ranks test points differently from
-    ``predict_proba``, which also accounts for the latent variance.
+    ``predict_proba``, which also accounts for the latent variance. One-vs-one predictions
+    therefore weigh the votes by the binary classifiers' probabilities.
+
+    A ``ConvergenceWarning`` with scikit-learn's message is raised when a learnt
+    hyperparameter ends at one of its bounds: within scikit-learn's ``numpy.isclose``
+    tolerance of it, or within 1e-3 in log space (L-BFGS-B stops on the flat evidence near
+    a bound a little inside it).
 
     References
     ----------
@@ -156,6 +244,17 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     >>> mean, var = clf.latent_mean_and_variance([[1.5]])
     >>> bool(mean[0] > 0 and var[0] > 0)
     True
+
+    Three classes, one binary classifier per class against the rest:
+
+    >>> y3 = np.digitize(np.sin(X[:, 0]), [-0.35, 0.35])
+    >>> clf3 = EPGaussianProcessClassifier(random_state=0).fit(X, y3)
+    >>> clf3.classes_, clf3.n_classes_, len(clf3.base_estimator_.estimators_)
+    (array([0, 1, 2]), 3, 3)
+    >>> clf3.predict([[-1.5], [0.0], [1.5]])
+    array([0, 1, 2])
+    >>> clf3.predict_proba([[0.0]]).sum(axis=1)
+    array([1.])
     """
 
     _parameter_constraints: dict = {
@@ -168,6 +267,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         "tol": [Interval(Real, 0, None, closed="neither")],
         "copy_X_train": ["boolean"],
         "random_state": ["random_state"],
+        "multi_class": [StrOptions({"one_vs_rest", "one_vs_one"})],
+        "n_jobs": [Integral, None],
     }
 
     def __init__(
@@ -182,6 +283,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         tol=1e-6,
         copy_X_train=True,
         random_state=None,
+        multi_class="one_vs_rest",
+        n_jobs=None,
     ):
         self.kernel = kernel
         self.optimizer = optimizer
@@ -192,11 +295,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         self.tol = tol
         self.copy_X_train = copy_X_train
         self.random_state = random_state
-
-    def __sklearn_tags__(self):
-        tags = super().__sklearn_tags__()
-        tags.classifier_tags.multi_class = False
-        return tags
+        self.multi_class = multi_class
+        self.n_jobs = n_jobs
 
     @_fit_context(prefer_skip_nested_validation=True)
     def fit(self, X, y):
@@ -207,35 +307,62 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         X : array-like of shape (n_samples, n_features)
             Training inputs.
         y : array-like of shape (n_samples,)
-            Labels of exactly two classes.
+            Labels of two or more classes.
 
         Returns
         -------
         self : object
             The fitted classifier.
         """
+        if isinstance(self.kernel, CompoundKernel):
+            raise ValueError("kernel cannot be a CompoundKernel")
+        if self.kernel is None or self.kernel.requires_vector_input:
+            X, y = validate_data(self, X, y, ensure_2d=True, dtype="numeric")
+        else:
+            X, y = validate_data(self, X, y, ensure_2d=False, dtype=None)
+        check_classification_targets(y)
+        classes = np.unique(y)
+        if classes.size < 2:
+            raise ValueError(
+                f"y holds one class ({classes.tolist()}); {type(self).__name__} needs "
+                "samples of two or more classes."
+            )
+        self.classes_ = classes
+        self.n_classes_ = classes.size
+        if self.n_classes_ > 2:
+            for name in _BINARY_ATTRIBUTES:
+                self.__dict__.pop(name, None)
+            self._fit_multi_class(X, y)
+        else:
+            for name in _MULTI_CLASS_ATTRIBUTES:
+                self.__dict__.pop(name, None)
+            self._fit_binary(X, y)
+        return self
+
+    def _fit_multi_class(self, X, y):
+        """One binary classifier per class (against the rest) or per pair of classes."""
+        binary = clone(self).set_params(n_jobs=None)
+        if self.multi_class == "one_vs_rest":
+            ensemble = OneVsRestClassifier(binary, n_jobs=self.n_jobs)
+        else:
+            ensemble = OneVsOneClassifier(binary, n_jobs=self.n_jobs)
+        self._multi_class_estimator = ensemble.fit(X, y)
+        estimators = ensemble.estimators_
+        # References to the binary kernels: log_marginal_likelihood(clone_kernel=False)
+        # changes them in place, and kernel_ with them.
+        self.kernel_ = CompoundKernel([estimator.kernel_ for estimator in estimators])
+        self.log_marginal_likelihood_value_ = np.mean(
+            [estimator.log_marginal_likelihood_value_ for estimator in estimators]
+        )
+        self.n_iter_ = np.array([estimator.n_iter_ for estimator in estimators])
+
+    def _fit_binary(self, X, y):
         if self.kernel is None:
             self.kernel_ = C(1.0, constant_value_bounds=(1e-3, 1e3)) * RBF(
                 1.0, length_scale_bounds=(1e-3, 1e3)
             )
         else:
             self.kernel_ = clone(self.kernel)
-        if self.kernel_.requires_vector_input:
-            X, y = validate_data(self, X, y, ensure_2d=True, dtype="numeric")
-        else:
-            X, y = validate_data(self, X, y, ensure_2d=False, dtype=None)
-        check_classification_targets(y)
-        self.classes_ = np.unique(y)
-        if self.classes_.size > 2:
-            raise ValueError(
-                f"Only binary classification is supported. y holds {self.classes_.size} "
-                f"classes ({self.classes_[:5].tolist()}...); {type(self).__name__} needs two."
-            )
-        if self.classes_.size < 2:
-            raise ValueError(
-                f"y holds one class ({self.classes_.tolist()}); {type(self).__name__} needs "
-                "samples of two classes."
-            )
         self.X_train_ = np.copy(X) if self.copy_X_train else X
         self.y_train_ = np.where(y == self.classes_[1], 1.0, -1.0)
         self._rng = check_random_state(self.random_state)
@@ -244,6 +371,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         warm = [None]
         if self.optimizer is not None and self.kernel_.n_dims > 0:
             self._optimize_hyperparameters(warm)
+            _warn_at_bounds(self.kernel_)
 
         K = self.kernel_(self.X_train_)
         result = self._run_ep(K, warm)
@@ -254,16 +382,18 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
                 "increase damping (parallel updates oscillate at large signal variances), or "
                 "use ep_update='sequential'.",
                 ConvergenceWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         self.site_precision_ = result.site_precision
         self.site_nu_ = result.site_nu
         self.n_iter_ = result.n_iter
         self._posterior = result.posterior
-        self.log_marginal_likelihood_value_ = ep_log_marginal_likelihood(
-            K, self.y_train_, result.site_precision, result.site_nu, posterior=result.posterior
+        # np.float64 as in scikit-learn: arithmetic with float32 stays in float64.
+        self.log_marginal_likelihood_value_ = np.float64(
+            ep_log_marginal_likelihood(
+                K, self.y_train_, result.site_precision, result.site_nu, posterior=result.posterior
+            )
         )
-        return self
 
     def _run_ep(self, K, warm):
         """EP started from the sites in ``warm[0]`` (zeros if None); from zero sites if that
@@ -307,8 +437,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         if self.n_restarts_optimizer > 0:
             if not np.isfinite(bounds).all():
                 raise ValueError(
-                    "n_restarts_optimizer > 0 needs finite bounds on every kernel "
-                    "hyperparameter."
+                    "n_restarts_optimizer > 0 needs finite bounds on every kernel hyperparameter."
                 )
             for _ in range(self.n_restarts_optimizer):
                 # kernel.bounds are already log-transformed: draw uniformly in log space.
@@ -324,8 +453,10 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         else:
             K = kernel(self.X_train_)
         result = self._run_ep(K, warm)
-        lml = ep_log_marginal_likelihood(
-            K, self.y_train_, result.site_precision, result.site_nu, posterior=result.posterior
+        lml = np.float64(
+            ep_log_marginal_likelihood(
+                K, self.y_train_, result.site_precision, result.site_nu, posterior=result.posterior
+            )
         )
         if not eval_gradient:
             return lml
@@ -334,16 +465,37 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     def _constrained_optimization(self, obj_func, initial_theta, bounds):
         return _minimize_in_bounds(self.optimizer, obj_func, initial_theta, bounds)
 
+    @property
+    def base_estimator_(self):
+        """The fitted binary problem(s): the classifier itself for two classes, else a
+        ``OneVsRestClassifier`` or ``OneVsOneClassifier`` of binary classifiers."""
+        check_is_fitted(self)
+        if self.n_classes_ == 2:
+            return self
+        return self._multi_class_estimator
+
+    def _validate_queries(self, X):
+        """``X`` validated for prediction, as in fit."""
+        if self.kernel is None or self.kernel.requires_vector_input:
+            return validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
+        return validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
+
     def log_marginal_likelihood(self, theta=None, eval_gradient=False, clone_kernel=True):
         """EP log marginal likelihood of the training data (R&W eq. 3.65).
+
+        For more than two classes, the mean over the binary classifiers (as scikit-learn's
+        ``GaussianProcessClassifier``), without gradient.
 
         Parameters
         ----------
         theta : array-like of shape (n_kernel_params,), default=None
             Log-hyperparameters at which to evaluate; None returns the value at ``kernel_``
-            computed in fit.
+            computed in fit. For more than two classes, either the hyperparameters of one
+            binary kernel (given to every binary classifier) or those of ``kernel_``, the
+            compound kernel (each binary classifier gets its own part).
         eval_gradient : bool, default=False
             Whether to return the gradient with respect to ``theta`` too (R&W eq. 5.27).
+            Two classes only: more raise NotImplementedError.
         clone_kernel : bool, default=True
             If False, ``kernel_``'s hyperparameters are set to ``theta`` in place.
 
@@ -369,12 +521,37 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
                 raise ValueError("Gradient can only be evaluated for theta!=None")
             return self.log_marginal_likelihood_value_
         theta = np.asarray(theta, dtype=np.float64)
+        if self.n_classes_ > 2:
+            return self._multi_class_log_marginal_likelihood(theta, eval_gradient, clone_kernel)
         if clone_kernel:
             kernel = self.kernel_.clone_with_theta(theta)
         else:
             kernel = self.kernel_
             kernel.theta = theta
         return self._lml(kernel, [(self.site_precision_, self.site_nu_)], eval_gradient)
+
+    def _multi_class_log_marginal_likelihood(self, theta, eval_gradient, clone_kernel):
+        if eval_gradient:
+            raise NotImplementedError(
+                "Gradient of log-marginal-likelihood not implemented for multi-class GPC."
+            )
+        estimators = self._multi_class_estimator.estimators_
+        n_dims = estimators[0].kernel_.n_dims
+        if theta.shape[0] == n_dims:  # the same theta for every binary kernel
+            thetas = [theta] * len(estimators)
+        elif theta.shape[0] == n_dims * len(estimators):  # theta of the compound kernel
+            thetas = np.split(theta, len(estimators))
+        else:
+            raise ValueError(
+                f"Shape of theta must be either {n_dims} or {n_dims * len(estimators)}. "
+                f"Obtained theta with shape {theta.shape[0]}."
+            )
+        return np.mean(
+            [
+                estimator.log_marginal_likelihood(part, clone_kernel=clone_kernel)
+                for estimator, part in zip(estimators, thetas, strict=True)
+            ]
+        )
 
     def latent_mean_and_variance(self, X):
         """Mean and variance of the latent function at ``X`` under the EP posterior.
@@ -402,6 +579,12 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         (True, True)
         """
         check_is_fitted(self)
+        if self.n_classes_ > 2:
+            raise ValueError(
+                "Returning the mean and variance of the latent function f "
+                "is only supported for binary classification, received "
+                f"{self.n_classes_} classes."
+            )
         if self.kernel_.requires_vector_input:
             X = validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
         else:
@@ -444,6 +627,10 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     def predict_proba(self, X):
         """Class probabilities, ``P(classes_[1]) = Phi(mean / sqrt(1 + var))`` (R&W eq. 3.80).
 
+        For more than two classes (``multi_class="one_vs_rest"``), the binary classifiers'
+        probabilities of their class, normalised to sum to one. ``"one_vs_one"`` gives no
+        probabilities: a ValueError is raised.
+
         Parameters
         ----------
         X : array-like of shape (n_queries, n_features)
@@ -451,7 +638,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
 
         Returns
         -------
-        proba : ndarray of shape (n_queries, 2)
+        proba : ndarray of shape (n_queries, n_classes)
             Columns in the order of ``classes_``.
 
         Examples
@@ -463,12 +650,21 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         >>> clf.predict_proba([[1.0]]).sum(axis=1)
         array([1.])
         """
+        check_is_fitted(self)
+        if self.n_classes_ > 2:
+            if isinstance(self._multi_class_estimator, OneVsOneClassifier):
+                raise ValueError(
+                    "one_vs_one multi-class mode does not support predicting probability "
+                    "estimates. Use one_vs_rest mode instead."
+                )
+            return self._multi_class_estimator.predict_proba(self._validate_queries(X))
         mean, var = self.latent_mean_and_variance(X)
         z = mean / np.sqrt(1.0 + var)
         return np.column_stack([ndtr(-z), ndtr(z)])
 
     def predict(self, X):
-        """Most probable class at ``X``.
+        """Most probable class at ``X``; for ``multi_class="one_vs_one"`` the class with
+        the most votes of the binary classifiers.
 
         Parameters
         ----------
@@ -489,5 +685,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         >>> clf.predict([[0.0], [1.0]]).tolist()
         ['a', 'b']
         """
+        check_is_fitted(self)
+        if self.n_classes_ > 2:
+            return self._multi_class_estimator.predict(self._validate_queries(X))
         proba = self.predict_proba(X)
         return self.classes_[np.argmax(proba, axis=1)]

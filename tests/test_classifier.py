@@ -1,4 +1,7 @@
-"""Tests for EPGaussianProcessClassifier against independent dense computations."""
+"""Tests for EPGaussianProcessClassifier against independent dense computations.
+
+Multi-class models are checked against binary problems fitted by hand.
+"""
 
 import warnings
 
@@ -7,9 +10,10 @@ import pytest
 from scipy.integrate import quad
 from scipy.stats import norm
 from sklearn.base import clone
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.gaussian_process.kernels import RBF, WhiteKernel
+from sklearn.exceptions import ConvergenceWarning, NotFittedError
+from sklearn.gaussian_process.kernels import RBF, CompoundKernel, WhiteKernel
 from sklearn.gaussian_process.kernels import ConstantKernel as C
+from sklearn.multiclass import OneVsOneClassifier, OneVsRestClassifier
 
 from skoccmap.classifier import EPGaussianProcessClassifier, _is_stationary
 
@@ -223,9 +227,7 @@ def test_no_warning_when_converged():
     assert 1 <= clf.n_iter_ < clf.max_iter
 
 
-@pytest.mark.parametrize(
-    "labels", [(0, 1), (-1, 1), (3, 7), ("free", "occupied"), (False, True)]
-)
+@pytest.mark.parametrize("labels", [(0, 1), (-1, 1), (3, 7), ("free", "occupied"), (False, True)])
 def test_any_two_labels(labels):
     X, y = _data(n=30)
     ref = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
@@ -242,10 +244,185 @@ def test_one_class_raises():
         EPGaussianProcessClassifier().fit(X, np.ones(10))
 
 
-def test_three_classes_raise():
-    X, _ = _data(n=9)
-    with pytest.raises(ValueError, match="Only binary classification"):
-        EPGaussianProcessClassifier().fit(X, np.arange(9) % 3)
+def _data3(n=45, seed=0, n_classes=3):
+    """Classes by bands of a smooth function, with some label noise."""
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-2, 2, size=(n, 2))
+    f = np.sin(1.5 * X[:, 0]) + 0.5 * X[:, 1] + 0.2 * rng.standard_normal(n)
+    edges = np.quantile(f, np.linspace(0, 1, n_classes + 1)[1:-1])
+    return X, np.digitize(f, edges)
+
+
+def test_one_vs_rest_matches_binary_problems_fitted_by_hand():
+    X, y = _data3()
+    labels = np.array(["a", "b", "c"])[y]
+    Q = np.random.default_rng(1).uniform(-2.5, 2.5, size=(20, 2))
+    clf = EPGaussianProcessClassifier(random_state=0).fit(X, labels)
+    assert clf.n_classes_ == 3 and list(clf.classes_) == ["a", "b", "c"]
+    assert isinstance(clf.base_estimator_, OneVsRestClassifier)
+    by_hand = [EPGaussianProcessClassifier(random_state=0).fit(X, y == k) for k in range(3)]
+    positive = np.column_stack([b.predict_proba(Q)[:, 1] for b in by_hand])
+    proba = clf.predict_proba(Q)
+    np.testing.assert_allclose(proba, positive / positive.sum(axis=1, keepdims=True))
+    np.testing.assert_allclose(proba.sum(axis=1), 1.0)
+    np.testing.assert_array_equal(clf.predict(Q), clf.classes_[np.argmax(positive, axis=1)])
+    # kernel_ and the evidence are those of the binary classifiers, as in scikit-learn.
+    assert isinstance(clf.kernel_, CompoundKernel)
+    np.testing.assert_allclose(
+        clf.kernel_.theta, np.concatenate([b.kernel_.theta for b in by_hand])
+    )
+    lml = np.mean([b.log_marginal_likelihood_value_ for b in by_hand])
+    assert clf.log_marginal_likelihood_value_ == pytest.approx(lml)
+    np.testing.assert_array_equal(clf.n_iter_, [b.n_iter_ for b in by_hand])
+    for estimator in clf.base_estimator_.estimators_:
+        assert isinstance(estimator, EPGaussianProcessClassifier)
+        assert estimator.n_classes_ == 2
+
+
+def test_one_vs_one_votes_of_pairwise_problems_fitted_by_hand():
+    X, y = _data3(n=60, n_classes=4)
+    kernel = C(4.0) * RBF(0.8)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, multi_class="one_vs_one")
+    clf.fit(X, y)
+    assert isinstance(clf.base_estimator_, OneVsOneClassifier)
+    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+    assert len(clf.base_estimator_.estimators_) == len(pairs) == 6
+    Q = np.random.default_rng(2).uniform(-2, 2, size=(30, 2))
+    votes = np.zeros((Q.shape[0], 4))
+    for i, j in pairs:
+        rows = (y == i) | (y == j)
+        binary = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X[rows], y[rows])
+        p_j = binary.predict_proba(Q)[:, 1]
+        votes[np.arange(Q.shape[0]), np.where(p_j > 0.5, j, i)] += 1
+    # Without a tie the class with most votes wins.
+    top = np.sort(votes, axis=1)
+    clear = top[:, -1] > top[:, -2]
+    assert clear.sum() >= 20
+    np.testing.assert_array_equal(clf.predict(Q)[clear], np.argmax(votes[clear], axis=1))
+    with pytest.raises(ValueError, match="one_vs_one multi-class mode does not support"):
+        clf.predict_proba(Q)
+    # The compound kernel has one part per pair (not per class): each gets its own.
+    n_dims = clf.base_estimator_.estimators_[0].kernel_.n_dims
+    assert clf.kernel_.theta.shape == (6 * n_dims,)
+    assert clf.log_marginal_likelihood(clf.kernel_.theta) == pytest.approx(
+        clf.log_marginal_likelihood_value_
+    )
+
+
+def test_multi_class_log_marginal_likelihood():
+    X, y = _data3()
+    kernel = C(2.0) * RBF(0.7)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    estimators = clf.base_estimator_.estimators_
+    # One kernel's theta goes to every binary classifier; the compound theta is split.
+    theta = kernel.theta + 0.3
+    expected = np.mean([e.log_marginal_likelihood(theta) for e in estimators])
+    assert clf.log_marginal_likelihood(theta) == pytest.approx(expected, rel=1e-10)
+    thetas = [kernel.theta + d for d in (0.1, -0.2, 0.4)]
+    expected = np.mean(
+        [e.log_marginal_likelihood(t) for e, t in zip(estimators, thetas, strict=True)]
+    )
+    value = clf.log_marginal_likelihood(np.concatenate(thetas))
+    assert value == pytest.approx(expected, rel=1e-10)
+    assert clf.log_marginal_likelihood(clf.kernel_.theta) == pytest.approx(
+        clf.log_marginal_likelihood_value_, rel=1e-8
+    )
+    with pytest.raises(NotImplementedError, match="multi-class"):
+        clf.log_marginal_likelihood(theta, eval_gradient=True)
+    with pytest.raises(ValueError, match="Shape of theta must be either 2 or 6"):
+        clf.log_marginal_likelihood(np.zeros(3))
+    # clone_kernel=False sets the binary kernels, and kernel_ with them, in place.
+    clf.log_marginal_likelihood(np.concatenate(thetas), clone_kernel=False)
+    np.testing.assert_allclose(clf.kernel_.theta, np.concatenate(thetas))
+    np.testing.assert_allclose(estimators[2].kernel_.theta, thetas[2])
+
+
+def test_multi_class_latent_queries_raise():
+    X, y = _data3()
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    match = "only supported for binary classification, received 3 classes"
+    with pytest.raises(ValueError, match=match):
+        clf.latent_mean_and_variance(X)
+    with pytest.raises(ValueError, match=match):
+        clf.predict_var(X)
+
+
+def test_compound_kernel_raises():
+    X, y = _data(n=10)
+    with pytest.raises(ValueError, match="kernel cannot be a CompoundKernel"):
+        EPGaussianProcessClassifier(CompoundKernel([RBF(), RBF()])).fit(X, y)
+
+
+def test_binary_base_estimator_is_the_classifier_and_refits_switch_kinds():
+    X, y = _data3(n=30)
+    clf = EPGaussianProcessClassifier(optimizer=None)
+    with pytest.raises(NotFittedError):
+        getattr(clf, "base_estimator_")  # noqa: B009
+    clf.fit(X, y == 0)
+    assert clf.base_estimator_ is clf and clf.n_classes_ == 2
+    clf.fit(X, y)
+    assert isinstance(clf.base_estimator_, OneVsRestClassifier)
+    # No stale binary state on a multi-class model, nor the reverse.
+    assert not hasattr(clf, "X_train_") and not hasattr(clf, "site_nu_")
+    clf.fit(X, y == 0)
+    assert clf.base_estimator_ is clf and not hasattr(clf, "_multi_class_estimator")
+    assert clf.predict_proba(X).shape == (30, 2)
+
+
+def test_multi_class_tags():
+    tags = EPGaussianProcessClassifier().__sklearn_tags__()
+    assert tags.classifier_tags.multi_class
+    assert not tags.classifier_tags.multi_label
+
+
+def test_hyperparameter_at_its_bound_warns_as_scikit_learn():
+    X, y = _data(n=30)
+    # A tight upper bound on the length scale: the evidence wants more.
+    kernel = C(1.0, "fixed") * RBF(1e-3, (1e-5, 1e-3))
+    message = (
+        "The optimal value found for dimension 0 of parameter k2__length_scale is close "
+        "to the specified upper bound 0.001. Increasing the bound and calling fit again "
+        "may find a better value."
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        EPGaussianProcessClassifier(kernel).fit(X, y)
+    assert [str(w.message) for w in caught if w.category is ConvergenceWarning] == [message]
+    # Nothing learnt, nothing to warn about.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+
+
+def test_bound_warning_tolerance():
+    from skoccmap.classifier import _warn_at_bounds
+
+    kernel = C(1.0, (1e-2, 1e2)) * RBF([1.0, 1.0], (1e-2, 1e2))
+    # Within 1e-3 of a bound in log space (L-BFGS-B stops about there on flat evidence).
+    kernel.theta = np.log([1e2, 1.0, 1e-2]) + [-5e-4, 0.0, 5e-4]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _warn_at_bounds(kernel)
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 2
+    assert "k1__constant_value is close to the specified upper bound 100.0" in messages[0]
+    assert (
+        "dimension 1 of parameter k2__length_scale is close to the specified lower"
+        in (messages[1])
+    )
+    kernel.theta = np.log([1e2, 1.0, 1e-2]) + [-1e-2, 0.0, 1e-2]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_at_bounds(kernel)
+
+
+def test_log_marginal_likelihood_is_numpy_float64():
+    # As in scikit-learn: arithmetic with float32 scalars then stays in float64.
+    X, y = _data(n=20)
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    for value in (clf.log_marginal_likelihood_value_, clf.log_marginal_likelihood([0.0, 0.0])):
+        assert isinstance(value, np.float64)
+        assert (value - np.finfo(np.float32).eps).dtype == np.float64
 
 
 @pytest.mark.parametrize(
@@ -349,13 +526,20 @@ def test_separable_data_learns_without_a_spurious_warning():
     # Setosa against the rest is separable: the evidence keeps rising with the signal
     # variance, the optimum lies at its bound, and there L-BFGS-B's line search stopped
     # "abnormally" (scikit-learn's check_positive_only_tag_during_fit saw the warning).
+    # The one warning due is that the signal variance ended at its bound.
     from sklearn.datasets import load_iris
 
     X, y = load_iris(return_X_y=True)
     X, y = X - X.mean(), (y > 0).astype(int)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", ConvergenceWarning)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         model = EPGaussianProcessClassifier().fit(X, y)
+    messages = [str(w.message) for w in caught if w.category is ConvergenceWarning]
+    assert len(messages) == 1
+    assert messages[0].startswith(
+        "The optimal value found for dimension 0 of parameter k1__constant_value is close "
+        "to the specified upper bound 1000.0."
+    )
     assert model.kernel_.k1.constant_value == pytest.approx(1e3)
 
 
