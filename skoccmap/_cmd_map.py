@@ -1,4 +1,4 @@
-"""``skoccmap map``: fit the mixture of GP experts to a CARMEN log and write the map.
+"""``skoccmap map``: fit the mixture of GP experts to a CARMEN log or ROS bag and write the map.
 
 Writes, into ``--out``: ``<name>.pgm`` + ``<name>.yaml`` (ROS map_server, trinary),
 ``<name>.npz`` (probability, variance, unknown mask; :meth:`skoccmap.OccupancyGrid.load`) and,
@@ -12,7 +12,12 @@ from pathlib import Path
 
 
 def add_arguments(parser):
-    parser.add_argument("log", metavar="LOG", help="CARMEN log (plain text or gzip)")
+    parser.add_argument(
+        "log",
+        metavar="LOG",
+        help="CARMEN log (plain text or gzip) or ROS bag (a ROS 1 .bag file or a ROS 2 bag "
+        "directory)",
+    )
     add_model_arguments(parser)
     parser.add_argument(
         "--every-nth-scan",
@@ -43,6 +48,23 @@ def add_arguments(parser):
 
 def add_model_arguments(parser):
     """Options shared by ``map`` and ``evaluate``: reading the log and the mixture."""
+    bag = parser.add_argument_group("ROS bags")
+    bag.add_argument(
+        "--scan-topic",
+        default="/scan",
+        help="topic of the sensor_msgs/LaserScan messages (default /scan)",
+    )
+    bag.add_argument(
+        "--pose-topic",
+        default=None,
+        help="nav_msgs/Odometry or geometry_msgs/PoseStamped topic giving the poses (default: "
+        "the transforms from --map-frame to the laser on /tf and /tf_static)",
+    )
+    bag.add_argument(
+        "--map-frame",
+        default="map",
+        help="frame of the poses read from /tf (default map; odom maps with odometry alone)",
+    )
     parser.add_argument(
         "--max-range",
         type=float,
@@ -120,13 +142,37 @@ def make_mixture(args):
 
 
 def load_scans(args):
-    """Read the log, printing what was read; ValueError on a bad log or option."""
+    """Read the log or bag, printing what was read; ValueError on a bad input or option."""
     from .datasets import load_carmen
+    from .datasets._rosbag import is_rosbag
 
-    scans = load_carmen(args.log, max_range=args.max_range)
+    if is_rosbag(args.log):
+        scans = _load_bag(args)
+    else:
+        scans = load_carmen(args.log, max_range=args.max_range)
     print(
         f"{args.log}: {len(scans)} scans x {scans.n_beams} beams, max range {scans.max_range:g} m"
     )
+    return scans
+
+
+def _load_bag(args):
+    from .datasets import load_rosbag
+
+    try:
+        scans = load_rosbag(
+            args.log,
+            getattr(args, "scan_topic", "/scan"),
+            pose_topic=getattr(args, "pose_topic", None),
+            map_frame=getattr(args, "map_frame", "map"),
+            max_range=args.max_range,
+        )
+    except ImportError as exc:
+        raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
+    if scans.n_dims != 2:
+        raise ValueError(
+            f"{args.log}: the laser is not level (3-D poses); skoccmap map draws 2-D maps."
+        )
     return scans
 
 

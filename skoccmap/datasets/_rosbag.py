@@ -433,7 +433,7 @@ def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topi
         track, child = _read_pose_topic(reader, path, pose_topic)
     # Scans from several lasers (frames) on one topic each get their own chain.
     frames = np.array([s.frame for s in scans])
-    for frame in np.unique(frames):
+    for frame in dict.fromkeys(s.frame for s in scans):
         rows = frames == frame
         if pose == "tf":
             out = _laser_in_map(tree, map_frame, frame, stamps[rows], path)
@@ -527,11 +527,11 @@ def _warn_skipped(path, topic, n_total, outside, span, no_beams):
     if outside:
         start, end = (f"{v / _NS:.9g}" for v in span)
         notes.append(
-            f"{outside} of {n_total} scans lie outside the time range of their poses "
-            f"[{start}, {end}] s (poses are interpolated, never extrapolated)"
+            f"{outside} of {n_total} scans whose stamps lie outside the time range of their "
+            f"poses [{start}, {end}] s (poses are interpolated, never extrapolated)"
         )
     if no_beams:
-        notes.append(f"{no_beams} scans have no reading within [range_min, range_max]")
+        notes.append(f"{no_beams} scans without a reading within [range_min, range_max]")
     if notes:
         warnings.warn(f"{path}, {topic}: skipped " + "; ".join(notes) + ".", UserWarning, 3)
 

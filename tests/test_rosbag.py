@@ -1,0 +1,551 @@
+"""ROS bags: scans and poses read with load_rosbag, scans and maps written into bags."""
+
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rosbags")
+
+from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.interfaces import QosDurability, QosHistory, QosReliability  # noqa: E402
+from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
+from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
+from sklearn.metrics import roc_auc_score  # noqa: E402
+
+from skoccmap import OccupancyGrid  # noqa: E402
+from skoccmap.cli import main  # noqa: E402
+from skoccmap.datasets import load_carmen, load_rosbag, make_paper_scans, write_rosbag  # noqa: E402
+from skoccmap.datasets._rosbag import is_rosbag  # noqa: E402
+from skoccmap.observations import NO_RETURN, Scans  # noqa: E402
+
+FORMATS = [(1, "sqlite3"), (2, "sqlite3"), (2, "mcap")]
+FORMAT_IDS = ["ros1", "ros2-sqlite3", "ros2-mcap"]
+
+
+# --------------------------------------------------------------------------------------------
+# Bags written message by message with rosbags, independently of the package's writer
+# --------------------------------------------------------------------------------------------
+
+
+def _store(ros_version):
+    if ros_version == 2:
+        return get_typestore(Stores.ROS2_HUMBLE)
+    store = get_typestore(Stores.ROS1_NOETIC)
+    if "tf2_msgs/msg/TFMessage" not in store.fielddefs:
+        store.register(
+            get_types_from_msg(
+                "geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"
+            )
+        )
+    return store
+
+
+class _Bag:
+    """Messages given in seconds and plain numbers, written on close."""
+
+    def __init__(self, ros_version):
+        self.ros_version = ros_version
+        self.store = _store(ros_version)
+        self.messages = []  # (topic, msgtype, stamp, message)
+
+    def _header(self, stamp, frame):
+        sec, nanosec = divmod(int(round(stamp * 1e9)), 10**9)
+        time = self.store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        extra = {"seq": 0} if self.ros_version == 1 else {}
+        return self.store.types["std_msgs/msg/Header"](stamp=time, frame_id=frame, **extra)
+
+    def _pose_parts(self, xyz, yaw=0.0, roll=0.0):
+        t = self.store.types
+        # Roll about x, then yaw about z: q = q_yaw * q_roll.
+        cy, sy, cr, sr = np.cos(yaw / 2), np.sin(yaw / 2), np.cos(roll / 2), np.sin(roll / 2)
+        q = t["geometry_msgs/msg/Quaternion"](x=cy * sr, y=sy * sr, z=sy * cr, w=cy * cr)
+        return [float(v) for v in xyz], q
+
+    def tf(self, stamp, parent, child, xyz, yaw=0.0, roll=0.0, static=False):
+        t = self.store.types
+        (x, y, z), q = self._pose_parts(xyz, yaw, roll)
+        transform = t["geometry_msgs/msg/TransformStamped"](
+            header=self._header(stamp, parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z), rotation=q
+            ),
+        )
+        message = t["tf2_msgs/msg/TFMessage"](transforms=[transform])
+        topic = "/tf_static" if static else "/tf"
+        self.messages.append((topic, "tf2_msgs/msg/TFMessage", stamp, message))
+
+    def scan(self, stamp, ranges, *, frame="laser", angle_min=-0.5, increment=0.5,
+             range_min=0.1, range_max=5.0, topic="/scan"):  # fmt: skip
+        ranges = np.asarray(ranges, dtype=np.float32)
+        message = self.store.types["sensor_msgs/msg/LaserScan"](
+            header=self._header(stamp, frame),
+            angle_min=angle_min,
+            angle_max=angle_min + increment * (ranges.size - 1),
+            angle_increment=increment,
+            time_increment=0.0,
+            scan_time=0.0,
+            range_min=range_min,
+            range_max=range_max,
+            ranges=ranges,
+            intensities=np.zeros(0, dtype=np.float32),
+        )
+        self.messages.append((topic, "sensor_msgs/msg/LaserScan", stamp, message))
+
+    def odometry(self, stamp, xyz, yaw, *, frame="odom", child="base_link", topic="/odom"):
+        t = self.store.types
+        (x, y, z), q = self._pose_parts(xyz, yaw)
+        pose = t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                                           orientation=q)  # fmt: skip
+        twist = t["geometry_msgs/msg/Twist"](
+            linear=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+            angular=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        )
+        message = t["nav_msgs/msg/Odometry"](
+            header=self._header(stamp, frame),
+            child_frame_id=child,
+            pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+            twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+        )
+        self.messages.append((topic, "nav_msgs/msg/Odometry", stamp, message))
+
+    def pose_stamped(self, stamp, xyz, yaw, *, frame="map", topic="/pose"):
+        t = self.store.types
+        (x, y, z), q = self._pose_parts(xyz, yaw)
+        pose = t["geometry_msgs/msg/Pose"](position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                                           orientation=q)  # fmt: skip
+        message = t["geometry_msgs/msg/PoseStamped"](header=self._header(stamp, frame), pose=pose)
+        self.messages.append((topic, "geometry_msgs/msg/PoseStamped", stamp, message))
+
+    def write(self, path):
+        path = Path(path)
+        writer = Writer1(path) if self.ros_version == 1 else Writer2(path, version=8)
+        with writer:
+            conns = {}
+            for topic, msgtype, stamp, message in sorted(self.messages, key=lambda m: m[2]):
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=self.store)
+                serialize = (self.store.serialize_ros1 if self.ros_version == 1
+                             else self.store.serialize_cdr)  # fmt: skip
+                writer.write(conns[topic], int(round(stamp * 1e9)), serialize(message, msgtype))
+        return path
+
+
+def _bag_path(tmp_path, ros_version, name="run"):
+    return tmp_path / (f"{name}.bag" if ros_version == 1 else name)
+
+
+def _se2(x, y, yaw):
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+def _pose_of(matrix):
+    return np.array([matrix[0, 2], matrix[1, 2], np.arctan2(matrix[1, 0], matrix[0, 0])])
+
+
+def _wrap(angle):
+    return (np.asarray(angle) + np.pi) % (2 * np.pi) - np.pi
+
+
+# --------------------------------------------------------------------------------------------
+# Fixtures
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def paper_scans():
+    """The paper's simulated scans (26 x 17 beams), stamped 0.5 s apart."""
+    data = make_paper_scans(random_state=0)
+    scans = data.scans
+    stamped = Scans(scans.poses, scans.ranges, scans.angles, scans.max_range,
+                    timestamps=100.0 + 0.5 * np.arange(len(scans)))  # fmt: skip
+    return stamped, data
+
+
+@pytest.fixture(scope="module")
+def intel_scans(shared_data):
+    """The Intel lab log, in time order (its stamps step back four times)."""
+    scans = load_carmen(shared_data / "intel.gfs.log")
+    return scans[np.argsort(scans.timestamps, kind="stable")]
+
+
+def _assert_same_scans(back, scans):
+    assert len(back) == len(scans) and back.n_beams == scans.n_beams
+    np.testing.assert_allclose(back.poses[:, :2], scans.poses[:, :2], atol=1e-9)
+    np.testing.assert_allclose(_wrap(back.poses[:, 2] - scans.poses[:, 2]), 0.0, atol=1e-9)
+    np.testing.assert_array_equal(np.isinf(back.ranges), ~scans.returned())
+    returned = scans.returned()
+    expected = scans.ranges[returned].astype(np.float32).astype(np.float64)
+    np.testing.assert_array_equal(back.ranges[returned], expected)
+    np.testing.assert_allclose(back.angles, scans.angles, atol=1e-6)  # float32 angle fields
+    np.testing.assert_allclose(back.timestamps, scans.timestamps, atol=1e-8)
+    assert back.max_range == scans.max_range
+
+
+# --------------------------------------------------------------------------------------------
+# Scans through bags
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ros_version, storage", FORMATS, ids=FORMAT_IDS)
+def test_written_scans_read_back(paper_scans, tmp_path, ros_version, storage):
+    scans, _ = paper_scans
+    bag = write_rosbag(scans, _bag_path(tmp_path, ros_version), ros_version=ros_version,
+                       storage=storage)  # fmt: skip
+    assert is_rosbag(bag)
+    _assert_same_scans(load_rosbag(bag), scans)
+
+
+@pytest.mark.parametrize("ros_version", [1, 2])
+def test_intel_log_through_a_bag_reads_as_load_carmen(intel_scans, tmp_path, ros_version):
+    bag = write_rosbag(intel_scans, _bag_path(tmp_path, ros_version, "intel"),
+                       ros_version=ros_version)  # fmt: skip
+    back = load_rosbag(bag)
+    _assert_same_scans(back, intel_scans)
+    assert back.max_range == 81.83  # the float32 range_max read as the driver's value
+    X0, y0, kind0 = intel_scans.to_observations()
+    X1, y1, kind1 = back.to_observations()
+    np.testing.assert_array_equal(kind1, kind0)
+    np.testing.assert_allclose(X1, X0, atol=1e-4)  # float32 ranges up to 81 m
+
+
+def test_3d_scans_with_a_tilted_laser_read_back(tmp_path):
+    q = [np.cos(0.15), np.sin(0.15), 0.0, 0.0]  # 0.3 rad roll
+    scans = Scans(poses=[[1.0, 2.0, 0.5, *q], [1.5, 2.0, 0.5, *q]], ranges=[[1.0, 2.0, 3.0]] * 2,
+                  angles=[[np.cos(a), np.sin(a), 0.0] for a in (-0.2, 0.0, 0.2)],
+                  max_range=10.0, timestamps=[1.0, 2.0])  # fmt: skip
+    back = load_rosbag(write_rosbag(scans, tmp_path / "tilted"))
+    assert back.n_dims == 3
+    np.testing.assert_allclose(back.poses, scans.poses, atol=1e-12)
+    np.testing.assert_allclose(back.angles, scans.angles, atol=1e-6)
+    # Forced to 2-D: the laser's yaw (zero here) and position in the plane.
+    flat = load_rosbag(tmp_path / "tilted", level_tolerance=np.inf)
+    np.testing.assert_allclose(flat.poses, [[1.0, 2.0, 0.0], [1.5, 2.0, 0.0]], atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------------
+# Poses from TF and from pose topics
+# --------------------------------------------------------------------------------------------
+
+
+def test_interpolation_between_two_transforms(tmp_path):
+    bag = _Bag(2)
+    bag.tf(1.0, "map", "laser", (0.0, 0.0, 0.0), yaw=0.0)
+    bag.tf(3.0, "map", "laser", (2.0, 4.0, 0.0), yaw=np.pi / 2)
+    bag.tf(5.0, "map", "laser", (2.0, 4.0, 0.0), yaw=3.0)
+    bag.tf(7.0, "map", "laser", (2.0, 4.0, 0.0), yaw=-3.0)
+    for stamp in (1.5, 3.0, 6.0):
+        bag.scan(stamp, [1.0, 1.0, 1.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    # A quarter of the way from t=1 to t=3: a quarter of the translation and of the turn.
+    np.testing.assert_allclose(scans.poses[0], [0.5, 1.0, np.pi / 8], atol=1e-12)
+    np.testing.assert_allclose(scans.poses[1], [2.0, 4.0, np.pi / 2], atol=1e-12)
+    # Halfway from 3 rad to -3 rad turns the short way, through pi, not through 0.
+    assert abs(_wrap(scans.poses[2, 2] - np.pi)) < 1e-9
+    np.testing.assert_allclose(scans.timestamps, [1.5, 3.0, 6.0])
+
+
+@pytest.mark.parametrize("ros_version", [1, 2])
+def test_tf_chain_with_a_static_laser_offset(tmp_path, ros_version):
+    # map -> odom drifts, odom -> base_link drives, base_link -> laser is fixed.
+    slash = "/" if ros_version == 1 else ""  # ROS 1 frame ids may carry a leading slash
+    bag = _Bag(ros_version)
+    bag.tf(0.0, "base_link", f"{slash}laser", (0.2, -0.1, 0.3), yaw=np.pi / 2, static=True)
+    for t in (0.0, 2.0, 4.0):
+        bag.tf(t, f"{slash}map", "odom", (0.1 * t, -0.05 * t, 0.0), yaw=0.02 * t)
+    for t in np.arange(0.0, 4.01, 0.5):
+        bag.tf(t, "odom", f"{slash}base_link", (t, 0.5 * t**2, 0.0), yaw=0.3 * t)
+    stamps = [0.25, 1.0, 2.7, 3.9, 4.5]  # the last one is after the transforms end
+    for stamp in stamps:
+        bag.scan(stamp, [1.0, 2.0, 3.0], frame=f"{slash}laser")
+    path = bag.write(_bag_path(tmp_path, ros_version))
+    with pytest.warns(UserWarning, match=r"skipped 1 of 5 scans .*outside the time range"):
+        scans = load_rosbag(path)
+    expected = []
+    for t in stamps[:-1]:
+        # Each transform interpolated between its own samples, by hand.
+        map_odom = _se2(0.1 * t, -0.05 * t, 0.02 * t)  # linear in t: interpolation is exact
+        b0, b1 = np.floor(t / 0.5) * 0.5, np.floor(t / 0.5) * 0.5 + 0.5
+        v = (t - b0) / 0.5
+        x = (1 - v) * b0 + v * b1
+        y = (1 - v) * 0.5 * b0**2 + v * 0.5 * b1**2
+        odom_base = _se2(x, y, 0.3 * t)
+        expected.append(_pose_of(map_odom @ odom_base @ _se2(0.2, -0.1, np.pi / 2)))
+    np.testing.assert_allclose(scans.poses, expected, atol=1e-9)
+    np.testing.assert_allclose(scans.timestamps, stamps[:-1])
+
+
+def test_chain_against_the_direction_of_a_transform(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "odom", (1.0, 0.0, 0.0), yaw=np.pi / 2, static=True)
+    bag.tf(0.0, "map", "laser", (2.0, 3.0, 0.0), yaw=0.3)
+    bag.tf(1.0, "map", "laser", (2.0, 3.0, 0.0), yaw=0.3)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"), map_frame="odom")  # odom -> map -> laser
+    expected = _pose_of(np.linalg.inv(_se2(1.0, 0.0, np.pi / 2)) @ _se2(2.0, 3.0, 0.3))
+    np.testing.assert_allclose(scans.poses, [expected], atol=1e-12)
+
+
+def test_odometry_topic_with_the_laser_offset_from_tf_static(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.3, 0.0, 0.2), yaw=0.1, static=True)
+    bag.odometry(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.odometry(1.0, (1.0, 2.0, 0.0), 0.4)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"), pose_topic="/odom")
+    expected = _pose_of(_se2(0.5, 1.0, 0.2) @ _se2(0.3, 0.0, 0.1))
+    np.testing.assert_allclose(scans.poses, [expected], atol=1e-12)
+
+
+def test_pose_topic_without_a_laser_offset_needs_base_frame(tmp_path):
+    bag = _Bag(1)
+    bag.odometry(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.odometry(1.0, (1.0, 0.0, 0.0), 0.0)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b.bag")
+    with pytest.raises(ValueError, match=r"base_frame='laser'"):
+        load_rosbag(path, pose_topic="/odom")
+    scans = load_rosbag(path, pose_topic="/odom", base_frame="laser")
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
+
+
+def test_pose_stamped_topic_gives_the_laser_pose(tmp_path):
+    bag = _Bag(2)
+    bag.pose_stamped(10.0, (1.0, 1.0, 0.0), 1.0)
+    bag.pose_stamped(12.0, (3.0, 1.0, 0.0), 2.0)
+    bag.scan(11.5, [1.0, 2.0, 3.0])
+    bag.scan(12.5, [1.0, 2.0, 3.0])
+    with pytest.warns(UserWarning, match="skipped 1 of 2 scans"):
+        scans = load_rosbag(bag.write(tmp_path / "b"), pose_topic="/pose")
+    np.testing.assert_allclose(scans.poses, [[2.5, 1.0, 1.75]], atol=1e-12)
+
+
+def test_level_tolerance_chooses_2d_or_3d_poses(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.005)
+    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.005)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    level = load_rosbag(path)  # 0.005 rad of roll is level at the default 0.01 rad
+    np.testing.assert_allclose(level.poses, [[1.0, 0.0, 0.5]], atol=1e-12)
+    tilted = load_rosbag(path, level_tolerance=0.001)
+    assert tilted.poses.shape == (1, 7) and tilted.angles.shape == (3, 3)
+    # Yaw 0.5 after roll 0.005: (cy, 0, 0, sy) * (cr, sr, 0, 0), multiplied out by hand.
+    cy, sy, cr, sr = np.cos(0.25), np.sin(0.25), np.cos(0.0025), np.sin(0.0025)
+    q = [cy * cr, cy * sr, sy * sr, sy * cr]
+    np.testing.assert_allclose(tilted.poses[0], [1.0, 0.0, 0.4, *q], atol=1e-12)
+    # Both describe the same beams: hit points agree in the plane.
+    np.testing.assert_allclose(tilted.hit_points()[:, :2], level.hit_points(), atol=0.02)
+
+
+# --------------------------------------------------------------------------------------------
+# Readings: range limits and beam counts
+# --------------------------------------------------------------------------------------------
+
+
+def test_range_rules(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(2.0, "map", "laser", (0.0, 0.0, 0.0))
+    # range_min 0.1, range_max 5: NaN, +inf and 5.5 are no-return beams, 5.0 reaches the
+    # maximum range (no return too); -inf, 0 and 0.05 are below range_min and dropped.
+    readings = [np.nan, np.inf, -np.inf, 0.0, 0.05, 1.0, 5.5, 5.0]
+    bag.scan(1.0, readings, angle_min=0.0, increment=0.1)
+    bag.scan(1.5, [1.0] * 8, angle_min=0.0, increment=0.1)
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    assert scans.max_range == 5.0 and scans.n_beams == 8
+    usable = np.array([0, 1, 5, 6, 7])
+    # Five usable beams fill eight slots by repeating them in beam order: 0 0 1 1 5 5 6 7.
+    index = np.sort(np.resize(usable, 8))
+    np.testing.assert_allclose(scans.angles[0], 0.1 * index, atol=1e-6)
+    expected = np.array([np.inf, np.inf, 1.0, 5.5, 5.0])[np.searchsorted(usable, index)]
+    expected[expected >= 5.0] = np.inf
+    np.testing.assert_array_equal(scans.ranges[0], expected)
+    np.testing.assert_allclose(scans.angles[1], 0.1 * np.arange(8), atol=1e-6)
+    # No hit at or near the sensor, no free beam along a dropped reading's direction.
+    assert np.all(np.linalg.norm(scans[0].hit_points(), axis=1) > 0.1)
+    X, _, kind, scan = scans.to_observations(return_scan_index=True)
+    free_ends = X[(kind == NO_RETURN) & (scan == 0), 2:]
+    directions = np.round(np.arctan2(free_ends[:, 1], free_ends[:, 0]), 4)
+    assert set(directions) == {0.0, 0.1, 0.6, 0.7}
+
+
+def test_scans_with_different_beam_counts(tmp_path):
+    bag = _Bag(1)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(2.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.scan(0.5, [1.0, 2.0, 3.0, 4.0], angle_min=-0.3, increment=0.2)
+    bag.scan(1.0, [1.5, 2.5], angle_min=-1.0, increment=2.0)
+    scans = load_rosbag(bag.write(tmp_path / "b.bag"))
+    assert scans.ranges.shape == (2, 4) and scans.angles.shape == (2, 4)
+    np.testing.assert_allclose(scans.angles[0], [-0.3, -0.1, 0.1, 0.3], atol=1e-6)
+    np.testing.assert_allclose(scans.angles[1], [-1.0, -1.0, 1.0, 1.0], atol=1e-6)
+    np.testing.assert_array_equal(scans.ranges[1], [1.5, 1.5, 2.5, 2.5])
+
+
+# --------------------------------------------------------------------------------------------
+# Errors name what the bag has
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def small_bag(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "odom", (0.0, 0.0, 0.0), static=True)
+    bag.tf(0.0, "odom", "laser", (0.0, 0.0, 0.0))
+    bag.tf(1.0, "odom", "laser", (1.0, 0.0, 0.0))
+    bag.scan(0.5, [1.0, 2.0, 3.0], topic="/front_scan")
+    bag.odometry(0.5, (0.0, 0.0, 0.0), 0.0)
+    return bag.write(tmp_path / "small")
+
+
+def test_missing_scan_topic_names_the_topics(small_bag):
+    with pytest.raises(ValueError, match=r"no scan topic '/scan'.*/front_scan \(sensor_msgs"):
+        load_rosbag(small_bag)
+    assert len(load_rosbag(small_bag, "/front_scan")) == 1
+
+
+def test_missing_frame_names_the_frames(small_bag):
+    with pytest.raises(ValueError, match=r"\['world'\] are not in them.*'laser', 'map', 'odom'"):
+        load_rosbag(small_bag, "/front_scan", map_frame="world")
+    odom = load_rosbag(small_bag, "/front_scan", map_frame="odom")
+    np.testing.assert_allclose(odom.poses, [[0.5, 0.0, 0.0]])
+
+
+def test_wrong_types_and_missing_pose_topic(small_bag):
+    with pytest.raises(ValueError, match=r"'/odom' carries nav_msgs/msg/Odometry"):
+        load_rosbag(small_bag, "/odom")
+    with pytest.raises(ValueError, match=r"no pose topic '/pose'.*/odom \(nav_msgs"):
+        load_rosbag(small_bag, "/front_scan", pose_topic="/pose")
+    with pytest.raises(ValueError, match="pose='topic' needs pose_topic"):
+        load_rosbag(small_bag, "/front_scan", pose="topic")
+
+
+def test_bag_without_transforms_asks_for_a_pose_topic(tmp_path):
+    bag = _Bag(2)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match=r"no transform topic.*pose_topic="):
+        load_rosbag(bag.write(tmp_path / "b"))
+
+
+def test_not_a_bag(tmp_path):
+    log = tmp_path / "run.log"
+    log.write_text("FLASER 2 1 1 0 0 0 0 0 0 0 h 0\n")
+    assert not is_rosbag(log)
+    with pytest.raises(ValueError, match="is not a ROS bag"):
+        load_rosbag(log)
+    with pytest.raises(FileNotFoundError):
+        load_rosbag(tmp_path / "missing.bag")
+
+
+def test_missing_rosbags_says_how_to_install(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "rosbags", None)
+    with pytest.raises(ImportError, match=r'pip install "skoccmap\[ros\]"'):
+        load_rosbag(tmp_path / "x.bag")
+    grid = OccupancyGrid([[0.5]], origin=(0.0, 0.0), resolution=1.0)
+    with pytest.raises(ImportError, match=r'pip install "skoccmap\[ros\]"'):
+        grid.to_ros_message()
+
+
+# --------------------------------------------------------------------------------------------
+# Maps out
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def grid():
+    probability = np.array([[0.0, 0.1, 0.3], [0.6, 0.9, 1.0]])
+    unknown = np.array([[False, False, False], [False, False, True]])
+    return OccupancyGrid(probability, origin=(-2.0, 3.5), resolution=0.25, unknown=unknown)
+
+
+@pytest.mark.parametrize("ros_version, storage", FORMATS, ids=FORMAT_IDS)
+@pytest.mark.parametrize("trinary", [False, True])
+def test_map_round_trip_on_a_latched_topic(grid, tmp_path, ros_version, storage, trinary):
+    path = grid.write_rosbag(_bag_path(tmp_path, ros_version, "map"), frame_id="world",
+                             trinary=trinary, stamp=12.5, ros_version=ros_version,
+                             storage=storage)  # fmt: skip
+    with AnyReader([path]) as reader:
+        (conn,) = reader.connections
+        ((_, stamp, raw),) = list(reader.messages())
+        msg = reader.deserialize(raw, conn.msgtype)
+    assert conn.topic == "/map" and conn.msgtype == "nav_msgs/msg/OccupancyGrid"
+    if ros_version == 1:
+        assert conn.ext.latching == 1
+    else:
+        (qos,) = conn.ext.offered_qos_profiles
+        assert qos.durability == QosDurability.TRANSIENT_LOCAL
+        assert qos.reliability == QosReliability.RELIABLE
+        assert (qos.history, qos.depth) == (QosHistory.KEEP_LAST, 1)
+    assert stamp == 12_500_000_000
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (
+        12, 500_000_000, "world")  # fmt: skip
+    assert (msg.info.width, msg.info.height, msg.info.resolution) == (3, 2, 0.25)
+    origin = msg.info.origin
+    assert (origin.position.x, origin.position.y, origin.orientation.w) == (-2.0, 3.5, 1.0)
+    expected = [0, 0, -1, -1, 100, -1] if trinary else [0, 10, 30, 60, 90, -1]
+    np.testing.assert_array_equal(msg.data, expected)
+
+
+def test_to_ros_message_matches_the_fields(grid):
+    for ros_version in (1, 2):
+        msg = grid.to_ros_message(stamp=1.0, ros_version=ros_version)
+        fields = grid.to_ros_occupancy_grid()
+        np.testing.assert_array_equal(msg.data, fields["data"])
+        assert msg.data.dtype == np.int8 and msg.info.map_load_time.sec == 1
+    with pytest.raises(ValueError, match="3-D"):
+        OccupancyGrid(np.zeros((2, 2, 2)), origin=(0, 0, 0), resolution=1.0).to_ros_message()
+
+
+def test_writers_refuse_bad_arguments(grid, paper_scans, tmp_path):
+    scans, _ = paper_scans
+    path = grid.write_rosbag(tmp_path / "map", stamp=0.0)
+    with pytest.raises(FileExistsError):
+        grid.write_rosbag(path, stamp=0.0)
+    with pytest.raises(ValueError, match="ros_version must be 1 or 2"):
+        grid.write_rosbag(tmp_path / "other", ros_version=3)
+    with pytest.raises(ValueError, match=r"\.bag file"):
+        write_rosbag(scans, tmp_path / "scans", ros_version=1)
+    uneven = Scans(scans.poses, scans.ranges, scans.angles**3, scans.max_range)
+    with pytest.raises(ValueError, match="evenly spaced"):
+        write_rosbag(uneven, tmp_path / "uneven")
+
+
+# --------------------------------------------------------------------------------------------
+# The command line
+# --------------------------------------------------------------------------------------------
+
+
+def test_cli_maps_a_bag(paper_scans, tmp_path, capsys):
+    scans, data = paper_scans
+    bag = write_rosbag(scans, tmp_path / "paper_bag", storage="mcap")
+    out = tmp_path / "out"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rc = main(["map", str(bag), "--scan-topic", "/scan", "--resolution", "0.5",
+                   "--out", str(out), "--quiet"])  # fmt: skip
+    assert rc == 0
+    assert not [w for w in caught if "skipped" in str(w.message)]  # every scan has a pose
+    assert f"{bag}: 26 scans x 17 beams, max range 8 m" in capsys.readouterr().out
+    grid = OccupancyGrid.load(out / "paper_bag.npz")
+    assert (out / "paper_bag.yaml").is_file()
+    truth = data.environment.ground_truth_grid(0.5, extent=grid.extent, scans=data.scans)
+    observed = truth.observed
+    auc = roc_auc_score(truth.occupied[observed], grid.probability.ravel()[observed])
+    assert auc > 0.85
+
+
+def test_cli_bag_options_reach_the_reader(small_bag, capsys):
+    assert main(["map", str(small_bag), "--quiet"]) == 2
+    assert "no scan topic '/scan'" in capsys.readouterr().err
+    argv = ["map", str(small_bag), "--scan-topic", "/front_scan", "--pose-topic", "/pose"]
+    assert main(argv) == 2
+    assert "no pose topic '/pose'" in capsys.readouterr().err
+    argv = ["map", str(small_bag), "--scan-topic", "/front_scan", "--map-frame", "world"]
+    assert main(argv) == 2
+    assert "['world'] are not in them" in capsys.readouterr().err
