@@ -201,6 +201,14 @@ def test_written_scans_read_back(paper_scans, tmp_path, ros_version, storage):
     _assert_same_scans(load_rosbag(bag), scans)
 
 
+def test_ros2_storage_without_metadata(paper_scans, tmp_path):
+    scans, _ = paper_scans
+    bag = write_rosbag(scans, tmp_path / "bag", storage="mcap")
+    (bag / "metadata.yaml").unlink()  # a recorder killed before it wrote the metadata
+    assert is_rosbag(bag)
+    _assert_same_scans(load_rosbag(bag), scans)
+
+
 @pytest.mark.parametrize("ros_version", [1, 2])
 def test_intel_log_through_a_bag_reads_as_load_carmen(intel_scans, tmp_path, ros_version):
     bag = write_rosbag(intel_scans, _bag_path(tmp_path, ros_version, "intel"),
@@ -424,6 +432,16 @@ def test_wrong_types_and_missing_pose_topic(small_bag):
         load_rosbag(small_bag, "/front_scan", pose_topic="/pose")
     with pytest.raises(ValueError, match="pose='topic' needs pose_topic"):
         load_rosbag(small_bag, "/front_scan", pose="topic")
+
+
+def test_laser_frame_overrides_the_scans_frame(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (1.0, 2.0, 0.0), yaw=0.5, static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0], frame="")
+    path = bag.write(tmp_path / "b")
+    with pytest.raises(ValueError, match=r"scans' frame ''.*frames present: \['laser', 'map'\]"):
+        load_rosbag(path)
+    np.testing.assert_allclose(load_rosbag(path, laser_frame="laser").poses, [[1.0, 2.0, 0.5]])
 
 
 def test_bag_without_transforms_asks_for_a_pose_topic(tmp_path):

@@ -544,6 +544,7 @@ def load_rosbag(
     map_frame="map",
     pose_topic=None,
     base_frame=None,
+    laser_frame=None,
     max_range=None,
     level_tolerance=0.01,
     tf_topics=("/tf", "/tf_static"),
@@ -578,6 +579,9 @@ def load_rosbag(
         Frame whose pose the ``pose_topic`` messages give. ``None``: the ``child_frame_id``
         of Odometry messages, the laser's own frame for the pose messages, which name none.
         Pass the laser's frame to use the message poses as laser poses unchanged.
+    laser_frame : str or None, default=None
+        Frame of the scans; ``None``: each scan's ``header.frame_id``. For bags whose scans
+        name no frame, or the wrong one.
     max_range : float or None, default=None
         Readings at or above it are beams without a return (free up to ``max_range``).
         ``None``: the smallest ``range_max`` the scans state.
@@ -661,6 +665,9 @@ def load_rosbag(
     paths = _bag_paths(path)
     with AnyReader(paths, default_typestore=_typestore(2)) as reader:
         messages = _read_scans(reader, path, scan_topic)
+        if laser_frame is not None:
+            for message in messages:
+                message.frame = _frame(laser_frame)
         t, q, valid, span = _poses(
             messages, reader, path, pose, _frame(map_frame), pose_topic, base_frame, tf_topics
         )
