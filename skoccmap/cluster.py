@@ -501,17 +501,17 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         Cluster of each training point, in ``0..n_clusters_-1`` (largest cluster first).
     n_clusters_ : int
         Number of clusters of the final state.
-    means_ : ndarray of shape (n_clusters_, n_features)
+    means_ : ndarray of shape (n_clusters, n_features)
         Posterior mean ``m_n`` of each cluster mean.
-    covariances_ : ndarray of shape (n_clusters_, n_features, n_features)
+    covariances_ : ndarray of shape (n_clusters, n_features, n_features)
         ``Psi_n / nu_n``, the inverse of the posterior mean precision (as
         ``BayesianGaussianMixture.covariances_``).
-    weights_ : ndarray of shape (n_clusters_,)
+    weights_ : ndarray of shape (n_clusters,)
         ``n_k / n_samples``. The mass ``alpha / (n_samples + alpha)`` of a new cluster is not
         included.
     n_iter_ : int
         Number of sweeps run.
-    log_joint_ : ndarray of shape (n_iter_,)
+    log_joint_ : ndarray of shape (n_iter,)
         Log joint ``log p(X, z)`` after each sweep.
     best_log_joint_ : float
         Log joint of the final state.
@@ -765,7 +765,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
 
         Returns
         -------
-        proba : ndarray of shape (n_samples, n_clusters_)
+        proba : ndarray of shape (n_samples, n_clusters)
             ``w_k t_k(x)`` normalised over the clusters; rows sum to 1.
         """
         log_resp = self._log_weighted_density(X)
