@@ -1,4 +1,6 @@
-"""``skoccmap evaluate``: held-out AUC of the mixture against the counting grid on a CARMEN log.
+"""``skoccmap evaluate``: held-out AUC of the mixture against the counting grid on a laser log.
+
+The log is a CARMEN log or a ROS bag, read as ``skoccmap map`` reads it.
 
 Two protocols choose the test scans and points (:mod:`skoccmap.metrics`):
 
@@ -18,7 +20,7 @@ import sys
 
 import numpy as np
 
-from ._cmd_map import Stopwatch, add_model_arguments, load_scans, make_mixture
+from ._cmd_map import LOG_HELP, Stopwatch, add_model_arguments, load_scans, make_mixture
 
 # Defaults of the options that only one protocol reads (None: the option was not given).
 _EVERY_NTH_DEFAULTS = {"holdout_every": 10, "free_per_beam": 1}
@@ -26,7 +28,7 @@ _BLOCKS_DEFAULTS = {"block_size": 40}
 
 
 def add_arguments(parser):
-    parser.add_argument("log", metavar="LOG", help="CARMEN log (plain text or gzip)")
+    parser.add_argument("log", metavar="LOG", help=LOG_HELP)
     add_model_arguments(parser)
     parser.add_argument(
         "--protocol",

@@ -8,16 +8,17 @@ when matplotlib is installed, ``<name>.png`` (probability and uncertainty panels
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
+
+LOG_HELP = (
+    "CARMEN log (plain text or gzip) or ROS bag: a path ending in .bag (ROS 1), .db3 or .mcap "
+    "(ROS 2 storage), or a ROS 2 bag directory"
+)
 
 
 def add_arguments(parser):
-    parser.add_argument(
-        "log",
-        metavar="LOG",
-        help="CARMEN log (plain text or gzip) or ROS bag (a ROS 1 .bag file or a ROS 2 bag "
-        "directory)",
-    )
+    parser.add_argument("log", metavar="LOG", help=LOG_HELP)
     add_model_arguments(parser)
     parser.add_argument(
         "--every-nth-scan",
@@ -48,6 +49,12 @@ def add_arguments(parser):
 
 def add_model_arguments(parser):
     """Options shared by ``map`` and ``evaluate``: reading the log and the mixture."""
+    parser.add_argument(
+        "--skip-bad-lines",
+        action="store_true",
+        help="CARMEN logs: skip malformed laser lines with a warning that counts them (by "
+        "default a malformed line is an error naming its line number)",
+    )
     bag = parser.add_argument_group("ROS bags")
     bag.add_argument(
         "--scan-topic",
@@ -143,16 +150,32 @@ def make_mixture(args):
 
 def load_scans(args):
     """Read the log or bag, printing what was read; ValueError on a bad input or option."""
-    from .datasets import load_carmen
     from .datasets._rosbag import is_rosbag
 
-    if is_rosbag(args.log):
-        scans = _load_bag(args)
-    else:
-        scans = load_carmen(args.log, max_range=args.max_range)
+    scans = _load_bag(args) if is_rosbag(args.log) else _load_carmen(args)
     print(
         f"{args.log}: {len(scans)} scans x {scans.n_beams} beams, max range {scans.max_range:g} m"
     )
+    return scans
+
+
+def _load_carmen(args):
+    """``load_carmen`` with the command's option names in its errors and warnings."""
+    from .datasets import load_carmen
+    from .datasets._carmen import SKIP_HINT
+
+    errors = "skip" if getattr(args, "skip_bad_lines", False) else "raise"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        try:
+            scans = load_carmen(args.log, max_range=args.max_range, errors=errors)
+        except ValueError as exc:
+            hint = "Pass --skip-bad-lines to skip malformed lines with a warning."
+            raise ValueError(str(exc).replace(SKIP_HINT, hint)) from None
+        finally:
+            command = getattr(args, "command", None) or "map"
+            for warning in caught:
+                print(f"skoccmap {command}: warning: {warning.message}", file=sys.stderr)
     return scans
 
 

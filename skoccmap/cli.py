@@ -10,8 +10,9 @@ import sys
 
 SUBCOMMANDS = {
     "demo": "reproduce the paper's simulation experiment (tables, figures, maps)",
-    "map": "build an occupancy map from a CARMEN laser log",
-    "evaluate": "score a map on held-out scans of a CARMEN log against a counting grid",
+    "map": "build an occupancy map from a CARMEN laser log or a ROS bag",
+    "evaluate": "score a map on held-out scans of a CARMEN log or a ROS bag against a "
+    "counting grid",
 }
 
 

@@ -56,3 +56,48 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
 def test_evaluate_bad_options(paper_log, capsys, options, message):
     assert main(["evaluate", str(paper_log[0]), *options, "--quiet"]) == 2
     assert message in capsys.readouterr().err
+
+
+def _damaged_log(log, tmp_path):
+    """The paper log with a FLASER line whose pose is not a number after its 2nd scan."""
+    lines = log.read_text().splitlines(keepends=True)
+    bad = lines[1].split()
+    bad[19] = "nan"  # x of the laser pose (FLASER 17, 17 readings, then x y theta)
+    damaged = tmp_path / "damaged.log"
+    damaged.write_text("".join(lines[:3] + [" ".join(bad) + "\n"] + lines[3:]))
+    return damaged
+
+
+def test_evaluate_malformed_line_suggests_the_option(paper_log, tmp_path, capsys):
+    damaged = _damaged_log(paper_log[0], tmp_path)
+    assert main(["evaluate", str(damaged), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("skoccmap evaluate: error: ")
+    assert "line 4: malformed FLASER message: non-finite pose or timestamp" in err
+    assert "Pass --skip-bad-lines" in err and "errors=" not in err
+
+
+def test_evaluate_skip_bad_lines(paper_log, tmp_path, capsys):
+    damaged = _damaged_log(paper_log[0], tmp_path)
+    argv = ["evaluate", str(damaged), "--skip-bad-lines", "--holdout-every", "4",
+            "--train-every", "3", "--n-jobs", "1", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "skoccmap evaluate: warning:" in captured.err
+    assert "skipped 1 malformed laser line(s): line 4 (non-finite pose or timestamp)" in (
+        captured.err
+    )
+    # The same split as the undamaged log: the bad line is not a scan.
+    assert "26 scans x 17 beams" in captured.out
+    assert "training on 7 scans" in captured.out and "testing on 6 held-out scans" in captured.out
+    assert all(0.5 < row[0] <= 1 for row in _table(captured.out).values())
+
+
+def test_evaluate_help_names_bags():
+    from skoccmap.cli import build_parser
+
+    parser = build_parser()
+    evaluate = parser._subparsers._group_actions[0].choices["evaluate"]
+    log = next(a for a in evaluate._actions if a.dest == "log")
+    assert "ROS bag" in log.help and ".bag" in log.help and "CARMEN" in log.help
+    assert "--skip-bad-lines" in evaluate.format_help()

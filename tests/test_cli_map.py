@@ -104,3 +104,68 @@ def test_bad_beam_piece_option_is_refused(value, capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["map", "log.txt", "--max-beam-length", value])
     assert "--max-beam-length" in capsys.readouterr().err
+
+
+def _damaged_log(log, tmp_path):
+    """The paper log with a truncated FLASER line after its 3rd scan (file line 5)."""
+    lines = log.read_text().splitlines(keepends=True)
+    damaged = tmp_path / "damaged.log"
+    damaged.write_text("".join(lines[:4] + ["FLASER 17 1.0 2.0\n"] + lines[4:]))
+    return damaged
+
+
+def test_map_malformed_line_suggests_the_option(paper_log, tmp_path, capsys):
+    damaged = _damaged_log(paper_log[0], tmp_path)
+    assert main(["map", str(damaged), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("skoccmap map: error: ")
+    assert "line 5: malformed FLASER message" in err
+    assert "Pass --skip-bad-lines to skip malformed lines" in err
+    assert "errors=" not in err  # the library's keyword means nothing on the command line
+    assert not (tmp_path / "out").exists()
+
+
+def test_map_skip_bad_lines(paper_log, tmp_path, capsys):
+    damaged = _damaged_log(paper_log[0], tmp_path)
+    argv = ["map", str(damaged), "--skip-bad-lines", "--resolution", "1.0", "--n-jobs", "1",
+            "--out", str(tmp_path / "out"), "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "skoccmap map: warning:" in captured.err
+    assert "skipped 1 malformed laser line(s): line 5" in captured.err
+    # All 26 scans of the paper log are read: only the damaged line is left out.
+    assert "26 scans x 17 beams" in captured.out
+    assert (tmp_path / "out" / "damaged.npz").is_file()
+
+
+def test_skip_bad_lines_reaches_the_reader(monkeypatch, tmp_path):
+    from skoccmap import _cmd_map
+    from skoccmap.cli import build_parser
+
+    seen = []
+
+    def fake_load_carmen(path, *, max_range=None, errors="raise"):
+        seen.append(errors)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr("skoccmap.datasets.load_carmen", fake_load_carmen)
+    for options, expected in [([], "raise"), (["--skip-bad-lines"], "skip")]:
+        args = build_parser().parse_args(["map", str(tmp_path / "x.log"), *options])
+        with pytest.raises(ValueError, match="stop here"):
+            _cmd_map.load_scans(args)
+        assert seen[-1] == expected
+
+
+def test_help_names_bags_as_well_as_carmen_logs(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    out = capsys.readouterr().out
+    assert "map       build an occupancy map from a CARMEN laser log or a ROS bag" in out
+    assert "evaluate  score a map on held-out scans of a CARMEN log or a ROS bag" in out
+    for command in ("map", "evaluate"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        text = " ".join(capsys.readouterr().out.split())
+        assert "CARMEN log (plain text or gzip) or ROS bag: a path ending in .bag (ROS 1)" in text
+        assert ".db3 or .mcap (ROS 2 storage), or a ROS 2 bag directory" in text
+        assert "--skip-bad-lines" in text

@@ -148,6 +148,10 @@ def _open_text(path):
     return open(path, encoding="ascii", errors="replace")
 
 
+# The hint of a malformed-line error; the ``skoccmap`` command replaces it by its option.
+SKIP_HINT = "Pass errors='skip' to skip malformed lines with a warning."
+
+
 def _read_lines(path, messages, errors):
     readings, skipped = [], []
     with _open_text(path) as fh:
@@ -164,8 +168,7 @@ def _read_lines(path, messages, errors):
             except _MalformedLine as exc:
                 if errors == "raise":
                     raise ValueError(
-                        f"{path}, line {lineno}: malformed {tokens[0]} message: {exc}. "
-                        "Pass errors='skip' to skip malformed lines with a warning."
+                        f"{path}, line {lineno}: malformed {tokens[0]} message: {exc}. {SKIP_HINT}"
                     ) from None
                 skipped.append((lineno, str(exc)))
                 continue
