@@ -1,10 +1,15 @@
 """Continuous occupancy maps from laser scans with a mixture of Gaussian-process experts.
 
+The method is that of S. Kim and J. Kim, "Building occupancy maps with a mixture of Gaussian
+processes", ICRA 2012.
+
 The public estimators follow scikit-learn's API:
 
 - :class:`DPGMMClusterer` -- Dirichlet-process Gaussian mixture, collapsed Gibbs sampling.
 - :class:`IntegralKernel` -- squared-exponential kernel averaged along segments (laser beams).
-- :class:`EPGaussianProcessClassifier` -- binary GP classification by Expectation Propagation.
+- :class:`EPGaussianProcessClassifier` -- GP classification by Expectation Propagation; two
+  classes by EP, more by one-vs-rest or one-vs-one, as scikit-learn's
+  ``GaussianProcessClassifier``.
 - :class:`MixtureGPOccupancyMap` -- one GP expert per cluster, merged into one occupancy map.
 
 Observations are plain float arrays of segment rows ``[start_1..start_D, end_1..end_D]``; a

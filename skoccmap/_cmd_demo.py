@@ -1,4 +1,4 @@
-"""``skoccmap demo``: the simulation experiment of Kim & Kim (ACRA 2011) in one command.
+"""``skoccmap demo``: the simulation experiment of Kim & Kim (ICRA 2012) in one command.
 
 Fits the mixture of GP experts, the Bayesian committee machine and the single GP to the
 paper's simulated scans, prints Table 1 (observations per cluster), Table 2 (learning and

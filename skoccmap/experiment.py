@@ -1,4 +1,4 @@
-"""The simulation experiment of Kim & Kim (ACRA 2011), as functions returning its results.
+"""The simulation experiment of Kim & Kim (ICRA 2012), as functions returning its results.
 
 :func:`run_paper_experiment` simulates the paper's laser scans, fits the three maps it
 compares -- a mixture of GP experts (``"moe"``), a Bayesian committee machine over the same

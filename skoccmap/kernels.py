@@ -44,8 +44,9 @@ class IntegralKernel(Kernel):
 
     References
     ----------
-    .. [1] S. Kim and J. Kim, "Continuous occupancy maps using overlapping local Gaussian
-       processes", ACRA 2011 (the integral kernel over laser beams).
+    .. [1] S. Kim and J. Kim, "Building occupancy maps with a mixture of Gaussian processes",
+       IEEE International Conference on Robotics and Automation (ICRA), 2012: the integral
+       kernel over laser beams, in the method this package implements.
 
     Examples
     --------

@@ -1,4 +1,4 @@
-"""The simulated indoor environment and laser scans of Kim & Kim (ACRA 2011).
+"""The simulated indoor environment and laser scans of Kim & Kim (ICRA 2012).
 
 The paper's layout is not published as coordinates; this one keeps its stated setup -- a
 22 m x 18 m indoor environment of rooms and corridors, 26 poses on two trajectory pieces, 17
