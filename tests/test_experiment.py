@@ -24,6 +24,19 @@ from skoccmap.metrics import ground_truth_auc
 from skoccmap.observations import HIT, NO_RETURN, RETURN
 
 
+def _distance_to_observations(grid, X):
+    """Distance from each cell centre of a 2-D grid to the nearest segment row of ``X``."""
+    ny, nx = grid.shape
+    xs = grid.origin[0] + (np.arange(nx) + 0.5) * grid.resolution
+    ys = grid.origin[1] + (np.arange(ny) + 0.5) * grid.resolution
+    cells = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 1, 2)
+    a, d = X[:, :2], X[:, 2:] - X[:, :2]
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.einsum("cij,ij->ci", cells - a, d) / np.where(dd > 0, dd, 1.0)
+    nearest = a + np.clip(t, 0.0, 1.0)[..., None] * d
+    return np.linalg.norm(cells - nearest, axis=-1).min(axis=1).reshape(grid.shape)
+
+
 @pytest.fixture(scope="module")
 def result():
     # A coarse grid and the single GP on the mixture's kernel keep this to a few seconds.
@@ -106,10 +119,17 @@ def test_result_layout_and_scores(result):
         assert (res.fpr[0], res.tpr[0], res.fpr[-1], res.tpr[-1]) == (0, 0, 1, 1)
         assert np.all(np.diff(res.fpr) >= 0) and np.all(np.diff(res.tpr) >= 0)
         assert trapezoid_auc(res.fpr, res.tpr) == pytest.approx(res.auc, abs=1e-9)
-        # Unknown cells are those far from all data: high variance, none near the poses.
+        # Unknown cells are those far from all data, by geometry: the distance from each cell
+        # centre to the nearest beam or hit is computed here, apart from any variance.
         unknown = res.grid.unknown
         assert unknown.any() and not unknown.all()
-        assert res.grid.variance[unknown].min() > res.grid.variance[~unknown].max()
+        distance = _distance_to_observations(res.grid, data.X)
+        # Measured with the learned l = 1.63 m: unknown cells are at least 0.74 l from all
+        # data, known cells at most 1.68 l; the bounds leave a margin on both sides.
+        length_scale = result.mixture.shared_kernel_.k2.length_scale
+        assert not unknown[distance < 0.6 * length_scale].any()
+        assert unknown[distance > 2.0 * length_scale].all()
+        assert (distance > 2.0 * length_scale).any()
     assert result.mixture is result.methods["moe"].model
 
 
