@@ -3,7 +3,7 @@
 The paper's experiment: mixture of GPs vs single GP
 ===================================================
 
-Kim & Kim (ACRA 2011) map a simulated 22 m x 18 m office from 26 laser scans of 17 beams
+Kim & Kim (ICRA 2012) map a simulated 22 m x 18 m office from 26 laser scans of 17 beams
 (about 700 observations) three ways: a **mixture of GP experts** (one GP classifier per
 cluster of hit points, merged by the gating weights), a **Bayesian committee machine** over
 the same experts, and a **single GP** on all observations. The local experts learn and

@@ -6,7 +6,7 @@ non-negative gating weights ``w_k`` (``p(expert k | x)``). A zero weight means "
 skipped at this query": its mean and variance there are never read, so they may hold NaN
 (the mixture leaves them unevaluated to save time).
 
-The rules: the mixture of experts of the paper ([KK2011]_), the product of experts and
+The rules: the mixture of experts of the paper ([KK2012]_), the product of experts and
 its generalised form ([CF2014]_), the Bayesian committee machine ([Tresp2000]_) and its
 robust form ([DN2015]_).
 
@@ -18,8 +18,7 @@ the experts' probabilities.
 
 References
 ----------
-.. [KK2011] S. Kim and J. Kim, "Continuous occupancy maps using overlapping local Gaussian
-   processes", ACRA 2011; S. Kim and J. Kim, "Building occupancy maps with a mixture of
+.. [KK2012] S. Kim and J. Kim, "Building occupancy maps with a mixture of
    Gaussian processes", ICRA 2012.
 .. [Tresp2000] V. Tresp, "A Bayesian committee machine", Neural Computation 12, 2000.
 .. [CF2014] Y. Cao and D. J. Fleet, "Generalized product of experts for automatic and
@@ -131,7 +130,7 @@ def mixture_of_experts(means, variances, weights=None):
     """Mixture of experts: average the experts' probabilities with the gating weights.
 
     ``p = sum_k w_k Phi(mu_k / sqrt(1 + s_k^2))`` with the weights normalised to sum to one at
-    each query ([KK2011]_). The latent summary is the mixture's mean and variance,
+    each query ([KK2012]_). The latent summary is the mixture's mean and variance,
     ``mu = sum_k w_k mu_k`` and ``s^2 = sum_k w_k (s_k^2 + mu_k^2) - mu^2``.
 
     Parameters

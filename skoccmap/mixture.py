@@ -1,4 +1,4 @@
-"""Mixture of Gaussian-process experts for occupancy mapping (Kim & Kim, ACRA 2011).
+"""Mixture of Gaussian-process experts for occupancy mapping (Kim & Kim, ICRA 2012).
 
 The hit points are clustered; every observation joins a cluster; one GP classifier (an
 *expert*) is fitted per cluster; at query time a gating function ``p(cluster | x)`` weighs
@@ -381,7 +381,7 @@ def _default_kernel():
 
 
 class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
-    """Occupancy map from a mixture of Gaussian-process experts (Kim & Kim, ACRA 2011).
+    """Occupancy map from a mixture of Gaussian-process experts (Kim & Kim, ICRA 2012).
 
     ``fit`` clusters the hit points, assigns every observation to a cluster, fits one GP
     classifier per cluster (in parallel) and a gating function ``p(cluster | x)``;
@@ -526,11 +526,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         with ``layout="points"`` free points are marked ``RETURN`` (they follow that rule).
     cluster_labels_ : ndarray of shape (n_samples,)
         Expert index (0 .. ``n_experts_ - 1``) of every training row.
-    expert_cluster_ : ndarray of shape (n_experts_,)
+    expert_cluster_ : ndarray of shape (n_experts,)
         Merged cluster (0 .. ``n_clusters_ - 1``) each expert's piece belongs to.
     cluster_ids_ : ndarray
         Labels of the clusterer that received hit points, in order.
-    cluster_merge_ : ndarray of shape (len(cluster_ids_),)
+    cluster_merge_ : ndarray of shape (n_cluster_ids,)
         Merged cluster of each of the clusterer's clusters (see ``min_expert_size``).
     n_clusters_ : int
         Number of clusters after merging small ones.
