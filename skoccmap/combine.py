@@ -3,8 +3,10 @@
 Every combiner is a pure function on arrays of shape ``(n_queries, n_experts)``:
 the experts' latent means ``mu_k`` and latent variances ``s_k^2`` at each query, and the
 non-negative gating weights ``w_k`` (``p(expert k | x)``). A zero weight means "expert
-skipped at this query": its mean and variance there are never read, so they may hold NaN
-(the mixture leaves them unevaluated to save time).
+skipped at this query": its mean and variance there are never read, so they may hold NaN.
+:func:`combine_pairs` takes the same rules on (query, expert) pairs, for maps in which each
+query consults a few of many experts (the mixture's prediction): nothing of size
+``(n_queries, n_experts)`` is formed.
 
 The rules: the mixture of experts of the paper ([KK2012]_), the product of experts and
 its generalised form ([CF2014]_), the Bayesian committee machine ([Tresp2000]_) and its
@@ -36,6 +38,7 @@ __all__ = [
     "MergedPrediction",
     "bayesian_committee_machine",
     "combine",
+    "combine_pairs",
     "generalized_product_of_experts",
     "mixture_of_experts",
     "product_of_experts",
@@ -121,9 +124,105 @@ def _probit(mean, variance):
     return ndtr(mean / np.sqrt(1.0 + variance))
 
 
-def _normalized(weights, used):
-    w = np.where(used, weights, 0.0)
-    return w / w.sum(axis=1, keepdims=True)
+class _Pairs(NamedTuple):
+    """The (query, expert) pairs that enter the merge, one entry per pair."""
+
+    query: np.ndarray
+    n_queries: int
+    means: np.ndarray
+    variances: np.ndarray
+    weights: np.ndarray
+    prior_variance: np.ndarray | None
+
+
+def _dense_pairs(means, variances, weights, prior_variance=None):
+    """Validated dense inputs as the pairs of experts with positive weight."""
+    means, variances, weights, used, prior_variance = _check_inputs(
+        means, variances, weights, prior_variance
+    )
+    query, expert = np.nonzero(used)
+    prior = None if prior_variance is None else prior_variance[query, expert]
+    return _Pairs(
+        query,
+        means.shape[0],
+        means[query, expert],
+        variances[query, expert],
+        weights[query, expert],
+        prior,
+    )
+
+
+def _sum(pairs, values):
+    """Per-query sums of a value per pair."""
+    return np.bincount(pairs.query, weights=values, minlength=pairs.n_queries)
+
+
+def _normalized(pairs):
+    return pairs.weights / _sum(pairs, pairs.weights)[pairs.query]
+
+
+def _moe(pairs):
+    w = _normalized(pairs)
+    mu, var = pairs.means, pairs.variances
+    proba = _sum(pairs, w * _probit(mu, var))
+    mean = _sum(pairs, w * mu)
+    # Law of total variance: E[var] + Var[mean].
+    variance = _sum(pairs, w * (var + (mu - mean[pairs.query]) ** 2))
+    return MergedPrediction(np.clip(proba, 0.0, 1.0), mean, np.maximum(variance, _VARIANCE_FLOOR))
+
+
+def _gaussian_product(pairs, betas):
+    """Merge Gaussians by adding weighted natural parameters.
+
+    ``1/s^2 = sum_k beta_k / s_k^2`` and ``mu = s^2 sum_k beta_k mu_k / s_k^2``.
+    """
+    inv_var = 1.0 / pairs.variances
+    precision = np.maximum(_sum(pairs, betas * inv_var), 1.0 / np.finfo(np.float64).max)
+    variance = 1.0 / precision
+    mean = variance * _sum(pairs, betas * inv_var * pairs.means)
+    variance = np.maximum(variance, _VARIANCE_FLOOR)
+    return MergedPrediction(_probit(mean, variance), mean, variance)
+
+
+def _bcm(pairs, betas):
+    """``1/s^2 = 1/s_**^2 + sum_k beta_k (1/s_k^2 - 1/s_**^2)``, ``mu = s^2 sum beta mu/s_k^2``.
+
+    The common prior precision ``1/s_**^2`` is the mean prior precision of the experts
+    used (with one shared prior, that prior); each expert's information gain is over its
+    own prior.
+    """
+    inv_var = 1.0 / pairs.variances
+    inv_prior = 1.0 / pairs.prior_variance
+    # Roundoff can put a posterior variance a hair above the prior; clip so that no expert
+    # removes information.
+    gain = np.maximum(inv_var - inv_prior, 0.0)
+    used = np.bincount(pairs.query, minlength=pairs.n_queries)
+    precision = _sum(pairs, inv_prior) / used + _sum(pairs, betas * gain)
+    variance = 1.0 / precision
+    # Zero prior mean: only the experts' linear natural parameters enter the mean.
+    mean = variance * _sum(pairs, betas * inv_var * pairs.means)
+    variance = np.maximum(variance, _VARIANCE_FLOOR)
+    return MergedPrediction(_probit(mean, variance), mean, variance)
+
+
+def _rbcm_betas(pairs):
+    # Differential-entropy drop from prior to posterior; roundoff can make s_k^2 exceed
+    # s_**^2 by a hair, and an expert never gets negative weight.
+    return np.maximum(0.5 * (np.log(pairs.prior_variance) - np.log(pairs.variances)), 0.0)
+
+
+_RULES = {
+    "moe": _moe,
+    "poe": lambda pairs: _gaussian_product(pairs, np.ones_like(pairs.means)),
+    "gpoe": lambda pairs: _gaussian_product(pairs, _normalized(pairs)),
+    "bcm": lambda pairs: _bcm(pairs, np.ones_like(pairs.means)),
+    "rbcm": lambda pairs: _bcm(pairs, _rbcm_betas(pairs)),
+}
+
+
+def _require_prior(prior_variance, name):
+    if prior_variance is None:
+        raise ValueError(f"prior_variance is required by the {name}.")
 
 
 def mixture_of_experts(means, variances, weights=None):
@@ -155,34 +254,7 @@ def mixture_of_experts(means, variances, weights=None):
     >>> float(merged.proba[0]), float(merged.mean[0]), float(merged.variance[0])
     (0.5, 0.0, 5.0)
     """
-    means, variances, weights, used, _ = _check_inputs(means, variances, weights)
-    w = _normalized(weights, used)
-    mu = np.where(used, means, 0.0)
-    var = np.where(used, variances, 0.0)
-    proba = np.sum(w * _probit(mu, var), axis=1)
-    mean = np.sum(w * mu, axis=1)
-    # Law of total variance: E[var] + Var[mean].
-    variance = np.sum(w * (var + (mu - mean[:, None]) ** 2), axis=1)
-    return MergedPrediction(np.clip(proba, 0.0, 1.0), mean, np.maximum(variance, _VARIANCE_FLOOR))
-
-
-def _gaussian_product(means, variances, betas, used, prior_precision=None):
-    """Merge Gaussians by adding weighted natural parameters.
-
-    ``1/s^2 = sum_k beta_k / s_k^2 + prior_precision`` and
-    ``mu = s^2 sum_k beta_k mu_k / s_k^2``; ``prior_precision`` is the BCM correction term
-    (absent for the products of experts).
-    """
-    beta = np.where(used, betas, 0.0)
-    inv_var = np.where(used, 1.0 / np.where(used, variances, 1.0), 0.0)
-    precision = np.sum(beta * inv_var, axis=1)
-    if prior_precision is not None:
-        precision = precision + prior_precision
-    precision = np.maximum(precision, 1.0 / np.finfo(np.float64).max)
-    variance = 1.0 / precision
-    mean = variance * np.sum(beta * inv_var * np.where(used, means, 0.0), axis=1)
-    variance = np.maximum(variance, _VARIANCE_FLOOR)
-    return MergedPrediction(_probit(mean, variance), mean, variance)
+    return _moe(_dense_pairs(means, variances, weights))
 
 
 def product_of_experts(means, variances, weights=None):
@@ -213,8 +285,7 @@ def product_of_experts(means, variances, weights=None):
     >>> float(merged.mean[0]), float(merged.variance[0])
     (2.0, 0.5)
     """
-    means, variances, weights, used, _ = _check_inputs(means, variances, weights)
-    return _gaussian_product(means, variances, np.ones_like(means), used)
+    return _RULES["poe"](_dense_pairs(means, variances, weights))
 
 
 def generalized_product_of_experts(means, variances, weights=None):
@@ -246,22 +317,7 @@ def generalized_product_of_experts(means, variances, weights=None):
     >>> float(merged.mean[0]), float(merged.variance[0])
     (2.0, 1.0)
     """
-    means, variances, weights, used, _ = _check_inputs(means, variances, weights)
-    return _gaussian_product(means, variances, _normalized(weights, used), used)
-
-
-def _information_gain(variances, prior_variance, used):
-    # 1/s_k^2 - 1/s_**^2: what expert k adds to its prior. Roundoff can put a posterior
-    # variance a hair above the prior; clip so that no expert removes information.
-    gain = 1.0 / np.where(used, variances, 1.0) - 1.0 / np.where(used, prior_variance, 1.0)
-    return np.where(used, np.maximum(gain, 0.0), 0.0)
-
-
-def _merged_prior_precision(prior_variance, used):
-    # With per-expert priors (experts with their own hyperparameters) the common prior is
-    # the mean prior precision of the experts used; with one shared prior it is that prior.
-    inv = np.where(used, 1.0 / np.where(used, prior_variance, 1.0), 0.0)
-    return inv.sum(axis=1) / used.sum(axis=1)
+    return _RULES["gpoe"](_dense_pairs(means, variances, weights))
 
 
 def bayesian_committee_machine(means, variances, prior_variance, weights=None):
@@ -296,25 +352,8 @@ def bayesian_committee_machine(means, variances, prior_variance, weights=None):
     >>> float(merged.mean[0]), float(merged.variance[0])
     (2.6666666666666665, 0.6666666666666666)
     """
-    if prior_variance is None:
-        raise ValueError("prior_variance is required by the Bayesian committee machine.")
-    means, variances, weights, used, prior_variance = _check_inputs(
-        means, variances, weights, prior_variance
-    )
-    ones = np.ones_like(means)
-    return _bcm(means, variances, prior_variance, ones, used)
-
-
-def _bcm(means, variances, prior_variance, betas, used):
-    gain = _information_gain(variances, prior_variance, used)
-    beta = np.where(used, betas, 0.0)
-    precision = _merged_prior_precision(prior_variance, used) + np.sum(beta * gain, axis=1)
-    variance = 1.0 / precision
-    inv_var = np.where(used, 1.0 / np.where(used, variances, 1.0), 0.0)
-    # Zero prior mean: only the experts' linear natural parameters enter the mean.
-    mean = variance * np.sum(beta * inv_var * np.where(used, means, 0.0), axis=1)
-    variance = np.maximum(variance, _VARIANCE_FLOOR)
-    return MergedPrediction(_probit(mean, variance), mean, variance)
+    _require_prior(prior_variance, "Bayesian committee machine")
+    return _RULES["bcm"](_dense_pairs(means, variances, weights, prior_variance))
 
 
 def robust_bayesian_committee_machine(means, variances, prior_variance, weights=None):
@@ -351,16 +390,8 @@ def robust_bayesian_committee_machine(means, variances, prior_variance, weights=
     >>> float(merged.mean[0]), float(merged.variance[0])
     (0.0, 1.0)
     """
-    if prior_variance is None:
-        raise ValueError("prior_variance is required by the robust Bayesian committee machine.")
-    means, variances, weights, used, prior_variance = _check_inputs(
-        means, variances, weights, prior_variance
-    )
-    safe_var = np.where(used, variances, 1.0)
-    safe_prior = np.where(used, prior_variance, 1.0)
-    # Roundoff can make s_k^2 exceed s_**^2 by a hair; an expert never gets negative weight.
-    betas = np.maximum(0.5 * (np.log(safe_prior) - np.log(safe_var)), 0.0)
-    return _bcm(means, variances, prior_variance, betas, used)
+    _require_prior(prior_variance, "robust Bayesian committee machine")
+    return _RULES["rbcm"](_dense_pairs(means, variances, weights, prior_variance))
 
 
 COMBINERS = {
@@ -409,3 +440,97 @@ def combine(means, variances, weights=None, *, method="moe", prior_variance=None
     if method in _NEEDS_PRIOR:
         return COMBINERS[method](means, variances, prior_variance, weights)
     return COMBINERS[method](means, variances, weights)
+
+
+def combine_pairs(
+    query_index, means, variances, weights=None, *, n_queries, method="moe", prior_variance=None
+):
+    """Merge expert predictions given as (query, expert) pairs.
+
+    The rules of :func:`combine` for maps in which each query consults a few of many
+    experts: entry ``i`` of every array is the prediction of one expert at query
+    ``query_index[i]``. The result is that of :func:`combine` on the dense arrays with
+    these entries and zero weight elsewhere; nothing of size ``(n_queries, n_experts)``
+    is formed. The per-query sums run over the pairs in the order given.
+
+    Parameters
+    ----------
+    query_index : array-like of int of shape (n_pairs,)
+        Query of each pair, in ``[0, n_queries)``.
+    means : array-like of shape (n_pairs,)
+        Latent mean of the pair's expert at its query.
+    variances : array-like of shape (n_pairs,)
+        Latent variance of the pair's expert at its query.
+    weights : array-like of shape (n_pairs,), default=None
+        Non-negative gating weights; a zero weight drops the pair. ``None`` weights all
+        pairs equally.
+    n_queries : int
+        Number of queries; each needs at least one pair with positive weight.
+    method : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="moe"
+        Merging rule, as in :func:`combine`.
+    prior_variance : array-like of shape (n_pairs,), default=None
+        Prior latent variance of the pair's expert at its query; required by ``"bcm"``
+        and ``"rbcm"``.
+
+    Returns
+    -------
+    MergedPrediction
+        ``(proba, mean, variance)``, each of shape (n_queries,).
+
+    Examples
+    --------
+    Query 0 is seen by two experts, query 1 by one:
+
+    >>> from skoccmap.combine import combine_pairs
+    >>> merged = combine_pairs([0, 0, 1], [1.0, 3.0, -1.0], [1.0, 1.0, 2.0],
+    ...                        n_queries=2, method="poe")
+    >>> merged.mean.tolist(), merged.variance.tolist()
+    ([2.0, -1.0], [0.5, 2.0])
+    """
+    if method not in _RULES:
+        raise ValueError(f"method must be one of {sorted(_RULES)}, got {method!r}.")
+    if method in _NEEDS_PRIOR and prior_variance is None:
+        raise ValueError(f"prior_variance is required by method={method!r}.")
+    n_queries = int(n_queries)
+    query = np.asarray(query_index)
+    arrays = {"means": means, "variances": variances}
+    if weights is not None:
+        arrays["weights"] = weights
+    if prior_variance is not None:
+        arrays["prior_variance"] = prior_variance
+    arrays = {name: np.asarray(a, dtype=np.float64) for name, a in arrays.items()}
+    if query.ndim != 1 or not np.issubdtype(query.dtype, np.integer):
+        raise ValueError("query_index must be a 1-D array of integers.")
+    for name, a in arrays.items():
+        if a.shape != query.shape:
+            raise ValueError(
+                f"{name} has shape {a.shape}, expected the shape of query_index {query.shape}."
+            )
+    if query.size and (query.min() < 0 or query.max() >= n_queries):
+        raise ValueError(f"query_index must lie in [0, n_queries={n_queries}).")
+    w = arrays.get("weights", np.ones(query.shape))
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ValueError("weights must be finite and non-negative.")
+    used = w > 0
+    if np.bincount(query[used], minlength=n_queries).min(initial=1) == 0:
+        raise ValueError(
+            "a query has no pair with positive weight: every query needs at least one expert."
+        )
+    for name in ("means", "variances", "prior_variance"):
+        if name in arrays and not np.all(np.isfinite(arrays[name][used])):
+            raise ValueError(
+                f"{name} contains NaN or infinite values where the weight is positive."
+            )
+    for name in ("variances", "prior_variance"):
+        if name in arrays and np.any(arrays[name][used] <= 0):
+            raise ValueError(f"{name} must be positive where the weight is positive.")
+    prior = arrays.get("prior_variance")
+    pairs = _Pairs(
+        query[used].astype(np.intp),
+        n_queries,
+        arrays["means"][used],
+        arrays["variances"][used],
+        w[used],
+        None if prior is None else prior[used],
+    )
+    return _RULES[method](pairs)

@@ -23,8 +23,9 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from ._reach import ExpertReach, kernel_reach
 from ._shared_kernel import learn_shared_kernel, warn_at_bounds
-from .combine import COMBINERS, combine
+from .combine import COMBINERS, combine_pairs
 from .observations import HIT, NO_RETURN, RETURN, split_segments
 
 __all__ = ["MixtureGPOccupancyMap"]
@@ -233,6 +234,21 @@ def _merge_small(labels, hit_points, hit_labels, min_size):
         merged[merged == small] = target
     # Renumber the surviving clusters 0..K-1 in order.
     return np.unique(merged, return_inverse=True)[1]
+
+
+def _groups(labels, n_groups):
+    """Row indices of each label 0 .. n_groups - 1, in order (one sort, not one pass each)."""
+    order = np.argsort(labels, kind="stable")
+    return np.split(order, np.searchsorted(labels[order], np.arange(1, n_groups)))
+
+
+def _best(query, weights):
+    """Pairs holding their query's largest weight (pairs sorted by query)."""
+    if query.size == 0:
+        return np.zeros(0, dtype=bool)
+    starts = np.flatnonzero(np.r_[True, query[1:] != query[:-1]])
+    largest = np.maximum.reduceat(weights, starts)
+    return weights == np.repeat(largest, np.diff(np.r_[starts, query.size]))
 
 
 def _bisect(points, max_size, weights=None):
@@ -485,10 +501,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``ConvergenceWarning``. The expert must have ``kernel`` and ``optimizer``
         parameters. ``False`` lets every expert learn its own (the paper's model).
     gating_threshold : float, default=1e-3
-        Experts whose gating weight at a query is below this are skipped there (the
-        expert with the largest weight is always kept). On the tuning data (ACES, every
-        10th scan) 1e-1 / 1e-2 / 1e-3 / 1e-4 give held-out AUC 0.940 / 0.948 / 0.948 /
-        0.949 at 126 / 170 / 236 / 256 us per query point.
+        Of the experts within reach of a query (see ``reach_tolerance``), those whose
+        gating weight there is below this are skipped (the one with the largest weight
+        is always kept). 0 consults every expert within reach. On the tuning data (ACES,
+        every 10th scan) 1e-1 / 1e-2 / 1e-3 / 1e-4 gave held-out AUC 0.940 / 0.948 /
+        0.948 / 0.949 at 126 / 170 / 236 / 256 us per query point.
+    reach_tolerance : float, default=1e-2
+        Sets the *reach* ``reach_``: the distance beyond which the fitted kernel between
+        two points stays below ``reach_tolerance`` times its value at distance 0. An
+        expert whose training segments all lie further than that from a query is not
+        consulted there: every entry of its kernel row is below the tolerance (the
+        integral kernel is an average of the point kernel along the segments), so it
+        would predict close to its prior, which the product rules ignore and the mixture
+        of experts should not be diluted by. For the squared-exponential kernel the reach
+        is ``sqrt(2 ln(1 / reach_tolerance))`` length scales (3.03 at 1e-2). A query with
+        no expert within reach gets the prior (probability 1/2, prior variance).
     return_radius : float, default=0.1
         A beam is a *return* beam when a hit lies within this distance (metres) of its
         end; it then joins that hit's cluster. Other beams are *no-return* beams and join
@@ -543,6 +570,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         The fitted gating classifier when ``gating="gpc"`` and there are several experts.
     shared_kernel_ : kernel or None
         The kernel learned once when ``share_hyperparameters=True``.
+    reach_ : float
+        Distance within which an expert's training data can inform a query (see
+        ``reach_tolerance``); ``inf`` when an expert's kernel does not decay or is not
+        exposed as ``kernel_``, and then every expert is a candidate everywhere.
 
     See Also
     --------
@@ -557,9 +588,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     number of observations, while a uniform sample of return beams covers the same
     clusters.
 
-    Gating of a query segment uses its midpoint (a query cell is a zero-length segment,
-    so its midpoint is the cell centre). Queries are predicted in chunks sized by
-    sklearn's ``working_memory`` so that a million cells keep memory bounded.
+    Prediction is local: ``fit`` indexes every expert's training segments on a grid
+    (:class:`skoccmap._reach.ExpertReach`), and a point query looks up the experts with
+    data within ``reach_`` of it (and possibly some within half a reach more, the grid's
+    slack) in a table; only those are gated and consulted, and the merging rule sees only
+    them (the mixture of experts renormalises its gate over them, the BCM counts them).
+    Nothing of size (queries x experts) is formed, except by ``gating="gpc"``, whose
+    classifier is dense over experts. Gating of a query segment uses its midpoint (a
+    query cell is a zero-length segment, so its midpoint is the cell centre). Queries are
+    predicted in chunks of nearby queries, sized by sklearn's ``working_memory``, and
+    each expert predicts its queries of a chunk in one call.
 
     References
     ----------
@@ -600,6 +638,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "beam_end_length": [Interval(Real, 0, None, closed="neither"), None],
         "share_hyperparameters": ["boolean"],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
+        "reach_tolerance": [Interval(Real, 0, 1, closed="neither")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
         "layout": [StrOptions({"segments", "points"})],
         "n_jobs": [Integral, None],
@@ -621,6 +660,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         beam_end_length=0.5,
         share_hyperparameters=True,
         gating_threshold=1e-3,
+        reach_tolerance=1e-2,
         return_radius=0.1,
         layout="segments",
         n_jobs=None,
@@ -638,6 +678,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.beam_end_length = beam_end_length
         self.share_hyperparameters = share_hyperparameters
         self.gating_threshold = gating_threshold
+        self.reach_tolerance = reach_tolerance
         self.return_radius = return_radius
         self.layout = layout
         self.n_jobs = n_jobs
@@ -697,14 +738,34 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         labels = self._split_clusters(X, labels, anchor, n_pieces)
         self.cluster_labels_ = labels
         self.n_experts_ = int(self.expert_cluster_.size)
-        self._expert_sizes = np.bincount(labels, weights=n_pieces, minlength=self.n_experts_)
         self.experts_ = self._fit_experts(pieces, y_enc[source], labels[source], expert, rng)
         _log(
             self.verbose,
             f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
         )
+        self.reach_ = self._reach(pieces)
+        self._reach_index = ExpertReach(pieces, labels[source], self.n_experts_, self.reach_)
         self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
         return self
+
+    def _reach(self, pieces):
+        """Distance beyond which the experts' kernels fall below ``reach_tolerance``.
+
+        The largest over the experts' fitted kernels (one kernel when shared); ``inf``
+        when an expert exposes no ``kernel_`` or its kernel does not decay.
+        """
+        dim = pieces.shape[1] // 2
+        ends = np.vstack([pieces[:, :dim], pieces[:, dim:]])
+        extent = float(np.linalg.norm(np.ptp(ends, axis=0)))
+        kernels = {}
+        for est in self.experts_:
+            kernel = getattr(est, "kernel_", None)
+            if kernel is None and not isinstance(est, _ConstantExpert):
+                return np.inf
+            if kernel is not None:
+                kernels.setdefault(repr(kernel), kernel)
+        reaches = [kernel_reach(k, dim, self.reach_tolerance, extent) for k in kernels.values()]
+        return max(reaches, default=np.inf)
 
     def _make_expert(self):
         if self.expert is not None:
@@ -788,8 +849,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         rows_per_hit = np.bincount(anchor, weights=row_weight, minlength=X.shape[0])
         expert_labels = np.empty_like(labels)
         expert_cluster, piece_gates = [], []
-        for c in range(self.n_clusters_):
-            rows = np.flatnonzero(labels == c)
+        piece_of_hit = np.empty(X.shape[0], dtype=np.intp)
+        for c, rows in enumerate(_groups(labels, self.n_clusters_)):
             first = len(expert_cluster)
             size = row_weight[rows].sum()
             if self.max_expert_size is None or size <= self.max_expert_size:
@@ -797,11 +858,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             else:
                 hits = rows[anchor[rows] == rows]
                 hit_pieces = _bisect(X[hits, :dim], self.max_expert_size, rows_per_hit[hits])
-                piece_of_hit = np.empty(X.shape[0], dtype=np.intp)
                 for j, piece in enumerate(hit_pieces):
                     piece_of_hit[hits[piece]] = j
-                row_piece = piece_of_hit[anchor[rows]]
-                pieces = [np.flatnonzero(row_piece == j) for j in range(len(hit_pieces))]
+                pieces = _groups(piece_of_hit[anchor[rows]], len(hit_pieces))
             for j, piece in enumerate(pieces):
                 expert_labels[rows[piece]] = first + j
                 expert_cluster.append(c)
@@ -810,6 +869,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             )
         self.expert_cluster_ = np.asarray(expert_cluster, dtype=np.intp)
         self._piece_gates = piece_gates
+        self._first_expert = np.searchsorted(self.expert_cluster_, np.arange(self.n_clusters_))
         if any(g is not None for g in piece_gates):
             _log(
                 self.verbose,
@@ -824,7 +884,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # which workers finish.
         seeds = rng.randint(np.iinfo(np.int32).max, size=n_experts)
         has_seed = "random_state" in expert.get_params()
-        rows = [np.flatnonzero(labels == k) for k in range(n_experts)]
+        rows = _groups(labels, n_experts)
 
         def prepared(k, base):
             est = clone(base)
@@ -859,9 +919,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # The summed evidence of experts' own (compact) pieces, on a random subset of them:
         # each term is one expert's fit, so a few dozen pieces fix a handful of
         # hyperparameters at a bounded cost however large the map.
-        chosen = np.sort(
-            rng.choice(two_class, min(len(two_class), _SHARED_PIECES), replace=False)
-        )
+        chosen = np.sort(rng.choice(two_class, min(len(two_class), _SHARED_PIECES), replace=False))
         _log(self.verbose, f"learning shared hyperparameters on {chosen.size} expert(s)")
         learner = clone(expert)
         if "random_state" in learner.get_params():
@@ -886,7 +944,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         from sklearn.gaussian_process.kernels import RBF, ConstantKernel
 
         mids = _midpoints(X)
-        groups = [np.flatnonzero(labels == k) for k in range(self.n_experts_)]
+        groups = _groups(labels, self.n_experts_)
         # Stratified sample, so that every expert keeps some training points.
         per = max(_GATING_GPC_MAX_SAMPLES // self.n_experts_, 1)
         idx = np.concatenate([rng.permutation(g)[:per] for g in groups])
@@ -941,30 +999,62 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             weights[empty] = sub
         return weights
 
-    def _gating_weights(self, X):
-        """``p(expert | x)`` at the midpoints of the query rows, thresholded."""
-        mids = _midpoints(X)
+    def _pair_gates(self, mids, query, expert):
+        """``p(expert | x)`` of each candidate (query, expert) pair, before the threshold."""
         if self.n_experts_ == 1:
-            return np.ones((X.shape[0], 1))
+            return np.ones(query.size)
         if self.gating == "gpc":
-            weights = np.zeros((X.shape[0], self.n_experts_))
-            weights[:, self.gating_.classes_] = self.gating_.predict_proba(mids)
-        else:
-            cluster_w = self._cluster_weights(mids)
-            weights = cluster_w[:, self.expert_cluster_]
-            for c, gate in enumerate(self._piece_gates):
-                if gate is not None:
-                    cols = np.flatnonzero(self.expert_cluster_ == c)
-                    weights[:, cols] *= gate.predict_proba(mids)
-        best = np.argmax(weights, axis=1)
-        keep = weights >= self.gating_threshold
-        keep[np.arange(X.shape[0]), best] = True
-        weights = np.where(keep, weights, 0.0)
-        # A row of tiny weights (all below threshold) still has its best expert.
-        weights[np.arange(X.shape[0]), best] = np.maximum(
-            weights[np.arange(X.shape[0]), best], np.finfo(np.float64).tiny
-        )
+            # The GP classifier's softmax over experts is dense by nature.
+            proba = self.gating_.predict_proba(mids)
+            column = np.full(self.n_experts_, -1)
+            column[self.gating_.classes_] = np.arange(self.gating_.classes_.size)
+            col = column[expert]
+            return np.where(col >= 0, proba[query, np.maximum(col, 0)], 0.0)
+        cluster = self.expert_cluster_[expert]
+        weights = self._cluster_weights(mids)[query, cluster]
+        # Split clusters: the piece's share of its cluster, at the queries that ask for it.
+        order = np.argsort(cluster, kind="stable")
+        bounds = np.searchsorted(cluster[order], np.arange(self.n_clusters_ + 1))
+        for c, gate in enumerate(self._piece_gates):
+            if gate is None or bounds[c] == bounds[c + 1]:
+                continue
+            pairs = order[bounds[c] : bounds[c + 1]]
+            asked, pos = np.unique(query[pairs], return_inverse=True)
+            share = gate.predict_proba(mids[asked])
+            weights[pairs] *= share[pos.ravel(), expert[pairs] - self._first_expert[c]]
         return weights
+
+    def _consulted(self, Xc):
+        """The experts each query consults: (query, expert, weight) sorted by expert.
+
+        The index's table gives each query its candidate experts (a superset of those
+        with data within ``reach_``). Those whose gate weight is at least
+        ``gating_threshold``, and the one with the largest weight, are kept if they have
+        data within reach of the query (see :meth:`ExpertReach.within_reach`). A query
+        that keeps none falls back to its best-weighted expert within reach, and to no
+        expert (the prior) when none is.
+        """
+        index = self._reach_index
+        query, expert = index.candidates(Xc)
+        if query.size == 0:
+            return query, expert, np.empty(0)
+        weights = self._pair_gates(_midpoints(Xc), query, expert)
+        keep = _best(query, weights) | (weights >= self.gating_threshold)
+        near = np.zeros(query.size, dtype=bool)
+        near[keep] = index.within_reach(Xc, query[keep], expert[keep])
+        lost = np.ones(Xc.shape[0], dtype=bool)
+        lost[query[near]] = False
+        retry = lost[query]
+        if np.any(retry):
+            # Their kept experts were all out of reach: the best of those in reach.
+            rows = np.flatnonzero(retry)
+            rows = rows[index.within_reach(Xc, query[rows], expert[rows])]
+            near[rows[_best(query[rows], weights[rows])]] = True
+        # A query whose weights all vanish still has its best expert, with positive weight.
+        weights = np.maximum(weights, np.finfo(np.float64).tiny)
+        query, expert, weights = query[near], expert[near], weights[near]
+        order = np.argsort(expert, kind="stable")
+        return query[order], expert[order], weights[order]
 
     # -- prediction ------------------------------------------------------------------
 
@@ -974,45 +1064,80 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         return _as_segment_rows(X, self.layout)
 
     def _merged(self, X):
-        """Merged prediction (proba, mean, variance) over query chunks."""
+        """Merged prediction (proba, mean, variance), query chunk by query chunk.
+
+        Queries are taken in the order of the index's blocks, so that a chunk is a compact
+        region and each expert predicts its queries of a chunk in one call.
+        """
         X = self._validate_queries(X)
-        needs_prior = self.combiner in ("bcm", "rbcm")
-        largest = max(int(self._expert_sizes.max()), 1)
-        # Each query row costs a kernel row against the biggest expert (plus workspace).
-        row_bytes = 8 * (4 * largest + 8 * self.n_experts_)
-        chunk = int(get_config()["working_memory"] * 2**20 // row_bytes)
-        chunk = min(max(chunk, 1), max(X.shape[0], 1))
+        order = self._reach_index.spatial_order(X)
+        # Bounded pair arrays: each query consults at most the experts near its block.
+        pair_bytes = 8 * 8 * max(self._reach_index.max_candidates, 1)
+        chunk = int(get_config()["working_memory"] * 2**20 // pair_bytes)
+        chunk = min(max(chunk, 64), max(X.shape[0], 1))
         out = [np.empty(X.shape[0]) for _ in range(3)]
         batches = list(gen_batches(X.shape[0], chunk))
         for b, batch in enumerate(batches):
-            merged = self._merge_chunk(X[batch], needs_prior)
-            for arr, part in zip(out, merged, strict=True):
-                arr[batch] = part
+            rows = order[batch]
+            for arr, part in zip(out, self._merge_chunk(X[rows]), strict=True):
+                arr[rows] = part
             if self.verbose > 1:
                 _log(self.verbose, f"predicted chunk {b + 1} of {len(batches)}")
         return tuple(out)
 
-    def _merge_chunk(self, Xc, needs_prior):
-        weights = self._gating_weights(Xc)
-        shape = weights.shape
-        means = np.full(shape, np.nan)
-        variances = np.full(shape, np.nan)
-        prior = np.full(shape, np.nan) if needs_prior else None
+    def _merge_chunk(self, Xc):
+        query, expert, weights = self._consulted(Xc)
+        needs_prior = self.combiner in ("bcm", "rbcm")
+        means = np.empty(query.size)
+        variances = np.empty(query.size)
+        prior = np.empty(query.size) if needs_prior else None
+        bounds = np.searchsorted(expert, np.arange(self.n_experts_ + 1))
 
-        def predict_expert(k, rows):
-            # Each task writes its own column: results do not depend on n_jobs.
-            expert = self.experts_[k]
-            means[rows, k], variances[rows, k] = expert.latent_mean_and_variance(Xc[rows])
+        def predict_expert(k):
+            # Each task writes its own slice of the pairs: results do not depend on n_jobs.
+            part = slice(bounds[k], bounds[k + 1])
+            rows = Xc[query[part]]
+            means[part], variances[part] = self.experts_[k].latent_mean_and_variance(rows)
             if needs_prior:
-                prior[rows, k] = _prior_variance(expert, Xc[rows])
+                prior[part] = _prior_variance(self.experts_[k], rows)
 
-        tasks = [(k, np.flatnonzero(weights[:, k] > 0)) for k in range(shape[1])]
         # Threads, not processes: shipping all experts to workers per chunk costs more than
         # the kernels, which spend their time in numpy calls that release the GIL.
         Parallel(n_jobs=self.n_jobs, require="sharedmem")(
-            delayed(predict_expert)(k, rows) for k, rows in tasks if rows.size
+            delayed(predict_expert)(k) for k in np.flatnonzero(np.diff(bounds))
         )
-        return combine(means, variances, weights, method=self.combiner, prior_variance=prior)
+        proba = np.full(Xc.shape[0], 0.5)
+        mean = np.zeros(Xc.shape[0])
+        variance = np.empty(Xc.shape[0])
+        reached, pair_query = np.unique(query, return_inverse=True)
+        merged = combine_pairs(
+            pair_query.ravel(),
+            means,
+            variances,
+            weights,
+            n_queries=reached.size,
+            method=self.combiner,
+            prior_variance=prior,
+        )
+        proba[reached], mean[reached], variance[reached] = merged
+        # Beyond the reach of every expert: the prior.
+        alone = np.ones(Xc.shape[0], dtype=bool)
+        alone[reached] = False
+        if np.any(alone):
+            variance[alone] = self._prior_variance(Xc[alone])
+        return proba, mean, variance
+
+    def _prior_variance(self, X):
+        """Prior latent variance where no expert reaches: the experts' mean prior precision.
+
+        With shared hyperparameters every expert has the same prior; otherwise the
+        precision is averaged over up to 16 experts spread over the list.
+        """
+        if self.shared_kernel_ is not None:
+            return np.asarray(self.shared_kernel_.diag(X), dtype=np.float64)
+        chosen = np.unique(np.linspace(0, self.n_experts_ - 1, 16).astype(int))
+        precision = np.mean([1.0 / _prior_variance(self.experts_[k], X) for k in chosen], axis=0)
+        return 1.0 / precision
 
     def predict_proba(self, X):
         """Probability of each class at the query segments.

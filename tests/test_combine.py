@@ -16,6 +16,7 @@ from skoccmap.combine import (
     COMBINERS,
     bayesian_committee_machine,
     combine,
+    combine_pairs,
     generalized_product_of_experts,
     mixture_of_experts,
     product_of_experts,
@@ -257,3 +258,57 @@ def test_bad_inputs_raise_clear_errors():
         combine(m, v, method="rbcm", prior_variance=np.ones(3))
     with pytest.raises(ValueError, match="no expert columns"):
         combine(np.zeros((2, 0)), np.zeros((2, 0)))
+
+
+# --- pairs ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", sorted(COMBINERS))
+def test_pairs_equal_the_dense_rule_on_a_sparse_mask(method):
+    rng = np.random.default_rng(7)
+    n, k = 40, 9
+    means = rng.normal(size=(n, k))
+    variances = rng.uniform(0.1, 2.0, size=(n, k))
+    prior = variances + rng.uniform(0.0, 1.0, size=(n, k))
+    weights = rng.uniform(size=(n, k)) * (rng.uniform(size=(n, k)) < 0.4)
+    weights[np.arange(n), rng.integers(0, k, n)] += 0.1
+    # Entries that are not pairs hold NaN in the dense arrays: never read.
+    skipped = weights == 0
+    means[skipped] = variances[skipped] = prior[skipped] = np.nan
+    dense = combine(means, variances, weights, method=method, prior_variance=prior)
+    # Pairs in a shuffled order, plus zero-weight pairs that must be dropped.
+    q, e = np.nonzero(~skipped)
+    order = rng.permutation(q.size)
+    q, e = q[order], e[order]
+    zero_q = rng.integers(0, n, 5)
+    merged = combine_pairs(
+        np.r_[q, zero_q],
+        np.r_[means[q, e], np.zeros(5)],
+        np.r_[variances[q, e], np.ones(5)],
+        np.r_[weights[q, e], np.zeros(5)],
+        n_queries=n,
+        method=method,
+        prior_variance=np.r_[prior[q, e], np.ones(5)],
+    )
+    for got, want in zip(merged, dense, strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
+
+
+def test_pairs_refuse_bad_input():
+    ok = dict(n_queries=2, method="poe")
+    with pytest.raises(ValueError, match="at least one expert"):
+        combine_pairs([0, 0], [1.0, 2.0], [1.0, 1.0], **ok)
+    with pytest.raises(ValueError, match=r"\[0, n_queries=2\)"):
+        combine_pairs([0, 2], [1.0, 2.0], [1.0, 1.0], **ok)
+    with pytest.raises(ValueError, match="shape"):
+        combine_pairs([0, 1], [1.0], [1.0, 1.0], **ok)
+    with pytest.raises(ValueError, match="integers"):
+        combine_pairs([0.0, 1.0], [1.0, 2.0], [1.0, 1.0], **ok)
+    with pytest.raises(ValueError, match="positive"):
+        combine_pairs([0, 1], [1.0, 2.0], [1.0, 0.0], **ok)
+    with pytest.raises(ValueError, match="NaN"):
+        combine_pairs([0, 1], [1.0, np.nan], [1.0, 1.0], **ok)
+    with pytest.raises(ValueError, match="prior_variance is required"):
+        combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="rbcm")
+    with pytest.raises(ValueError, match="method must be one of"):
+        combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="mean")

@@ -63,6 +63,14 @@ def grid(paper):
 # --- assignment ------------------------------------------------------------------------
 
 
+def _consulted_weights(model, Q):
+    """Dense (queries, experts) gate weights of the experts each query consults."""
+    query, expert, weights = model._consulted(Q)
+    dense = np.zeros((Q.shape[0], model.n_experts_))
+    dense[query, expert] = weights
+    return dense
+
+
 def test_observation_kinds_recovered_from_geometry(paper):
     model = _mixture().fit(paper.X, paper.y)
     np.testing.assert_array_equal(model.observation_kind_, paper.kind)
@@ -162,7 +170,9 @@ def test_one_class_cluster_gets_constant_expert():
     # Prior variance of the expert's kernel, and smoothed frequency (12 + 1) / (12 + 2).
     np.testing.assert_allclose(var, _fast_expert().kernel.diag(q))
     np.testing.assert_allclose(ndtr(mean / np.sqrt(1 + var)), 13 / 14)
-    np.testing.assert_allclose(model.predict_proba(q)[:, 1], 13 / 14)
+    # Among its hits the mixture is that expert; beyond the reach of all data, the prior.
+    assert 3.0 < model.reach_ < np.hypot(5.0, 3.0) - 1.0
+    np.testing.assert_allclose(model.predict_proba(q)[:, 1], [13 / 14, 0.5])
     # The robust BCM weighs experts by their information gain over the prior, which is
     # zero for a constant expert: where it is the only expert, the merge is the prior.
     model.set_params(combiner="rbcm")
@@ -220,7 +230,9 @@ def test_big_clusters_are_split_and_gated(paper, grid):
     sizes = np.bincount(model.cluster_labels_, minlength=model.n_experts_)
     assert sizes.max() <= 100
     assert model.n_experts_ >= int(np.ceil(paper.X.shape[0] / 100))
-    w = model.set_params(gating_threshold=0.0)._gating_weights(Q)
+    n, k = Q.shape[0], model.n_experts_
+    every = (np.repeat(np.arange(n), k), np.tile(np.arange(k), n))
+    w = model._pair_gates(Q[:, :2], *every).reshape(n, k)
     # Pieces share their cluster's weight: the split gate is a partition of unity.
     np.testing.assert_allclose(w.sum(axis=1), 1.0, rtol=1e-12)
 
@@ -271,7 +283,7 @@ def test_gating_threshold_skips_experts(paper, grid):
             return original(X)
 
         expert.latent_mean_and_variance = spy
-    weights = model._gating_weights(Q)
+    weights = _consulted_weights(model, Q)
     proba = model.predict_proba(Q)[:, 1]
     assert sum(n for _, n in calls) == int(np.count_nonzero(weights))
     assert sum(n for _, n in calls) < Q.shape[0] * model.n_experts_
@@ -283,7 +295,12 @@ def test_gating_threshold_skips_experts(paper, grid):
 def test_merge_matches_combine_on_expert_outputs(paper, grid):
     _, Q = grid
     model = _mixture(combiner="bcm", gating_threshold=0.0).fit(paper.X, paper.y)
-    weights = model._gating_weights(Q)
+    # Queries beyond the reach of every expert get the prior.
+    far = as_segments([[1e3, 1e3], [-50.0, 0.0]])
+    np.testing.assert_allclose(model.predict_proba(far)[:, 1], 0.5)
+    np.testing.assert_allclose(model.predict_var(far), model.shared_kernel_.diag(far))
+    weights = _consulted_weights(model, Q)
+    assert np.all(weights.sum(axis=1) > 0)
     means, variances = zip(*(e.latent_mean_and_variance(Q) for e in model.experts_), strict=True)
     prior = np.column_stack([e.kernel_.diag(Q) for e in model.experts_])
     for combiner in COMBINERS:
@@ -322,12 +339,11 @@ def test_share_hyperparameters_learns_once():
     scale = sum(abs(e.log_marginal_likelihood_value_) for e in fitted)
     assert np.all(np.abs(total[interior]) < 1e-3 * scale)
     # ... and not the optimum of one expert alone.
-    pieces, source = _beam_pieces(
-        data.X, data.kind, model.max_beam_length, model.beam_end_length
-    )
+    pieces, source = _beam_pieces(data.X, data.kind, model.max_beam_length, model.beam_end_length)
     rows = model.cluster_labels_[source] == np.argmax(np.bincount(model.cluster_labels_))
     own = clone(expert).fit(pieces[rows], data.y[source][rows]).kernel_
     assert not np.allclose(own.theta, learned.theta, atol=1e-2)
+
 
 def test_share_hyperparameters_needs_kernel_param(paper):
     model = _mixture(expert=_NoKernelExpert(), share_hyperparameters=True)

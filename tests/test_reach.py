@@ -1,0 +1,123 @@
+"""The reach of a kernel and the spatial index of the experts (skoccmap._reach)."""
+
+import numpy as np
+import pytest
+from sklearn.gaussian_process.kernels import RBF, DotProduct
+from sklearn.gaussian_process.kernels import ConstantKernel as C
+
+from skoccmap._reach import ExpertReach, kernel_reach
+from skoccmap.kernels import IntegralKernel
+
+
+def _segment_distance(points, segments):
+    """Exact distance from each point to each segment, (n_points, n_segments)."""
+    dim = points.shape[1]
+    a, d = segments[:, :dim], segments[:, dim:] - segments[:, :dim]
+    w = points[:, None, :] - a[None]
+    dd = np.einsum("ij,ij->i", d, d)
+    t = np.where(dd > 0, np.einsum("pij,ij->pi", w, d) / np.where(dd > 0, dd, 1.0), 0.0)
+    t = np.clip(t, 0.0, 1.0)
+    return np.linalg.norm(w - t[..., None] * d[None], axis=-1)
+
+
+@pytest.mark.parametrize("tolerance", [1e-1, 1e-2, 1e-6])
+@pytest.mark.parametrize(
+    "kernel, factor",
+    [
+        (IntegralKernel(0.7), 1.0),
+        (C(5.0) * IntegralKernel(0.7), 1.0),
+        # An RBF over segment rows [start, end] sees a point at distance r at sqrt(2) r.
+        (RBF(0.7), np.sqrt(0.5)),
+    ],
+)
+def test_reach_of_a_squared_exponential(kernel, factor, tolerance):
+    # exp(-r^2 / (2 l^2)) = tolerance at r = l sqrt(2 ln(1 / tolerance)); the probe grid
+    # steps by 2.7 %, and the reach is the first probe beyond.
+    exact = factor * 0.7 * np.sqrt(2 * np.log(1 / tolerance))
+    reach = kernel_reach(kernel, 2, tolerance, extent=20.0)
+    assert exact <= reach <= 1.03 * exact
+
+
+def test_reach_of_an_anisotropic_kernel_is_its_longest():
+    reach = kernel_reach(IntegralKernel([0.5, 2.0, 1.0]), 3, 1e-2, extent=30.0)
+    exact = 2.0 * np.sqrt(2 * np.log(100))
+    assert exact <= reach <= 1.03 * exact
+
+
+def test_a_kernel_that_does_not_decay_reaches_everywhere():
+    assert kernel_reach(DotProduct(1.0), 2, 1e-2, extent=10.0) == np.inf
+    # Wider than ten times the data: no locality to use either.
+    assert kernel_reach(RBF(1e3), 2, 1e-2, extent=10.0) == np.inf
+
+
+def _random_experts(dim, seed, n_rows=400, n_experts=25):
+    rng = np.random.default_rng(seed)
+    start = rng.uniform(0, 20, size=(n_rows, dim))
+    # Points, short pieces and long beams.
+    length = rng.choice([0.0, 0.3, 1.0, 6.0], size=n_rows)
+    direction = rng.normal(size=(n_rows, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    segments = np.hstack([start, start + length[:, None] * direction])
+    return segments, rng.integers(0, n_experts, size=n_rows), n_experts
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_candidates_hold_every_expert_within_reach_and_none_beyond_the_slack(dim):
+    segments, expert, n_experts = _random_experts(dim, seed=dim)
+    index = ExpertReach(segments, expert, n_experts, reach=2.0)
+    rng = np.random.default_rng(10 + dim)
+    points = rng.uniform(-2, 22, size=(300, dim))
+    # Point queries and a few query segments.
+    ends = points + np.where(np.arange(300)[:, None] < 250, 0.0, rng.normal(size=(300, dim)))
+    queries = np.hstack([points, ends])
+    query, cand = index.candidates(queries)
+    got = np.zeros((300, n_experts), dtype=bool)
+    got[query, cand] = True
+    assert np.all(np.diff(query) >= 0)
+    # Exact distance from each query (sampled finely along query segments) to each expert.
+    t = np.linspace(0, 1, 201)
+    dist = np.full((300, n_experts), np.inf)
+    for i in range(300):
+        along = points[i] + t[:, None] * (ends[i] - points[i])
+        d = _segment_distance(along, segments).min(axis=0)
+        np.minimum.at(dist[i], expert, d)
+    assert np.all(got[dist <= 2.0])
+    # Candidates lie within the reach plus the slack (and the query segment's length).
+    length = np.linalg.norm(ends - points, axis=1)[:, None].repeat(n_experts, axis=1)
+    assert np.all(dist[got] <= 2.0 + index.slack + length[got])
+    # Not everything: the index does prune.
+    assert got.mean() < 0.8
+
+
+def test_candidates_of_a_query_do_not_depend_on_the_others():
+    segments, expert, n_experts = _random_experts(2, seed=5)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0, 20, size=(200, 2))
+    queries = np.hstack([points, points])
+    query, cand = index.candidates(queries)
+    sub = np.arange(0, 200, 7)
+    q2, c2 = index.candidates(queries[sub])
+    for j, i in enumerate(sub):
+        np.testing.assert_array_equal(np.sort(c2[q2 == j]), np.sort(cand[query == i]))
+
+
+def test_infinite_reach_makes_every_expert_a_candidate():
+    segments, expert, n_experts = _random_experts(2, seed=1)
+    index = ExpertReach(segments, expert, n_experts, reach=np.inf)
+    query, cand = index.candidates(np.zeros((3, 4)))
+    assert query.tolist() == np.repeat([0, 1, 2], n_experts).tolist()
+    assert cand.tolist() == list(range(n_experts)) * 3
+    np.testing.assert_array_equal(index.spatial_order(np.zeros((3, 4))), [0, 1, 2])
+
+
+def test_spatial_order_is_a_permutation_grouping_blocks():
+    segments, expert, n_experts = _random_experts(2, seed=2)
+    index = ExpertReach(segments, expert, n_experts, reach=1.0)
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0, 20, size=(500, 2))
+    order = index.spatial_order(np.hstack([points, points]))
+    np.testing.assert_array_equal(np.sort(order), np.arange(500))
+    # Consecutive queries are near: far closer than in the given (random) order.
+    step = np.linalg.norm(np.diff(points[order], axis=0), axis=1)
+    assert np.median(step) < 0.25 * np.median(np.linalg.norm(np.diff(points, axis=0), axis=1))
