@@ -232,29 +232,38 @@ def segment_self(length, *, eval_gradient=False):
     1.0
     """
     length = np.asarray(length, dtype=float)
-    a2 = length * length
-    small = length < 1.0
-    # Series for short segments: exp(-a2 t^2/2) = sum (-a2/2)^j t^(2j) / j!, and
-    # 2 int_0^1 (1-t) t^m dt = 2 / ((m+1)(m+2)).
-    a2s = np.where(small, a2, 0.0)
-    k_series = np.zeros_like(a2)
-    h_series = np.zeros_like(a2)
-    term = np.ones_like(a2)
-    for j in range(25):
-        k_series += term * 2.0 / ((2 * j + 1) * (2 * j + 2))
-        h_series += term * 2.0 / ((2 * j + 3) * (2 * j + 4))
-        term = term * (-0.5 * a2s) / (j + 1)
-    # Closed form for longer ones: I0 = int_0^1 exp(-a2 t^2/2) dt, I1 = int t exp(.), etc.
-    big = np.where(small, 1.0, length)
-    ebig = np.exp(-0.5 * big * big)
-    i0 = _SQRT_2PI / big * (0.5 - 0.5 * erfcx(big * _SQRT_HALF) * ebig)
-    i1 = -np.expm1(-0.5 * big * big) / (big * big)
-    i2 = (i0 - ebig) / (big * big)
-    i3 = (2.0 / big**4) * (1.0 - ebig * (1.0 + 0.5 * big * big))
-    k = np.where(small, k_series, 2.0 * (i0 - i1))
+    # Points (the query cells) are 1 and H = 2 / 12; the series and the closed form are
+    # evaluated only where they are needed.
+    k = np.ones_like(length)
+    h = np.full_like(length, 2.0 / 12.0)
+    small = (length > 0.0) & (length < 1.0)
+    if np.any(small):
+        # Series for short segments: exp(-a2 t^2/2) = sum (-a2/2)^j t^(2j) / j!, and
+        # 2 int_0^1 (1-t) t^m dt = 2 / ((m+1)(m+2)).
+        a2s = length[small] ** 2
+        k_series = np.zeros_like(a2s)
+        h_series = np.zeros_like(a2s)
+        term = np.ones_like(a2s)
+        for j in range(25):
+            k_series += term * 2.0 / ((2 * j + 1) * (2 * j + 2))
+            h_series += term * 2.0 / ((2 * j + 3) * (2 * j + 4))
+            term = term * (-0.5 * a2s) / (j + 1)
+        k[small], h[small] = k_series, h_series
+    long = length >= 1.0
+    if np.any(long):
+        # Closed form for longer ones: I0 = int_0^1 exp(-a2 t^2/2) dt, I1 = int t exp(.), etc.
+        big = length[long]
+        ebig = np.exp(-0.5 * big * big)
+        i0 = _SQRT_2PI / big * (0.5 - 0.5 * erfcx(big * _SQRT_HALF) * ebig)
+        i1 = -np.expm1(-0.5 * big * big) / (big * big)
+        k[long] = 2.0 * (i0 - i1)
+        if eval_gradient:
+            i2 = (i0 - ebig) / (big * big)
+            i3 = (2.0 / big**4) * (1.0 - ebig * (1.0 + 0.5 * big * big))
+            h[long] = 2.0 * (i2 - i3)
     if not eval_gradient:
         return k
-    return k, np.where(small, h_series, 2.0 * (i2 - i3))
+    return k, h
 
 
 def _point_pairs(s1, s2, dim, gradient):
