@@ -9,13 +9,18 @@ number of observations grows while the map stays the same; every size is mapped 
 the (shared) hyperparameters. The reference, measured in the same run, is one
 ``EPGaussianProcessClassifier`` with the same kernel on all observations (at sizes up to
 ``--single-max``, it is cubic). The log-log slope of fit time against n is fitted over the
-sizes from 2000 up (the target is <= 1.2: expert sizes are capped by ``max_expert_size``).
+sizes from 2000 up (the target is <= 1.2: expert sizes are capped by ``max_expert_size``),
+and from 300k to 3M (target <= 1: linear). Each size also maps the whole world at 0.1 m
+(``OccupancyGrid.from_estimator``, probability and variance), and reports the peak resident
+memory of the process and its workers (sampled every 0.1 s with psutil, when installed)
+during fit and map.
 """
 
 import argparse
 import json
 import os
 import platform
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -26,7 +31,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
-from skoccmap import EPGaussianProcessClassifier  # noqa: E402
+from skoccmap import EPGaussianProcessClassifier, OccupancyGrid  # noqa: E402
 from skoccmap.datasets import make_paper_scans  # noqa: E402
 from skoccmap.mixture import MixtureGPOccupancyMap, _default_kernel  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
@@ -49,6 +54,45 @@ def timed(func):
     return out, time.perf_counter() - t0
 
 
+class PeakMemory:
+    """Peak resident memory (GiB) of this process and its children, sampled in a thread."""
+
+    def __init__(self, interval=0.1):
+        try:
+            import psutil
+        except ImportError:  # the measure is optional
+            psutil = None
+        self._psutil, self._interval, self.peak = psutil, interval, None
+
+    def _rss(self):
+        proc = self._psutil.Process()
+        total = proc.memory_info().rss
+        for child in proc.children(recursive=True):
+            try:
+                total += child.memory_info().rss
+            except self._psutil.Error:
+                pass
+        return total / 2**30
+
+    def _sample(self):
+        while not self._stop.wait(self._interval):
+            self.peak = max(self.peak, self._rss())
+
+    def __enter__(self):
+        if self._psutil is not None:
+            self.peak = self._rss()
+            self._stop = threading.Event()
+            self._thread = threading.Thread(target=self._sample, daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self._psutil is not None:
+            self._stop.set()
+            self._thread.join()
+            self.peak = max(self.peak, self._rss())
+
+
 def run_size(n, args, grid):
     data = scans_of_size(n)
     Q = as_segments(grid.points[grid.observed])
@@ -56,20 +100,30 @@ def run_size(n, args, grid):
     model = MixtureGPOccupancyMap(
         max_expert_size=args.max_expert_size, n_jobs=args.n_jobs, random_state=0
     )
-    with warnings.catch_warnings():
+    world = data.environment.extent if hasattr(data.environment, "extent") else None
+    with warnings.catch_warnings(), PeakMemory() as memory:
         warnings.simplefilter("ignore")
         _, fit_s = timed(lambda: model.fit(data.X, data.y))
         proba, pred_s = timed(lambda: model.predict_proba(Q)[:, 1])
+        # The whole world on the map grid, as `skoccmap map` draws it.
+        extent = world if world is not None else data.X
+        full_map, map_s = timed(
+            lambda: OccupancyGrid.from_estimator(model, extent=extent, resolution=0.1)
+        )
     sizes = np.bincount(model.cluster_labels_)
     row = {
         "n": int(data.X.shape[0]),
         "fit_s": fit_s,
         "predict_s": pred_s,
         "predict_us_per_cell": 1e6 * pred_s / Q.shape[0],
+        "map_cells": int(full_map.probability.size),
+        "map_s": map_s,
+        "peak_gib": memory.peak,
         "n_experts": int(model.n_experts_),
         "largest_expert": int(sizes.max()),
         "auc": float(roc_auc_score(truth, proba)),
     }
+    del data, model, full_map
     if row["n"] <= args.single_max:
         single = EPGaussianProcessClassifier(kernel=_default_kernel())
         with warnings.catch_warnings():
@@ -85,8 +139,8 @@ def run_size(n, args, grid):
     return row
 
 
-def slope(rows, key, n_min=2000):
-    pts = [(r["n"], r[key]) for r in rows if r["n"] >= n_min * 0.9]
+def slope(rows, key, n_min=2000, n_max=np.inf):
+    pts = [(r["n"], r[key]) for r in rows if n_min * 0.9 <= r["n"] <= n_max * 1.1]
     if len(pts) < 2:
         return None
     n, t = np.log(np.array(pts)).T
@@ -100,7 +154,10 @@ def fmt(value, spec):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
-        "--sizes", type=int, nargs="+", default=[1000, 2000, 4000, 8000, 16000, 32000, 64000]
+        "--sizes",
+        type=int,
+        nargs="+",
+        default=[1000, 2000, 4000, 8000, 16000, 32000, 64000, 300000, 3000000],
     )
     parser.add_argument("--quick", action="store_true", help="sizes 1000 2000 4000 only")
     parser.add_argument("--single-max", type=int, default=2100)
@@ -119,28 +176,32 @@ def main():
         rows.append(row)
         print(
             f"n={row['n']}: fit {row['fit_s']:.1f} s, predict {row['predict_s']:.1f} s, "
-            f"{row['n_experts']} experts",
+            f"0.1 m map {row['map_s']:.1f} s, {row['n_experts']} experts, "
+            f"peak {fmt(row['peak_gib'], '.2f')} GiB",
             flush=True,
         )
 
-    fit_slope, pred_slope = slope(rows, "fit_s"), slope(rows, "predict_s")
+    fit_slope, pred_slope = slope(rows, "fit_s", n_max=64000), slope(rows, "predict_s")
+    big_slope = slope(rows, "fit_s", n_min=300000)
     print()
     print(f"B2 mixture scaling (grid {args.resolution} m, {int(grid.observed.sum())} cells)")
     print()
     print(
-        "| n | experts | largest | fit s | predict s | us/cell | AUC | single fit s "
-        "| single predict s | single AUC | speed-up |"
+        "| n | experts | largest | fit s | predict s | us/cell | 0.1 m map s | peak GiB | AUC "
+        "| single fit s | single predict s | single AUC | speed-up |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(
             f"| {r['n']} | {r['n_experts']} | {r['largest_expert']} | {r['fit_s']:.2f} "
-            f"| {r['predict_s']:.2f} | {r['predict_us_per_cell']:.0f} | {r['auc']:.4f} "
+            f"| {r['predict_s']:.2f} | {r['predict_us_per_cell']:.0f} | {r['map_s']:.1f} "
+            f"| {fmt(r['peak_gib'], '.2f')} | {r['auc']:.4f} "
             f"| {fmt(r.get('single_fit_s'), '.2f')} | {fmt(r.get('single_predict_s'), '.2f')} "
             f"| {fmt(r.get('single_auc'), '.4f')} | {fmt(r.get('speedup'), '.1f')} |"
         )
     print()
-    print(f"log-log slope of fit time, n >= 2000: {fmt(fit_slope, '.2f')} (target <= 1.2)")
+    print(f"log-log slope of fit time, 2000 <= n <= 64k: {fmt(fit_slope, '.2f')} (target <= 1.2)")
+    print(f"log-log slope of fit time, n >= 300k: {fmt(big_slope, '.2f')} (target <= 1)")
     print(f"log-log slope of predict time, n >= 2000: {fmt(pred_slope, '.2f')}")
 
     out = Path(args.out)
@@ -152,6 +213,7 @@ def main():
         "params": vars(args),
         "rows": rows,
         "fit_slope": fit_slope,
+        "fit_slope_300k_3m": big_slope,
         "predict_slope": pred_slope,
     }
     (out / "bench_mixture.json").write_text(json.dumps(result, indent=2))
