@@ -123,7 +123,6 @@ def run_size(n, args, grid):
         "largest_expert": int(sizes.max()),
         "auc": float(roc_auc_score(truth, proba)),
     }
-    del data, model, full_map
     if row["n"] <= args.single_max:
         single = EPGaussianProcessClassifier(kernel=_default_kernel())
         with warnings.catch_warnings():
