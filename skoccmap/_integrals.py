@@ -521,7 +521,7 @@ def _outer_windows(a1, d1, len1, a2, d2):
             _dot(w0, w0) - wd * wd / dd2 - thresh,
         )
         # v0(s) = (wd + s ed) / dd2 in [0, 1]
-        j1 = np.where(ed != 0.0, -wd / ed, np.where(wd <= 0.0, -np.inf, np.inf))
+        j1 = np.where(ed != 0.0, -wd / ed, np.where(wd >= 0.0, -np.inf, np.inf))
         j2 = np.where(ed != 0.0, (dd2 - wd) / ed, np.where(wd <= dd2, np.inf, -np.inf))
         l_ = np.maximum(l_, np.minimum(j1, j2))
         h_ = np.minimum(h_, np.maximum(j1, j2))

@@ -113,6 +113,11 @@ CASES_2D = {
     "long antiparallel identical": (_seg([0, 0], [100, 0]), _seg([100, 0], [0, 0])),
     "shared start (one pose)": (_seg([1, 1], [9, 3]), _seg([1, 1], [3, 8])),
     "touching T": (_seg([0, 0], [6, 0]), _seg([3, 0], [3, 7])),
+    # Perpendicular segments (axis-aligned beams): the inner segment's closest point is the
+    # same for every point of the outer one.
+    "perpendicular from the line": (_seg([0, 0], [14, 0]), _seg([6, 0], [6, -6])),
+    "perpendicular off the line": (_seg([0, 0], [14, 0]), _seg([6, 1], [6, 4])),
+    "perpendicular crossing": (_seg([0, 0], [14, 0]), _seg([6, -3], [6, 3])),
     "near miss tail": (_seg([0, 0], [5, 0]), _seg([12, 0], [20, 0])),
     "short vs long": (_seg([0.2, 0.1], [0.25, 0.12]), _seg([-40, 0], [40, 0.5])),
     "point vs long": (_seg([7.3, 0.4], [7.3, 0.4]), _seg([-40, 0], [40, 0])),
