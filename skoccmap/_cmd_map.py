@@ -39,6 +39,35 @@ def add_arguments(parser):
         help="cells with a larger predictive variance are unknown; 'auto' (default): 90%% of "
         "the largest variance on the map; 'none': no unknown cells",
     )
+    online = parser.add_argument_group("online mapping")
+    online.add_argument(
+        "--online",
+        action="store_true",
+        help="replay the log in time order, adding --batch-scans scans at a time with "
+        "partial_fit (only the experts they touch are refitted); prints the update time and "
+        "the experts touched per batch",
+    )
+    online.add_argument(
+        "--batch-scans",
+        type=int,
+        default=10,
+        metavar="N",
+        help="scans (after --every-nth-scan) per online update (default 10)",
+    )
+    online.add_argument(
+        "--snapshots",
+        metavar="DIR",
+        default=None,
+        help="with --online: write a map snapshot (.npz, and .png with matplotlib) into DIR "
+        "every --snapshot-every batches and after the last",
+    )
+    online.add_argument(
+        "--snapshot-every",
+        type=int,
+        default=10,
+        metavar="K",
+        help="batches between snapshots (default 10)",
+    )
     parser.add_argument(
         "--keep-unobserved",
         action="store_true",
@@ -238,6 +267,11 @@ def run(args):
             raise ValueError(f"--every-nth-scan must be >= 1, got {args.every_nth_scan}")
         if not args.resolution > 0:
             raise ValueError(f"--resolution must be positive, got {args.resolution}")
+        if getattr(args, "online", False):
+            if args.batch_scans < 1:
+                raise ValueError(f"--batch-scans must be >= 1, got {args.batch_scans}")
+            if args.snapshot_every < 1:
+                raise ValueError(f"--snapshot-every must be >= 1, got {args.snapshot_every}")
         unknown_variance = _unknown_variance(args.unknown_variance)
         return _run(args, unknown_variance)
     except (ValueError, OSError) as exc:
@@ -248,8 +282,6 @@ def run(args):
 def _run(args, unknown_variance):
     import numpy as np
 
-    from .grid import OccupancyGrid
-
     watch = Stopwatch()
     scans = watch("read log", load_scans, args)
     train = scans[:: args.every_nth_scan]
@@ -259,21 +291,12 @@ def _run(args, unknown_variance):
         f"training on {len(train)} scans: {len(X)} observations ({counts[0]} hits, "
         f"{counts[1]} return beams, {counts[2]} no-return beams)"
     )
-    model = watch("fit mixture", make_mixture(args).fit, X, y)
+    if getattr(args, "online", False):
+        model = watch("online replay", _replay, args, train, unknown_variance)
+    else:
+        model = watch("fit mixture", make_mixture(args).fit, X, y)
     print(f"fitted {model.n_experts_} experts")
-    # Cover the hit points: no-return beams reach far outside the building.
-    extent = train.hit_points()
-    grid = watch(
-        "predict grid",
-        OccupancyGrid.from_estimator,
-        model,
-        extent,
-        args.resolution,
-        unknown_variance=unknown_variance,
-        observed_by=None if args.keep_unobserved else train,
-        chunk_size=8192,  # small chunks: frequent progress, bounded memory
-        verbose=0 if args.quiet else 1,
-    )
+    grid = watch("predict grid", _grid, args, model, train, unknown_variance, not args.quiet)
     print(f"map: {grid.shape[1]} x {grid.shape[0]} cells at {grid.resolution:g} m")
     out = Path(args.out) if args.out else Path(f"{Path(args.log).name.split('.')[0]}_map")
     out.mkdir(parents=True, exist_ok=True)
@@ -283,6 +306,62 @@ def _run(args, unknown_variance):
     for path in written:
         print(f"wrote {path}")
     return 0
+
+
+def _grid(args, model, train, unknown_variance, verbose):
+    from .grid import OccupancyGrid
+
+    # Cover the hit points: no-return beams reach far outside the building.
+    return OccupancyGrid.from_estimator(
+        model,
+        train.hit_points(),
+        args.resolution,
+        unknown_variance=unknown_variance,
+        observed_by=None if args.keep_unobserved else train,
+        chunk_size=8192,  # small chunks: frequent progress, bounded memory
+        verbose=1 if verbose else 0,
+    )
+
+
+def _replay(args, train, unknown_variance):
+    """``partial_fit`` batch by batch in time order; a line per batch, optional snapshots."""
+    import numpy as np
+
+    # One line per batch: the mixture's own progress messages would bury them.
+    model = make_mixture(args).set_params(verbose=0)
+    snapshots = Path(args.snapshots) if args.snapshots else None
+    if snapshots is not None:
+        snapshots.mkdir(parents=True, exist_ok=True)
+    starts = range(0, len(train), args.batch_scans)
+    held = ([], [])
+    print("| batch | scans seen | observations | update s | experts touched | experts |")
+    print("|---|---|---|---|---|---|")
+    for b, first in enumerate(starts, 1):
+        seen = train[: first + args.batch_scans]
+        X, y, _ = train[first : first + args.batch_scans].to_observations()
+        if not hasattr(model, "n_experts_"):
+            # The first update needs hits and beams: until then, batches pile up.
+            X, y = np.vstack([*held[0], X]), np.concatenate([*held[1], y])
+            if y.size == 0 or y.min() == y.max():
+                held = ([X], [y])
+                continue
+        tic = time.perf_counter()
+        model.partial_fit(X, y, classes=[0, 1])
+        seconds = time.perf_counter() - tic
+        print(
+            f"| {b} | {len(seen)} | {len(X)} | {seconds:.2f} | "
+            f"{model.touched_experts_.size} | {model.n_experts_} |",
+            flush=True,
+        )
+        if snapshots is not None and (b % args.snapshot_every == 0 or b == len(starts)):
+            grid = _grid(args, model, seen, unknown_variance, False)
+            stem = snapshots / f"batch_{b:05d}"
+            grid.save(stem.with_suffix(".npz"))
+            _save_png(grid, stem.with_suffix(".png"))
+            print(f"wrote snapshot {stem}.npz")
+    if not hasattr(model, "n_experts_"):
+        raise ValueError("no batch holds both hits and beams: nothing to map")
+    return model
 
 
 def _write(grid, stem):

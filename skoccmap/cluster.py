@@ -144,13 +144,13 @@ class _CollapsedGibbs:
     never from the points.
     """
 
-    def __init__(self, X, labels, prior, alpha):
+    def __init__(self, X, labels, prior, alpha, statistics=None):
         self.X = X
         self.D = X.shape[1]
         self.prior = prior
         self.alpha = alpha
         self.labels = labels.astype(np.intp)
-        self.K = int(labels.max()) + 1
+        self.K = int(labels.max()) + 1 if statistics is None else len(statistics[0])
         cap = max(2 * self.K, 8)
         D = self.D
         self.n = np.zeros(cap)
@@ -164,7 +164,14 @@ class _CollapsedGibbs:
         self.logdet = np.zeros(cap)
         zero = np.zeros(1)
         self.prior_t, _ = predictive(zero, np.zeros((1, D)), np.zeros((1, D, D)), prior)
-        self.recompute()
+        if statistics is None:
+            self.recompute()
+        else:
+            # Points outside X (a previous fit's) are held fixed in these statistics; the
+            # points of X are not in them yet and are seated one at a time by ``seat``.
+            K = self.K
+            self.n[:K], self.s[:K], self.S[:K] = (np.array(a, dtype=float) for a in statistics)
+            self.refresh(np.arange(K))
 
     # -- cluster bookkeeping -------------------------------------------------------------
     def recompute(self):
@@ -247,6 +254,28 @@ class _CollapsedGibbs:
         draws = (cum < uniforms[:, None] * cum[:, -1:]).sum(1)
         stays = (draws == own) | ((draws == K) & (n_own == 1))
         return draws, stays
+
+    def seat(self, i, uniform):
+        """Add point ``i`` (not yet in the statistics) to a cluster drawn from its conditional.
+
+        p(z_i = k | z, X) is proportional to n_k t_k(x_i) for existing clusters and to
+        alpha t_0(x_i) for a new one: the Chinese restaurant's seating of a new customer.
+        """
+        K = self.K
+        x = self.X[i : i + 1]
+        lp = np.empty(K + 1)
+        with np.errstate(divide="ignore"):
+            lp[:K] = log_student_t(x, self.cached_t())[0] + np.log(self.n[:K])
+        lp[K] = log_student_t(x, self.prior_t)[0, 0] + math.log(self.alpha)
+        cum = np.cumsum(np.exp(lp - lp.max()))
+        k = int((cum < uniform * cum[-1]).sum())
+        if k == K:
+            k = self._new_cluster()
+        self.n[k] += 1.0
+        self.s[k] += x[0]
+        self.S[k] += np.outer(x[0], x[0])
+        self.labels[i] = k
+        self.refresh(np.array([k]))
 
     def gibbs_sweep(self, rng):
         """One random-scan sweep of exact collapsed Gibbs sampling (Neal 2000, Algorithm 3).
@@ -626,8 +655,10 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
                     f"mean_prior must be a finite array of shape ({D},), got shape {mean.shape}."
                 )
         kappa = 1.0 if self.mean_precision_prior is None else float(self.mean_precision_prior)
-        nu = float(D) if self.degrees_of_freedom_prior is None else float(
-            self.degrees_of_freedom_prior
+        nu = (
+            float(D)
+            if self.degrees_of_freedom_prior is None
+            else float(self.degrees_of_freedom_prior)
         )
         if nu <= D - 1:
             raise ValueError(
@@ -643,9 +674,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         else:
             psi = np.asarray(self.covariance_prior, dtype=float)
             if psi.shape != (D, D):
-                raise ValueError(
-                    f"covariance_prior must have shape ({D}, {D}), got {psi.shape}."
-                )
+                raise ValueError(f"covariance_prior must have shape ({D}, {D}), got {psi.shape}.")
             if not np.allclose(psi, psi.T) or np.any(np.linalg.eigvalsh(psi) <= 0):
                 raise ValueError("covariance_prior must be symmetric positive definite.")
         return mean, kappa, nu, psi
@@ -737,6 +766,76 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
                 stacklevel=2,
             )
         self._set_final_state(Xc, best_labels, prior)
+        self._prior = prior
+        # The sampler's generator goes on in partial_fit: a sequence of calls is reproducible.
+        self._rng = rng
+        return self
+
+    @_fit_context(prefer_skip_nested_validation=True)
+    def partial_fit(self, X, y=None):
+        """Add points to the fitted clusters, or open new ones (online clustering).
+
+        The first call (on an unfitted clusterer) is :meth:`fit`. Later calls hold the
+        clusters of the points seen so far fixed (their sufficient statistics) and seat the
+        new points one at a time in random order, each drawn from its collapsed Gibbs
+        conditional: an existing cluster ``k`` with weight ``n_k t_k(x)`` (posterior
+        predictive), a new one with weight ``alpha t_0(x)`` (the Dirichlet process's new
+        table: points far from every cluster open one). Then ``burn_in`` sweeps of exact
+        collapsed Gibbs sampling over the new points only (each given all others) let the
+        first-seated points follow the clusters opened after them. Old points keep their
+        clusters, and old cluster labels keep their numbers; new clusters are numbered
+        from ``n_clusters_`` on. The prior stays the one resolved by the first fit.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+            New points.
+        y : Ignored
+            Not used, present for API consistency.
+
+        Returns
+        -------
+        self : DPGMMClusterer
+            The updated estimator. ``labels_`` holds the clusters of the points of this
+            call (as :class:`~sklearn.cluster.MiniBatchKMeans` does); ``n_clusters_``,
+            ``means_``, ``covariances_``, ``weights_`` and the predictive cover all points
+            seen.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import DPGMMClusterer
+        >>> rng = np.random.default_rng(0)
+        >>> room_a = rng.normal([0, 0], 0.3, size=(100, 2))
+        >>> room_b = rng.normal([8, 0], 0.3, size=(50, 2))
+        >>> model = DPGMMClusterer(random_state=0).partial_fit(room_a)
+        >>> model.n_clusters_
+        1
+        >>> model.partial_fit(room_b).n_clusters_
+        2
+        >>> np.unique(model.labels_).tolist()
+        [1]
+        """
+        if not hasattr(self, "_statistics"):
+            return self.fit(X)
+        X = validate_data(self, X, dtype=np.float64, reset=False)
+        Xc = X - self._shift
+        rng = self._rng
+        # Draws up front: the seating order and one uniform per point.
+        order = rng.permutation(X.shape[0])
+        uniforms = rng.random(X.shape[0])
+        state = _CollapsedGibbs(
+            Xc, np.zeros(X.shape[0], dtype=np.intp), self._prior, self.alpha, self._statistics
+        )
+        for i, u in zip(order, uniforms, strict=True):
+            state.seat(i, u)
+        if X.shape[0] > 1:
+            for _ in range(self.burn_in):
+                state.gibbs_sweep(rng)
+        K = state.K
+        n, s, S = state.n[:K].copy(), state.s[:K].copy(), state.S[:K].copy()
+        self.labels_ = state.labels.copy()
+        self._set_statistics(n, s, S, self._prior)
         return self
 
     def _set_final_state(self, Xc, labels, prior):
@@ -748,7 +847,12 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         relabel[order] = np.arange(len(order))
         self.labels_ = relabel[labels]
         K = len(order)
-        n, s, S = sufficient_statistics(Xc, self.labels_, K)
+        self._set_statistics(*sufficient_statistics(Xc, self.labels_, K), prior)
+
+    def _set_statistics(self, n, s, S, prior):
+        """Cluster attributes and the predictive from the clusters' sufficient statistics."""
+        K = len(n)
+        self._statistics = (n, s, S)
         _, nu, mean, psi = posterior(n, s, S, prior)
         self.n_clusters_ = K
         self.means_ = mean + self._shift

@@ -61,6 +61,24 @@ def _as_segment_rows(X, layout):
     return X
 
 
+def _check_two_classes(classes):
+    if classes.size != 2:
+        raise ValueError(
+            "Only binary classification is supported. MixtureGPOccupancyMap needs y with "
+            f"exactly 2 classes (free and occupied), got {classes.size} class(es): "
+            f"{classes.tolist()}."
+        )
+
+
+def _check_known_labels(y, classes):
+    unknown = ~np.isin(y, classes)
+    if np.any(unknown):
+        raise ValueError(
+            f"y holds label(s) {np.unique(y[unknown]).tolist()} not in classes "
+            f"{np.asarray(classes).tolist()}."
+        )
+
+
 def _midpoints(X):
     d = X.shape[1] // 2
     return 0.5 * (X[:, :d] + X[:, d:])
@@ -332,8 +350,11 @@ class _ConstantExpert:
         return ndtri(self.proba_) * np.sqrt(1.0 + var), var
 
 
-def _fit_expert(expert, X, y):
+def _fit_expert(expert, X, y, sites=None):
     """Fit one expert; one-class data get a :class:`_ConstantExpert`.
+
+    ``sites``, a pair ``(site_precision, site_nu)`` per row, warm-starts an expert that
+    can take them (:class:`~skoccmap.EPGaussianProcessClassifier`); others ignore them.
 
     Returns the expert and the warnings its fit raised, as ``(category, message)`` pairs:
     warnings raised in worker processes would otherwise never reach the caller. Only the
@@ -344,11 +365,17 @@ def _fit_expert(expert, X, y):
     if n_positive in (0, y.size):
         kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
         return _ConstantExpert(kernel, n_positive, y.size), []
+    fit = expert.fit
+    if sites is not None and hasattr(expert, "_fit_warm_start"):
+
+        def fit(X, y):
+            return expert._fit_warm_start(X, y, *sites)
+
     if threading.current_thread() is not threading.main_thread():
-        return expert.fit(X, y), []
+        return fit(X, y), []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        expert = expert.fit(X, y)
+        expert = fit(X, y)
     return expert, [(w.category, str(w.message)) for w in caught]
 
 
@@ -710,14 +737,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """
         X, y = validate_data(self, X, y, dtype=np.float64)
         check_classification_targets(y)
-        self.classes_, y_enc = np.unique(y, return_inverse=True)
-        if self.classes_.size != 2:
-            raise ValueError(
-                "Only binary classification is supported. MixtureGPOccupancyMap needs y with "
-                f"exactly 2 classes (free and occupied), got {self.classes_.size} class(es): "
-                f"{self.classes_.tolist()}."
-            )
-        X = _as_segment_rows(X, self.layout)
+        classes, y_enc = np.unique(y, return_inverse=True)
+        _check_two_classes(classes)
+        self.classes_ = classes
+        return self._fit(_as_segment_rows(X, self.layout), y_enc)
+
+    def _fit(self, X, y_enc):
+        """``fit`` on validated segment rows and encoded labels (1 = occupied)."""
         rng = check_random_state(self.random_state)
         start = time.perf_counter()
 
@@ -746,7 +772,419 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.reach_ = self._reach(pieces)
         self._reach_index = ExpertReach(pieces, labels[source], self.n_experts_, self.reach_)
         self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
+        self._keep_training_state(X, y_enc, anchor, pieces, source, rng)
         return self
+
+    # -- online mapping --------------------------------------------------------------
+
+    @_fit_context(prefer_skip_nested_validation=False)
+    def partial_fit(self, X, y, classes=None):
+        """Add observations to the map, refitting only the experts they touch.
+
+        The first call fits as :meth:`fit` does (a model fitted by :meth:`fit` takes later
+        calls as well). Later calls, with the clusters, shared hyperparameters and reach of
+        the map so far held fixed:
+
+        1. The new hits join clusters by the clusterer's ``partial_fit`` (for
+           :class:`~skoccmap.DPGMMClusterer`: seated by the posterior predictive, or in a
+           new cluster where the Dirichlet process's new-table probability wins, as when
+           the robot enters a new room); clusterers without ``partial_fit`` ``predict``
+           existing clusters. A new cluster with fewer than ``min_expert_size`` rows joins
+           the cluster with the nearest hit centroid; others get a new expert.
+        2. Within a split cluster a hit joins the piece whose gate weighs it most. Beams
+           follow their hit as in :meth:`fit` (a return beam the hit at its end, among old
+           and new hits; a no-return beam the hit of the most similar return beam of the
+           batch, or the hit nearest to its midpoint if the batch has none) and are cut
+           into the same pieces.
+        3. Experts that received rows are refitted, in parallel, and an expert grown past
+           ``max_expert_size`` is bisected on its hits as clusters are in :meth:`fit`.
+           EP experts start from the site parameters of their previous fit (zeros for new
+           rows): EP reaches the same fixed point in fewer sweeps.
+        4. The gates of the touched clusters, the clusterer's predictive, the reach and
+           the spatial index of prediction are updated.
+
+        Untouched experts stay the same objects. The training rows (cut into pieces)
+        are kept, so memory grows linearly with the data; :meth:`refit_hyperparameters`
+        re-learns the shared hyperparameters from all of them.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, 2 * D)
+            New segment rows; ``n_features_in_`` is fixed by the first call.
+        y : array-like of shape (n_samples,)
+            Labels from ``classes``. After the first call one class is fine (a batch of
+            free space only).
+        classes : array-like of shape (2,), default=None
+            All labels, needed on the first call unless ``y`` holds both; later calls may
+            omit it, or must repeat ``classes_``.
+
+        Returns
+        -------
+        self : MixtureGPOccupancyMap
+            The updated estimator; ``touched_experts_`` lists the experts refitted by the
+            last call.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from sklearn.gaussian_process.kernels import ConstantKernel
+        >>> from skoccmap import EPGaussianProcessClassifier, IntegralKernel
+        >>> from skoccmap import MixtureGPOccupancyMap
+        >>> from skoccmap.datasets import make_office_scans
+        >>> scans = make_office_scans(random_state=0)
+        >>> expert = EPGaussianProcessClassifier(
+        ...     ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None)
+        >>> model = MixtureGPOccupancyMap(expert=expert, random_state=0)
+        >>> for batch in range(0, 12, 4):
+        ...     X, y, _ = scans[batch : batch + 4].to_observations()
+        ...     model = model.partial_fit(X, y, classes=[0, 1])
+        >>> model.n_features_in_, bool(model.touched_experts_.size <= model.n_experts_)
+        (4, True)
+        """
+        if not hasattr(self, "_pieces"):
+            X, y = validate_data(self, X, y, dtype=np.float64)
+            check_classification_targets(y)
+            present = np.unique(y)
+            if classes is None:
+                if present.size == 1:
+                    raise ValueError(
+                        "classes must be passed on the first call to partial_fit when y "
+                        f"holds one class only ({present.tolist()})."
+                    )
+                classes = present
+            classes = np.unique(np.asarray(classes))
+            _check_two_classes(classes)
+            _check_known_labels(y, classes)
+            if present.size != 2:
+                raise ValueError(
+                    "The first call to partial_fit needs both classes in y: hit points to "
+                    "cluster and beams (free space)."
+                )
+            self.classes_ = classes
+            return self._fit(_as_segment_rows(X, self.layout), np.searchsorted(classes, y))
+        check_is_fitted(self)
+        X, y = validate_data(self, X, y, reset=False, dtype=np.float64)
+        check_classification_targets(y)
+        if classes is not None and not np.array_equal(np.unique(classes), self.classes_):
+            raise ValueError(
+                f"classes={np.unique(classes).tolist()} differs from the classes of the "
+                f"first call, {self.classes_.tolist()}."
+            )
+        _check_known_labels(y, self.classes_)
+        self._update(_as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y))
+        return self
+
+    def refit_hyperparameters(self):
+        """Re-learn the shared hyperparameters on all data so far and refit every expert.
+
+        :meth:`partial_fit` keeps the hyperparameters learned by the first fit; after the
+        map has grown much, this learns them again as :meth:`fit` does (from up to 32
+        experts' pieces), refits all experts (warm-started from their sites), and
+        updates the reach and the spatial index. Clusters and pieces stay.
+
+        Returns
+        -------
+        self : MixtureGPOccupancyMap
+            The refitted estimator (``touched_experts_`` lists every expert).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import MixtureGPOccupancyMap
+        >>> from skoccmap.datasets import make_paper_scans
+        >>> data = make_paper_scans(random_state=0)
+        >>> model = MixtureGPOccupancyMap(max_expert_size=300, random_state=0)
+        >>> model = model.fit(data.X, data.y).refit_hyperparameters()
+        >>> model.touched_experts_.size == model.n_experts_
+        True
+        """
+        check_is_fitted(self)
+        if not self.share_hyperparameters:
+            raise ValueError("refit_hyperparameters needs share_hyperparameters=True.")
+        expert = self._make_expert()
+        rows = _groups(self._piece_expert, self.n_experts_)
+        base = self._learn_shared(self._pieces, self._piece_y, rows, expert, self._rng)
+        self._expert_base = base
+        everyone = np.arange(self.n_experts_)
+        self.experts_ = self._refit_experts(
+            everyone, rows, self._piece_y, self.experts_, rows, everyone
+        )
+        self.touched_experts_ = everyone
+        self._update_index()
+        return self
+
+    def _keep_training_state(self, X, y_enc, anchor, pieces, source, rng):
+        """What :meth:`partial_fit` needs of the training data: pieces, hits, anchors."""
+        d = X.shape[1] // 2
+        occupied = y_enc == 1
+        hit_pos = np.cumsum(occupied) - 1
+        self._rng = rng
+        self._hits = X[occupied, :d].copy()
+        self._hit_expert = self.cluster_labels_[occupied].copy()
+        self._row_mids = _midpoints(X)
+        self._row_hit = hit_pos[anchor]
+        self._pieces = pieces
+        self._piece_y = y_enc[source]
+        self._piece_expert = self.cluster_labels_[source]
+        self._piece_hit = self._row_hit[source]
+        self.touched_experts_ = np.arange(self.n_experts_)
+
+    def _new_hit_clusters(self, hits):
+        """Clusterer label of each new hit (the clusterer learns them when it can)."""
+        if hasattr(self.clusterer_, "partial_fit"):
+            self.clusterer_.partial_fit(hits)
+            raw = getattr(self.clusterer_, "labels_", None)
+            if raw is not None and len(raw) == hits.shape[0]:
+                return np.asarray(raw)
+        return np.asarray(self.clusterer_.predict(hits))
+
+    def _new_anchors(self, X, occupied, all_hits, n_old_hits, rng):
+        """Observation kinds of new rows and the (global) hit index each row follows."""
+        d = X.shape[1] // 2
+        n = X.shape[0]
+        kinds = np.full(n, NO_RETURN, dtype=np.intp)
+        kinds[occupied] = HIT
+        anchor = np.full(n, -1, dtype=np.intp)
+        anchor[occupied] = n_old_hits + np.arange(int(occupied.sum()))
+        beams = np.flatnonzero(~occupied)
+        radius = np.inf if self.layout == "points" else self.return_radius
+        if beams.size:
+            ends = X[beams, d:]
+            if np.isfinite(radius):
+                # Only the hits near the batch: the tree costs what the batch covers.
+                lo, hi = ends.min(axis=0) - radius, ends.max(axis=0) + radius
+                near = np.flatnonzero(np.all((all_hits >= lo) & (all_hits <= hi), axis=1))
+            else:
+                near = np.arange(all_hits.shape[0])
+            if near.size:
+                dist, idx = cKDTree(all_hits[near]).query(ends, distance_upper_bound=radius)
+                is_ret = dist <= radius
+                kinds[beams[is_ret]] = RETURN
+                anchor[beams[is_ret]] = near[idx[is_ret]]
+        is_nr = kinds == NO_RETURN
+        if np.any(is_nr):
+            is_ret = kinds == RETURN
+            if np.any(is_ret):
+                anchor[is_nr] = _assign_no_return(
+                    X[is_nr],
+                    X[is_ret],
+                    anchor[is_ret],
+                    self._similarity_length_scale(self._make_expert(), d),
+                    max_references=_NO_RETURN_REFERENCES,
+                    random_state=rng,
+                )
+            else:
+                anchor[is_nr] = cKDTree(all_hits).query(_midpoints(X[is_nr]))[1]
+        return kinds, anchor
+
+    def _update(self, X, y_enc):
+        """One :meth:`partial_fit` step after the first (see there)."""
+        start = time.perf_counter()
+        rng = self._rng
+        d = X.shape[1] // 2
+        occupied = y_enc == 1
+        new_hits = X[occupied, :d]
+        n_old_hits, n_old_pieces = self._hits.shape[0], self._pieces.shape[0]
+        n_old_experts, n_old_clusters = self.n_experts_, self.n_clusters_
+        all_hits = np.vstack([self._hits, new_hits])
+
+        # 1. Clusters of the new hits; clusterer clusters not seen before.
+        raw = self._new_hit_clusters(new_hits) if new_hits.shape[0] else np.empty(0, int)
+        kinds, anchor = self._new_anchors(X, occupied, all_hits, n_old_hits, rng)
+        pos = np.searchsorted(self.cluster_ids_, raw).clip(0, self.cluster_ids_.size - 1)
+        known = self.cluster_ids_[pos] == raw
+        hit_cluster = np.where(known, self.cluster_merge_[pos], -1)
+        cluster_ids, cluster_merge = self.cluster_ids_, self.cluster_merge_
+        expert_cluster = list(self.expert_cluster_)
+        hit_expert = np.full(raw.size, -1, dtype=np.intp)
+        unseen = np.unique(raw[~known])
+        if unseen.size:
+            old_cluster = self.expert_cluster_[self._hit_expert]
+            counts = np.bincount(old_cluster, minlength=n_old_clusters)
+            centroids = (
+                np.column_stack(
+                    [
+                        np.bincount(
+                            old_cluster, weights=self._hits[:, j], minlength=n_old_clusters
+                        )
+                        for j in range(d)
+                    ]
+                )
+                / np.maximum(counts, 1)[:, None]
+            )
+            rows_per_hit = np.bincount(anchor, minlength=all_hits.shape[0])
+            merge = []
+            for u in unseen:
+                mine = np.flatnonzero(raw == u)
+                if rows_per_hit[n_old_hits + mine].sum() >= self.min_expert_size:
+                    c = n_old_clusters + sum(m >= n_old_clusters for m in merge)
+                    hit_expert[mine] = len(expert_cluster)
+                    expert_cluster.append(c)
+                else:
+                    dist = np.linalg.norm(centroids - new_hits[mine].mean(axis=0), axis=1)
+                    c = int(np.argmin(np.where(counts > 0, dist, np.inf)))
+                merge.append(c)
+                hit_cluster[mine] = c
+            cluster_ids = np.concatenate([self.cluster_ids_, unseen])
+            cluster_merge = np.concatenate([self.cluster_merge_, merge])
+            order = np.argsort(cluster_ids, kind="stable")
+            cluster_ids, cluster_merge = cluster_ids[order], cluster_merge[order]
+        n_clusters = int(cluster_merge.max()) + 1 if cluster_merge.size else 1
+
+        # 2. Expert of each new hit: its cluster's, or the piece whose gate weighs it most.
+        for c in np.unique(hit_cluster[hit_expert < 0]):
+            mine = np.flatnonzero((hit_cluster == c) & (hit_expert < 0))
+            gate = self._piece_gates[c]
+            pick = 0 if gate is None else np.argmax(gate.predict_proba(new_hits[mine]), axis=1)
+            hit_expert[mine] = self._first_expert[c] + pick
+        all_hit_expert = np.concatenate([self._hit_expert, hit_expert])
+        row_expert = all_hit_expert[anchor]
+
+        # 3. Pieces of the new rows, appended to the training state.
+        pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
+        all_pieces = np.vstack([self._pieces, pieces])
+        piece_y = np.concatenate([self._piece_y, y_enc[source]])
+        piece_hit = np.concatenate([self._piece_hit, anchor[source]])
+        piece_expert = np.concatenate([self._piece_expert, row_expert[source]])
+        row_hit = np.concatenate([self._row_hit, anchor])
+        touched = set(np.unique(row_expert[source]).tolist())
+
+        # 4. Experts grown past max_expert_size: bisect their hits (weighted by pieces).
+        n_experts = len(expert_cluster)
+        rows = _groups(piece_expert, n_experts)
+        if self.max_expert_size is not None:
+            for k in sorted(touched):
+                if rows[k].size <= self.max_expert_size:
+                    continue
+                hits = np.flatnonzero(all_hit_expert == k)
+                weight = np.bincount(piece_hit[rows[k]], minlength=all_hits.shape[0])[hits]
+                parts = _bisect(all_hits[hits], self.max_expert_size, weight)
+                for part in parts[1:]:
+                    all_hit_expert[hits[part]] = len(expert_cluster)
+                    touched.add(len(expert_cluster))
+                    expert_cluster.append(expert_cluster[k])
+                if len(parts) > 1:
+                    piece_expert[rows[k]] = all_hit_expert[piece_hit[rows[k]]]
+            if len(expert_cluster) > n_experts:
+                n_experts = len(expert_cluster)
+                rows = _groups(piece_expert, n_experts)
+
+        # 5. Experts numbered cluster by cluster (a cluster's experts are contiguous, in
+        # the order of its gate's columns); untouched clusters keep their order.
+        expert_cluster = np.asarray(expert_cluster, dtype=np.intp)
+        order = np.lexsort((np.arange(n_experts), expert_cluster))
+        renumber = np.empty(n_experts, dtype=np.intp)
+        renumber[order] = np.arange(n_experts)
+        all_hit_expert = renumber[all_hit_expert]
+        piece_expert = renumber[piece_expert]
+        row_expert = all_hit_expert[row_hit]
+        rows = [rows[k] for k in order]
+        touched = np.sort(renumber[sorted(touched)])
+        expert_cluster = expert_cluster[order]
+        first_expert = np.searchsorted(expert_cluster, np.arange(n_clusters))
+        old_experts = [None] * n_experts
+        for k in range(n_old_experts):
+            old_experts[renumber[k]] = self.experts_[k]
+        # Rows each refitted expert had (for its sites): its old pieces, by old number.
+        old_groups = _groups(self._piece_expert, n_old_experts)
+        old_rows = [np.empty(0, np.intp)] * n_experts
+        for k in range(n_old_experts):
+            old_rows[renumber[k]] = old_groups[k]
+        # Experts split off an old one start from its sites as well.
+        origin = np.arange(n_experts)
+        for k in touched:
+            first_piece = rows[k][0] if rows[k].size else 0
+            if old_experts[k] is None and first_piece < n_old_pieces:
+                origin[k] = renumber[self._piece_expert[first_piece]]
+
+        # 6. Gates of the touched clusters.
+        piece_gates = list(self._piece_gates) + [None] * (n_clusters - n_old_clusters)
+        row_groups = None
+        for c in np.unique(expert_cluster[touched]):
+            ks = np.flatnonzero(expert_cluster == c)
+            if ks.size == 1:
+                piece_gates[c] = None
+                continue
+            if row_groups is None:
+                row_mids = np.vstack([self._row_mids, _midpoints(X)])
+                row_groups = _groups(row_expert, n_experts)
+            piece_gates[c] = _PieceGate([row_mids[row_groups[k]] for k in ks])
+
+        # 7. Refit the touched experts (in parallel, warm-started).
+        experts = self._refit_experts(
+            touched, rows, piece_y, old_experts, old_rows, origin, pieces=all_pieces
+        )
+
+        # Commit.
+        self.cluster_ids_, self.cluster_merge_ = cluster_ids, cluster_merge
+        self.n_clusters_, self.n_experts_ = n_clusters, n_experts
+        self.expert_cluster_, self._first_expert = expert_cluster, first_expert
+        self._piece_gates = piece_gates
+        self.experts_ = experts
+        self.touched_experts_ = touched
+        self.observation_kind_ = np.concatenate([self.observation_kind_, kinds])
+        self.cluster_labels_ = row_expert
+        self._hits, self._hit_expert = all_hits, all_hit_expert
+        self._row_mids = np.vstack([self._row_mids, _midpoints(X)])
+        self._row_hit = row_hit
+        self._pieces, self._piece_y = all_pieces, piece_y
+        self._piece_expert, self._piece_hit = piece_expert, piece_hit
+        self._update_index()
+        if self.gating == "gpc":
+            mids = self._row_mids
+            self.gating_ = self._fit_gpc_gate(np.hstack([mids, mids]), row_expert, rng)
+        _log(
+            self.verbose,
+            f"partial_fit: {touched.size} of {n_experts} expert(s) refitted "
+            f"({time.perf_counter() - start:.1f} s)",
+        )
+
+    def _refit_experts(self, touched, rows, piece_y, old_experts, old_rows, origin, pieces=None):
+        """Experts list with the ``touched`` ones refitted on their rows, in parallel.
+
+        Expert ``k`` starts from the sites its ``origin`` expert had on the same pieces
+        (``old_rows`` are the pieces each old expert was fitted on), zeros elsewhere.
+        """
+        pieces = self._pieces if pieces is None else pieces
+        base = self._expert_base
+        seeds = self._rng.randint(np.iinfo(np.int32).max, size=len(touched))
+        has_seed = "random_state" in base.get_params()
+
+        def prepared(j):
+            est = clone(base)
+            if has_seed:
+                est.set_params(random_state=int(seeds[j]))
+            return est
+
+        def sites(k):
+            old = old_experts[origin[k]]
+            tau = getattr(old, "site_precision_", None)
+            source = old_rows[origin[k]]
+            if tau is None or np.shape(tau) != source.shape:
+                return None
+            where = np.searchsorted(source, rows[k]).clip(0, max(source.size - 1, 0))
+            found = source[where] == rows[k]
+            return (
+                np.where(found, tau[where], 0.0),
+                np.where(found, old.site_nu_[where], 0.0),
+            )
+
+        results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
+            delayed(_fit_expert)(prepared(j), pieces[rows[k]], piece_y[rows[k]], sites(k))
+            for j, k in enumerate(touched)
+        )
+        _warn_once_each([w for _, w in results], len(touched))
+        experts = list(old_experts)
+        for k, (est, _) in zip(touched, results, strict=True):
+            experts[k] = est
+        return experts
+
+    def _update_index(self):
+        """Reach and spatial index of prediction from all training pieces."""
+        self.reach_ = self._reach(self._pieces)
+        self._reach_index = ExpertReach(
+            self._pieces, self._piece_expert, self.n_experts_, self.reach_
+        )
 
     def _reach(self, pieces):
         """Distance beyond which the experts' kernels fall below ``reach_tolerance``.
@@ -897,6 +1335,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if self.share_hyperparameters:
             base = self._learn_shared(X, y, rows, expert, rng)
 
+        self._expert_base = base
         _log(self.verbose, f"fitting {n_experts} expert(s) with n_jobs={self.n_jobs}")
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
             delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]])

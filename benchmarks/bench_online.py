@@ -1,0 +1,187 @@
+"""B5: online mapping -- replay the Intel log with ``partial_fit`` and compare with one ``fit``.
+
+Run standalone: ``python benchmarks/bench_online.py [--max-scans N] [--n-jobs 2]``.
+The training scans of B3's split (``split_scans(scans, 10, offset=5)``), every 2nd, are
+replayed in time order in batches of 5 scans; the held-out points of the test scans
+(``heldout_points(test, random_state=0)``) score the final online map and one ``fit`` on the
+same scans. Prints a markdown table and writes ``benchmarks/results/b5_online.json``
+(``b5_online_<N>.json`` with ``--max-scans``).
+
+Targets: final AUC within 0.005 of the fit; the median update time over the last half of the
+replay at most 5 % of the fit's time; the log-log slope of update time against scans seen at
+most 0.2 (updates after the first, which is a fit); the same map for ``n_jobs`` 1 and 2
+(``--check-n-jobs K`` replays the first K batches with both and compares the predictions).
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+from sklearn.exceptions import ConvergenceWarning  # noqa: E402
+from sklearn.metrics import roc_auc_score  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+from _tables import print_table  # noqa: E402
+
+from skoccmap import MixtureGPOccupancyMap  # noqa: E402
+from skoccmap.metrics import heldout_points, split_scans  # noqa: E402
+from skoccmap.observations import as_segments  # noqa: E402
+
+INTEL = HERE.parents[1] / "shared" / "data" / "intel.gfs.log"
+
+
+def replay(train, batch, n_jobs, n_batches=None, log=True):
+    """partial_fit batch by batch; the model and one record per batch."""
+    model = MixtureGPOccupancyMap(n_jobs=n_jobs, random_state=0)
+    records = []
+    starts = list(range(0, len(train), batch))[:n_batches]
+    for b, first in enumerate(starts, 1):
+        X, y, _ = train[first : first + batch].to_observations()
+        tic = time.perf_counter()
+        model.partial_fit(X, y, classes=[0, 1])
+        seconds = time.perf_counter() - tic
+        records.append(
+            dict(
+                batch=b,
+                scans_seen=min(first + batch, len(train)),
+                n_rows=int(len(X)),
+                update_s=seconds,
+                touched=int(model.touched_experts_.size),
+                n_experts=int(model.n_experts_),
+                n_clusters=int(model.n_clusters_),
+            )
+        )
+        if log:
+            r = records[-1]
+            print(
+                f"batch {b}/{len(starts)}: {r['scans_seen']} scans, {seconds:.2f} s, "
+                f"{r['touched']} of {r['n_experts']} experts touched",
+                flush=True,
+            )
+    return model, records
+
+
+def slope(records):
+    """Log-log slope of update time against scans seen, updates after the first."""
+    later = records[1:]
+    if len(later) < 2:
+        return float("nan")
+    x = np.log([r["scans_seen"] for r in later])
+    t = np.log([r["update_s"] for r in later])
+    return float(np.polyfit(x, t, 1)[0])
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--intel", default=str(INTEL), help="path of intel.gfs.log")
+    parser.add_argument("--every", type=int, default=2, help="every N-th training scan (2)")
+    parser.add_argument("--batch", type=int, default=5, help="scans per update (5)")
+    parser.add_argument("--max-scans", type=int, default=None, help="replay a prefix only")
+    parser.add_argument("--n-jobs", type=int, default=2)
+    parser.add_argument(
+        "--check-n-jobs", type=int, default=0, metavar="K",
+        help="replay the first K batches with n_jobs 1 and 2 and compare the maps",
+    )  # fmt: skip
+    parser.add_argument("--out", default=None, help="JSON path")
+    args = parser.parse_args(argv)
+    warnings.simplefilter("ignore", ConvergenceWarning)
+
+    from skoccmap.datasets import load_carmen
+
+    scans = load_carmen(args.intel)
+    train_all, test = split_scans(scans, 10, offset=5)
+    train = train_all[:: args.every]
+    if args.max_scans is not None:
+        train = train[: args.max_scans]
+    points, labels = heldout_points(test, random_state=0)
+    queries = as_segments(points)
+    print(f"B5: {len(train)} training scans, {len(points)} held-out points", flush=True)
+
+    X, y, _ = train.to_observations()
+    fitted = MixtureGPOccupancyMap(n_jobs=args.n_jobs, random_state=0)
+    tic = time.perf_counter()
+    fitted.fit(X, y)
+    fit_s = time.perf_counter() - tic
+    fit_auc = float(roc_auc_score(labels, fitted.predict_proba(queries)[:, 1]))
+    print(f"fit: {len(X)} observations, {fit_s:.1f} s, AUC {fit_auc:.4f}", flush=True)
+
+    tic = time.perf_counter()
+    model, records = replay(train, args.batch, args.n_jobs)
+    replay_s = time.perf_counter() - tic
+    online_auc = float(roc_auc_score(labels, model.predict_proba(queries)[:, 1]))
+    last_half = records[len(records) // 2 :]
+    median_s = float(np.median([r["update_s"] for r in last_half]))
+    result = dict(
+        benchmark="B5 online",
+        date=time.strftime("%Y-%m-%d"),
+        n_scans=len(train),
+        n_observations=int(len(X)),
+        n_batches=len(records),
+        fit_s=fit_s,
+        fit_auc=fit_auc,
+        fit_experts=int(fitted.n_experts_),
+        online_auc=online_auc,
+        online_experts=int(model.n_experts_),
+        replay_s=replay_s,
+        median_update_last_half_s=median_s,
+        median_update_share_of_fit=median_s / fit_s,
+        median_touched_last_half=float(np.median([r["touched"] for r in last_half])),
+        slope=slope(records),
+        records=records,
+    )
+    if args.check_n_jobs:
+        maps = []
+        for n_jobs in (1, 2):
+            m, _ = replay(train, args.batch, n_jobs, args.check_n_jobs, log=False)
+            maps.append(m.predict_proba(queries))
+        result["n_jobs_check_batches"] = args.check_n_jobs
+        result["n_jobs_same_map"] = bool(np.array_equal(maps[0], maps[1]))
+
+    print_table(
+        f"B5: Intel, every {args.every}nd training scan ({len(train)} scans) in batches of "
+        f"{args.batch}",
+        ["", "AUC", "time s", "experts"],
+        [
+            ("one fit", f"{fit_auc:.4f}", f"{fit_s:.1f}", result["fit_experts"]),
+            (
+                f"online, {len(records)} updates",
+                f"{online_auc:.4f}",
+                f"{replay_s:.1f} in all",
+                result["online_experts"],
+            ),
+        ],
+    )
+    checks = [
+        ("|AUC online - AUC fit| <= 0.005", f"{abs(online_auc - fit_auc):.4f}",
+         abs(online_auc - fit_auc) <= 0.005),
+        ("median update (last half) <= 5 % of fit", f"{median_s:.2f} s = "
+         f"{100 * median_s / fit_s:.1f} %", median_s <= 0.05 * fit_s),
+        ("log-log slope of update time <= 0.2", f"{result['slope']:.2f}",
+         result["slope"] <= 0.2),
+    ]  # fmt: skip
+    if args.check_n_jobs:
+        checks.append(
+            (f"same map n_jobs 1 / 2 ({args.check_n_jobs} batches)",
+             str(result["n_jobs_same_map"]), result["n_jobs_same_map"])
+        )  # fmt: skip
+    print_table("B5 targets", ["target", "measured", "met"], checks)
+    result["targets"] = {name: bool(ok) for name, _, ok in checks}
+    suffix = "" if args.max_scans is None else f"_{args.max_scans}"
+    out = Path(args.out) if args.out else HERE / "results" / f"b5_online{suffix}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"\nwrote {out}")
+
+
+if __name__ == "__main__":
+    main()

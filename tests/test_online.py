@@ -1,0 +1,270 @@
+"""Online mapping: ``MixtureGPOccupancyMap.partial_fit`` and ``DPGMMClusterer.partial_fit``.
+
+Small simulated data and fixed expert hyperparameters keep every fit to about a second.
+"""
+
+import re
+
+import numpy as np
+import pytest
+from sklearn.gaussian_process.kernels import ConstantKernel
+
+from skoccmap import (
+    DPGMMClusterer,
+    EPGaussianProcessClassifier,
+    IntegralKernel,
+    MixtureGPOccupancyMap,
+)
+from skoccmap.datasets import make_office_scans, make_paper_scans
+from skoccmap.observations import as_segments
+
+
+def _model(**params):
+    expert = EPGaussianProcessClassifier(
+        ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None
+    )
+    params.setdefault("max_expert_size", 150)
+    return MixtureGPOccupancyMap(expert=expert, random_state=0, **params)
+
+
+@pytest.fixture(scope="module")
+def office():
+    data = make_office_scans(random_state=0)
+    lo, hi = data.X[:, :2].min(axis=0), data.X[:, :2].max(axis=0)
+    queries = as_segments(np.random.default_rng(0).uniform(lo, hi, size=(400, 2)))
+    return data, queries
+
+
+def _batch(data, first, last):
+    sel = (data.scan_index >= first) & (data.scan_index < last)
+    return data.X[sel], data.y[sel]
+
+
+@pytest.fixture(scope="module")
+def online(office):
+    """Office scans 0-9 then 10-14: a model after one update, and one before it."""
+    data, _ = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    before = {"n_experts": model.n_experts_, "n_rows": model.cluster_labels_.size}
+    snapshot = list(model.experts_)
+    model.partial_fit(*_batch(data, 10, 15))
+    return before, snapshot, model
+
+
+def test_first_partial_fit_equals_fit(office):
+    data, queries = office
+    X, y = _batch(data, 0, 10)
+    fitted = _model().fit(X, y)
+    online = _model().partial_fit(X, y, classes=[0, 1])
+    np.testing.assert_array_equal(online.predict_proba(queries), fitted.predict_proba(queries))
+    assert online.n_experts_ == fitted.n_experts_
+    # No classes needed when y holds both.
+    again = _model().partial_fit(X, y)
+    np.testing.assert_array_equal(again.predict_proba(queries), fitted.predict_proba(queries))
+
+
+def test_update_refits_only_touched_experts(office, online):
+    data, _ = office
+    before, snapshot, after = online
+    touched = set(after.touched_experts_.tolist())
+    assert 0 < len(touched) < after.n_experts_
+    kept = [e for k, e in enumerate(after.experts_) if k not in touched]
+    # Untouched experts are the very objects of the model before the update ...
+    assert len(kept) > 0
+    assert all(any(e is old for old in snapshot) for e in kept)
+    # ... and refitted ones are new objects.
+    for k in touched:
+        assert all(after.experts_[k] is not old for old in snapshot)
+    assert after.n_experts_ >= before["n_experts"]
+    assert after.cluster_labels_.size == before["n_rows"] + _batch(data, 10, 15)[0].shape[0]
+
+
+def test_experts_stay_bounded_and_rows_follow_experts(online):
+    _, _, after = online
+    sizes = np.array([e.X_train_.shape[0] for e in after.experts_ if hasattr(e, "X_train_")])
+    assert sizes.max() <= 150
+    # Each expert's cluster is its gate's: experts of a cluster are contiguous.
+    assert np.all(np.diff(after.expert_cluster_) >= 0)
+
+
+def test_online_map_close_to_batch_fit(office):
+    data, queries = office
+    model = _model()
+    for first in range(0, 30, 6):
+        model.partial_fit(*_batch(data, first, first + 6), classes=[0, 1])
+    fitted = _model().fit(data.X, data.y)
+    p_online = model.predict_proba(queries)[:, 1]
+    p_fit = fitted.predict_proba(queries)[:, 1]
+    # Same decisions on nearly all cells; the two maps differ in their cuts only.
+    assert np.mean((p_online > 0.5) == (p_fit > 0.5)) > 0.95
+    assert np.mean(np.abs(p_online - p_fit)) < 0.08
+
+
+def test_far_batch_opens_a_new_cluster_and_expert():
+    data = make_paper_scans(random_state=0)
+    model = _model().fit(data.X, data.y)
+    n_clusters, n_experts = model.n_clusters_, model.n_experts_
+    n_dp = model.clusterer_.n_clusters_
+    far = data.X + np.tile([500.0, 500.0], 2)
+    model.partial_fit(far, data.y)
+    assert model.clusterer_.n_clusters_ > n_dp
+    assert model.n_clusters_ > n_clusters
+    assert model.n_experts_ > n_experts
+    # The new experts hold the far data only, and the far map is a map.
+    new = model.touched_experts_
+    for k in new:
+        expert = model.experts_[k]
+        if hasattr(expert, "X_train_"):
+            assert expert.X_train_[:, 0].min() > 400.0
+    hits = far[data.y == 1][:20]
+    assert np.all(model.predict_proba(hits)[:, 1] > 0.5)
+
+
+def test_one_class_batch(office):
+    data, queries = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    X, y = _batch(data, 10, 13)
+    free = y == 0
+    before = model.predict_proba(queries)
+    model.partial_fit(X[free], y[free])
+    assert model.touched_experts_.size > 0
+    after = model.predict_proba(queries)
+    assert np.all(np.isfinite(after))
+    # Free space lowers the probability of occupancy, on the whole, where it changes it.
+    changed = np.abs(after - before)[:, 1] > 1e-6
+    assert changed.any()
+    assert np.mean(after[changed, 1] - before[changed, 1]) < 0.0
+
+
+@pytest.mark.parametrize(
+    "make_bad",
+    [
+        lambda X, y: (np.where(np.arange(X.size).reshape(X.shape) == 5, np.nan, X), y),
+        lambda X, y: (X[:, :3], y),
+        lambda X, y: (X, np.where(y == 1, 7, y)),
+        lambda X, y: (X, np.where(np.arange(y.size) % 3 == 0, 2, y)),
+    ],
+    ids=["nan", "columns", "unknown-label", "three-classes"],
+)
+def test_bad_batch_is_refused_without_change(office, make_bad):
+    data, queries = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    before = model.predict_proba(queries)
+    n_rows, n_experts = model.cluster_labels_.size, model.n_experts_
+    X, y = make_bad(*_batch(data, 10, 12))
+    with pytest.raises(ValueError):
+        model.partial_fit(X, y)
+    assert model.cluster_labels_.size == n_rows and model.n_experts_ == n_experts
+    np.testing.assert_array_equal(model.predict_proba(queries), before)
+    # Still usable: a good batch goes in.
+    model.partial_fit(*_batch(data, 10, 12))
+    assert model.cluster_labels_.size > n_rows
+
+
+def test_n_jobs_gives_the_same_map(office):
+    data, queries = office
+    maps = []
+    for n_jobs in (1, 2):
+        model = _model(n_jobs=n_jobs)
+        for first in range(0, 15, 5):
+            model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+        maps.append(model.predict_proba(queries))
+    np.testing.assert_array_equal(maps[0], maps[1])
+
+
+def test_classes_rules(office):
+    data, _ = office
+    X, y = _batch(data, 0, 5)
+    with pytest.raises(ValueError, match="classes must be passed"):
+        _model().partial_fit(X[y == 0], y[y == 0])
+    with pytest.raises(ValueError, match="needs both classes"):
+        _model().partial_fit(X[y == 0], y[y == 0], classes=[0, 1])
+    with pytest.raises(ValueError, match="2 classes"):
+        _model().partial_fit(X, y, classes=[0, 1, 2])
+    with pytest.raises(ValueError, match="not in classes"):
+        _model().partial_fit(X, y, classes=[0, 5])
+    model = _model().partial_fit(X, y, classes=[0, 1])
+    with pytest.raises(ValueError, match="differs"):
+        model.partial_fit(*_batch(data, 5, 7), classes=[0, 2])
+    model.partial_fit(*_batch(data, 5, 7), classes=[1, 0])
+    np.testing.assert_array_equal(model.classes_, [0, 1])
+    assert model.n_features_in_ == 4
+
+
+def test_refit_hyperparameters():
+    data = make_paper_scans(random_state=0)
+    model = MixtureGPOccupancyMap(max_expert_size=300, random_state=0).fit(data.X, data.y)
+    kernel = model.shared_kernel_
+    model.partial_fit(data.X[::2] + 0.01, data.y[::2])
+    assert model.shared_kernel_ is kernel
+    model.refit_hyperparameters()
+    assert model.touched_experts_.size == model.n_experts_
+    assert model.shared_kernel_ is not kernel
+    with pytest.raises(ValueError, match="share_hyperparameters"):
+        _model(share_hyperparameters=False).fit(data.X, data.y).refit_hyperparameters()
+
+
+# -- DPGMMClusterer.partial_fit ----------------------------------------------------------
+
+
+def _rooms(seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.normal([0, 0], 0.3, (150, 2)), rng.normal([10, 0], 0.3, (80, 2))
+
+
+def test_clusterer_partial_fit_opens_a_table_for_a_new_room():
+    a, b = _rooms()
+    model = DPGMMClusterer(random_state=0).partial_fit(a)
+    assert model.n_clusters_ == 1
+    model.partial_fit(b)
+    assert model.n_clusters_ == 2
+    np.testing.assert_array_equal(model.labels_, np.ones(len(b), dtype=int))
+    np.testing.assert_allclose(model.weights_, [150 / 230, 80 / 230])
+    # The posterior mean of the new cluster's mean: its points and the prior's mean.
+    kappa = model.mean_precision_prior_
+    expected = (b.sum(axis=0) + kappa * model.mean_prior_) / (len(b) + kappa)
+    np.testing.assert_allclose(model.means_[1], expected)
+    # Points of a known room join its cluster, no new one.
+    more = np.random.default_rng(1).normal([0, 0], 0.3, (40, 2))
+    model.partial_fit(more)
+    assert model.n_clusters_ == 2 and np.all(model.labels_ == 0)
+
+
+def test_clusterer_partial_fit_is_reproducible():
+    a, b = _rooms()
+    runs = [DPGMMClusterer(random_state=3).fit(a).partial_fit(b).labels_ for _ in range(2)]
+    np.testing.assert_array_equal(*runs)
+    with pytest.raises(ValueError):
+        DPGMMClusterer(random_state=0).fit(a).partial_fit(b[:, :1])
+
+
+# -- skoccmap map --online -----------------------------------------------------------------
+
+
+def test_cli_online_replay_writes_snapshots(paper_log, tmp_path, capsys):
+    from skoccmap.cli import main
+
+    log, _ = paper_log
+    snaps = tmp_path / "snaps"
+    argv = ["map", str(log), "--online", "--batch-scans", "9", "--snapshots", str(snaps),
+            "--snapshot-every", "2", "--resolution", "1.0", "--max-expert-size", "150",
+            "--n-jobs", "1", "--out", str(tmp_path / "out"), "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    stdout = capsys.readouterr().out
+    table = [line for line in stdout.splitlines() if re.match(r"\| \d+ \|", line)]
+    # 26 scans in batches of 9: three updates, each with its time and experts touched.
+    assert len(table) == 3
+    seen = [int(line.split("|")[2]) for line in table]
+    assert seen == [9, 18, 26]
+    assert all(int(line.split("|")[5]) > 0 for line in table)
+    assert sorted(p.name for p in snaps.glob("*.npz")) == ["batch_00002.npz", "batch_00003.npz"]
+    assert (tmp_path / "out" / "paper.npz").is_file()
+    assert "| online replay |" in stdout
+
+
+def test_cli_online_bad_batch_size(paper_log, capsys):
+    from skoccmap.cli import main
+
+    log, _ = paper_log
+    assert main(["map", str(log), "--online", "--batch-scans", "0", "--quiet"]) == 2
+    assert "--batch-scans must be >= 1" in capsys.readouterr().err
