@@ -601,6 +601,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         Distance within which an expert's training data can inform a query (see
         ``reach_tolerance``); ``inf`` when an expert's kernel does not decay or is not
         exposed as ``kernel_``, and then every expert is a candidate everywhere.
+    touched_experts_ : ndarray of int
+        Experts (fitted or) refitted by the last :meth:`fit`, :meth:`partial_fit` or
+        :meth:`refit_hyperparameters` call: all of them after a fit.
 
     See Also
     --------
@@ -831,14 +834,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         >>> from skoccmap import EPGaussianProcessClassifier, IntegralKernel
         >>> from skoccmap import MixtureGPOccupancyMap
         >>> from skoccmap.datasets import make_office_scans
-        >>> scans = make_office_scans(random_state=0)
+        >>> scans = make_office_scans(random_state=0).scans
         >>> expert = EPGaussianProcessClassifier(
         ...     ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None)
         >>> model = MixtureGPOccupancyMap(expert=expert, random_state=0)
-        >>> for batch in range(0, 12, 4):
-        ...     X, y, _ = scans[batch : batch + 4].to_observations()
+        >>> for first in range(0, 12, 4):
+        ...     X, y, _ = scans[first : first + 4].to_observations()
         ...     model = model.partial_fit(X, y, classes=[0, 1])
-        >>> model.n_features_in_, bool(model.touched_experts_.size <= model.n_experts_)
+        >>> model.n_features_in_, bool(model.touched_experts_.size < model.n_experts_)
         (4, True)
         """
         if not hasattr(self, "_pieces"):
