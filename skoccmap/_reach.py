@@ -22,6 +22,8 @@ _BLOCK = 1.0 / 4.0
 # The block table's stencils grow as 5**D: beyond 3-D (not a map) every expert is a
 # candidate everywhere.
 _MAX_DIM = 3
+# Sample points, or (cell, block) pairs, handled at once while the index is built.
+_BATCH = 1 << 21
 
 
 def kernel_reach(kernel, dim, tolerance, extent):
@@ -121,12 +123,9 @@ class ExpertReach:
         self.block = _BLOCK * self.reach
         grown = 0.5 * self.cell * (np.sqrt(dim) + 1.0)
         self.slack = self.block * np.sqrt(dim) + 2.0 * grown
-        points, row = _segment_samples(segments, self.cell)
-        self.origin = points.min(axis=0)
-        cells = np.floor((points - self.origin) / self.cell).astype(np.int64)
-        keys = np.unique(np.column_stack([np.asarray(expert)[row], cells]), axis=0)
-        self.cell_expert = keys[:, 0].astype(np.intp)
-        centres = self.origin + (keys[:, 1:] + 0.5) * self.cell
+        self.origin = np.minimum(segments[:, :dim].min(axis=0), segments[:, dim:].min(axis=0))
+        self.cell_expert, cells = self._cells(segments, np.asarray(expert))
+        centres = self.origin + (cells + 0.5) * self.cell
         self.tree = cKDTree(centres)
         self._grown = grown
         # Keys are sorted by expert: each expert's cells are a contiguous run.
@@ -136,6 +135,33 @@ class ExpertReach:
             for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
         ]
         self._tabulate(centres, self.reach + grown)
+
+    def _cells(self, segments, expert):
+        """Unique (expert, cell) of the points sampled along the segments, by expert.
+
+        Experts are taken in batches of about ``_BATCH`` sample points, so that the samples
+        of millions of segments never exist at once.
+        """
+        order = np.argsort(expert, kind="stable")
+        bounds = np.searchsorted(expert[order], np.arange(self.n_experts + 1))
+        dim = self.dim
+        delta = segments[:, dim:] - segments[:, :dim]
+        count = np.ceil(np.sqrt(np.einsum("ij,ij->i", delta, delta)) / self.cell) + 1
+        per_expert = np.cumsum(np.bincount(expert, weights=count, minlength=self.n_experts))
+        ends = np.searchsorted(per_expert, np.arange(_BATCH, per_expert[-1], _BATCH)) + 1
+        ends = np.unique(np.r_[np.minimum(ends, self.n_experts), self.n_experts])
+        experts_out, cells_out = [], []
+        for first, last in zip(np.r_[0, ends[:-1]], ends, strict=True):
+            rows = order[bounds[first] : bounds[last]]
+            if rows.size == 0:
+                continue
+            points, row = _segment_samples(segments[rows], self.cell)
+            cells = np.floor((points - self.origin) / self.cell).astype(np.int64)
+            keys = np.unique(np.column_stack([expert[rows][row], cells]), axis=0)
+            experts_out.append(keys[:, 0])
+            cells_out.append(keys[:, 1:])
+        # Batches hold disjoint experts in increasing order: the result is sorted by expert.
+        return np.concatenate(experts_out).astype(np.intp), np.concatenate(cells_out)
 
     def _tabulate(self, centres, radius):
         """CSR table block code -> candidate experts, from the cells grown by ``radius``."""
@@ -158,18 +184,29 @@ class ExpertReach:
         rel = (centres - self.origin) / block
         cell_block = np.floor(rel).astype(np.int64)
         sub = np.minimum((2.0 * (rel - cell_block)).astype(np.int64), 1)
-        codes, experts = [], []
         sub_code = sub @ (1 << np.arange(dim)[::-1])
-        for s_index, (s, stencil) in enumerate(stencils.items()):
-            assert s_index == int(np.asarray(s) @ (1 << np.arange(dim)[::-1]))
-            mine = np.flatnonzero(sub_code == s_index)
-            for part in np.array_split(mine, max(1, mine.size * len(stencil) // (1 << 22))):
-                blocks = cell_block[part, None, :] + stencil[None]
-                code = ((blocks - lo) @ self._block_stride).ravel()
-                codes.append(code)
-                experts.append(np.repeat(self.cell_expert[part], len(stencil)))
+        stencils = list(stencils.values())  # in the order of sub_code
+        # Cells are sorted by expert; batches of whole experts give disjoint pair sets, each
+        # made unique within its batch, so that no more than a batch of pairs is ever held.
+        bounds = np.searchsorted(self.cell_expert, np.arange(self.n_experts + 1))
+        step = max(1, _BATCH // max(len(s) for s in stencils))
+        cut = np.searchsorted(bounds, np.arange(step, len(centres), step))
+        pairs = []
+        for first, last in zip(np.r_[0, cut], np.r_[cut, self.n_experts], strict=True):
+            part = np.arange(bounds[first], bounds[last])
+            if part.size == 0:
+                continue
+            found = []
+            for code, stencil in enumerate(stencils):
+                mine = part[sub_code[part] == code]
+                blocks = cell_block[mine, None, :] + stencil[None]
+                found.append(
+                    ((blocks - lo) @ self._block_stride) * self.n_experts
+                    + self.cell_expert[mine, None]
+                )
+            pairs.append(np.unique(np.concatenate([f.ravel() for f in found])))
         # Unique (block, expert) pairs, sorted by block then expert.
-        pair = np.unique(np.concatenate(codes) * self.n_experts + np.concatenate(experts))
+        pair = np.sort(np.concatenate(pairs))
         block_code, self._table_experts = np.divmod(pair, self.n_experts)
         self._table_codes, first = np.unique(block_code, return_index=True)
         self._table_start = np.r_[first, pair.size]

@@ -121,3 +121,20 @@ def test_spatial_order_is_a_permutation_grouping_blocks():
     # Consecutive queries are near: far closer than in the given (random) order.
     step = np.linalg.norm(np.diff(points[order], axis=0), axis=1)
     assert np.median(step) < 0.25 * np.median(np.linalg.norm(np.diff(points, axis=0), axis=1))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_building_the_index_in_batches_changes_nothing(dim, monkeypatch):
+    import skoccmap._reach as reach_module
+
+    segments, expert, n_experts = _random_experts(dim, seed=4)
+    whole = ExpertReach(segments, expert, n_experts, reach=1.5)
+    monkeypatch.setattr(reach_module, "_BATCH", 64)
+    batched = ExpertReach(segments, expert, n_experts, reach=1.5)
+    np.testing.assert_array_equal(batched.cell_expert, whole.cell_expert)
+    np.testing.assert_array_equal(batched.tree.data, whole.tree.data)
+    np.testing.assert_array_equal(batched._table_codes, whole._table_codes)
+    np.testing.assert_array_equal(batched._table_experts, whole._table_experts)
+    queries = np.hstack([segments[:, :dim], segments[:, :dim]]) + 0.3
+    for got, want in zip(batched.candidates(queries), whole.candidates(queries), strict=True):
+        np.testing.assert_array_equal(got, want)
