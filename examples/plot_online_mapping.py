@@ -1,7 +1,7 @@
 """
-==========================================
+===========================================
 Online mapping: the map grows as scans come
-==========================================
+===========================================
 
 A robot builds its map while it drives. :meth:`~skoccmap.MixtureGPOccupancyMap.partial_fit`
 adds a batch of scans to a fitted map: new hits join the clusters they belong to (or open
