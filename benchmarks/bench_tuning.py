@@ -216,7 +216,7 @@ SWEEPS = [
             Entry("0.5", "beam_0.5"),
         ],
         quick=("None, beam_end_length None (whole beams)", "1"),
-        extra=("length_scale",),
+        extra=("length_scale", "thickness"),
     ),
     Sweep(
         "beam_end_length",
