@@ -42,8 +42,8 @@ _NO_RETURN_PAIRS = 1 << 18
 _NO_RETURN_FIRST = 4
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
-# Experts whose summed evidence learns the shared hyperparameters (on ACES, every 10th
-# scan, three seeds learned length scales 1.42-1.80 m from 16 experts, 1.38-1.61 from 48).
+# Experts whose summed evidence learns the shared hyperparameters: a few dozen fix one or
+# two hyperparameters, at a cost that does not grow with the map.
 _SHARED_PIECES = 32
 
 
