@@ -10,7 +10,10 @@ Run standalone::
 Prints one markdown table per parameter and writes ``benchmarks/results/bench_tuning.json``
 (``results/quick/`` with ``--quick``; ``bench_tuning_<sweeps>.json`` with ``--only`` or
 ``--datasets``). The numbers quoted "on the tuning data" in the parameter docstrings of
-:class:`skoccmap.MixtureGPOccupancyMap` come from this script.
+:class:`skoccmap.MixtureGPOccupancyMap` come from this script; those of the baselines
+(:class:`skoccmap.baselines.HilbertMap`, :class:`skoccmap.baselines.OccupancyGridMap`) from
+``bench_tuning_baselines.py``, on the same data (its ``grid`` group adds Intel rows,
+labelled as report-log measurements).
 
 **Tuning data only.** Nothing here touches the report data (the Intel log, seeds 0-2):
 
