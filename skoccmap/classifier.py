@@ -41,9 +41,33 @@ _BINARY_ATTRIBUTES = (
     "site_precision_",
     "site_nu_",
     "_posterior",
+    "_posterior_lower",
     "_rng",
 )
 _MULTI_CLASS_ATTRIBUTES = ("_multi_class_estimator",)
+
+
+def _packed(posterior):
+    """The posterior without its Cholesky factor, and the factor's lower triangle.
+
+    A fitted classifier keeps the factor for its predictions; its upper triangle is zeros,
+    and a map of many experts held twice the memory it needs (the factors are most of a
+    mixture's memory).
+    """
+    if posterior.L is None:
+        return posterior, None
+    n = posterior.L.shape[0]
+    return posterior._replace(L=None), posterior.L[np.tri(n, dtype=bool)]
+
+
+def _unpacked(posterior, lower):
+    """The posterior with its Cholesky factor rebuilt from :func:`_packed`'s triangle."""
+    if lower is None:
+        return posterior
+    n = posterior.alpha.shape[0]
+    L = np.zeros((n, n))
+    L[np.tri(n, dtype=bool)] = lower
+    return posterior._replace(L=L)
 
 
 # Projected gradient (of -log evidence) below this, relative to max(1, |value|), counts as
@@ -388,7 +412,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         self.site_precision_ = result.site_precision
         self.site_nu_ = result.site_nu
         self.n_iter_ = result.n_iter
-        self._posterior = result.posterior
+        self._posterior, self._posterior_lower = _packed(result.posterior)
         # np.float64 as in scikit-learn: arithmetic with float32 stays in float64.
         self.log_marginal_likelihood_value_ = np.float64(
             ep_log_marginal_likelihood(
@@ -610,10 +634,11 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         mean = np.empty(X.shape[0])
         var = np.empty(X.shape[0])
         block = max(1, _PREDICT_BLOCK_ELEMENTS // max(n_train, 1))
+        posterior = _unpacked(self._posterior, self._posterior_lower)
         for rows in gen_batches(X.shape[0], block):
             K_star = self.kernel_(X[rows], self.X_train_)
             mean[rows], var[rows] = ep_latent_predictive(
-                K_star, self.kernel_.diag(X[rows]), self._posterior
+                K_star, self.kernel_.diag(X[rows]), posterior
             )
         return mean, np.maximum(var, _VAR_FLOOR)
 
