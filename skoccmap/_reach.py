@@ -55,14 +55,14 @@ def kernel_reach(kernel, dim, tolerance, extent):
     """
     r = max(float(extent), 1e-12) * _PROBE
     origin = np.zeros((1, 2 * dim))
+    k0 = float(np.ravel(kernel(origin))[0])
+    if not np.isfinite(k0) or k0 <= 0.0:
+        return np.inf
     reach = 0.0
     for axis in range(dim):
         rows = np.zeros((r.size, 2 * dim))
         rows[:, axis] = rows[:, dim + axis] = r
-        k0 = float(np.ravel(kernel(origin))[0])
         k = np.ravel(kernel(origin, rows))
-        if not np.isfinite(k0) or k0 <= 0.0:
-            return np.inf
         above = np.flatnonzero(np.abs(k) >= tolerance * k0)
         if above.size and above[-1] == r.size - 1:
             return np.inf
@@ -176,16 +176,16 @@ class ExpertReach:
         grid = np.stack(
             np.meshgrid(*[np.arange(-span, span + 1)] * dim, indexing="ij"), axis=-1
         ).reshape(-1, dim)
-        stencils = {}
+        # np.ndindex runs through the positions in the order of sub_code below.
+        stencils = []
         for sub in np.ndindex(*(2,) * dim):
             centre = (np.asarray(sub) + 0.5) * 0.5  # in block units, within its block
             gap = np.maximum(np.maximum(grid - centre, centre - grid - 1.0), 0.0)
-            stencils[sub] = grid[np.einsum("ij,ij->i", gap, gap) <= (radius / block) ** 2]
+            stencils.append(grid[np.einsum("ij,ij->i", gap, gap) <= (radius / block) ** 2])
         rel = (centres - self.origin) / block
         cell_block = np.floor(rel).astype(np.int64)
         sub = np.minimum((2.0 * (rel - cell_block)).astype(np.int64), 1)
         sub_code = sub @ (1 << np.arange(dim)[::-1])
-        stencils = list(stencils.values())  # in the order of sub_code
         # Cells are sorted by expert; batches of whole experts give disjoint pair sets, each
         # made unique within its batch, so that no more than a batch of pairs is ever held.
         bounds = np.searchsorted(self.cell_expert, np.arange(self.n_experts + 1))

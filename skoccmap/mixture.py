@@ -1583,10 +1583,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         alone = np.ones(Xc.shape[0], dtype=bool)
         alone[reached] = False
         if np.any(alone):
-            variance[alone] = self._prior_variance(Xc[alone])
+            variance[alone] = self._unreached_prior_variance(Xc[alone])
         return proba, mean, variance
 
-    def _prior_variance(self, X):
+    def _unreached_prior_variance(self, X):
         """Prior latent variance where no expert reaches: the experts' mean prior precision.
 
         With shared hyperparameters every expert has the same prior; otherwise the
