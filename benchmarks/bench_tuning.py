@@ -33,7 +33,9 @@ The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``
 **Sweeps** (one parameter at a time, all others at their defaults): ``combiner``,
 ``gating_threshold`` and ``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
 ``max_beam_length`` (with ``beam_end_length`` 0.5, and the whole-beam model with both
-``None``), ``beam_end_length``, ``share_hyperparameters``, and the default expert's signal
+``None``), ``beam_end_length``, ``share_hyperparameters``, ``hyperparameter_window`` (with
+the learned length scale; ``--datasets aces_all`` adds ACES trained on every scan, for the
+length scale's stability against the density of the scans), and the default expert's signal
 variance (``ConstantKernel`` fixed at 1e2 / 1e3 / 1e4, or learned). ``combiner`` and
 ``gating_threshold`` are read at predict time: one fit per dataset serves all their values
 (``set_params`` on the fitted map). Every other value is a fit of its own; a fit shared by
@@ -92,8 +94,13 @@ SEED = TUNING_SEEDS[0]  # 100: the data seed and the estimators' random_state
 ACES_EVERY = 10  # ACES trained on every 10th remaining scan
 PREDICT_REPEATS = 2  # predict time: the best of this many runs
 DATASETS = ("aces", "office", "paper")
+# ACES trained on every remaining scan: the learned length scale's stability against the
+# density of the scans (with --datasets; not in the default run, its fits are ten times
+# larger).
+EXTRA_DATASETS_ALL = ("aces_all",)
 DATASET_TITLES = {
     "aces": f"ACES, blocks protocol, every {ACES_EVERY}th scan",
+    "aces_all": "ACES, blocks protocol, every scan",
     "office": WORLD_TITLES["office"],
     "paper": WORLD_TITLES["paper"],
 }
@@ -132,6 +139,9 @@ FITS = {
     "end_none": ({"beam_end_length": None}, "beam_end_length=None"),
     "end_0.25": ({"beam_end_length": 0.25}, "beam_end_length=0.25"),
     "no_share": ({"share_hyperparameters": False}, "share_hyperparameters=False"),
+    "window_1.5": ({"hyperparameter_window": 1.5}, "hyperparameter_window=1.5"),
+    "window_3": ({"hyperparameter_window": 3.0}, "hyperparameter_window=3"),
+    "window_6": ({"hyperparameter_window": 6.0}, "hyperparameter_window=6"),
     "signal_1e2": ({"expert": _expert(1e2)}, "ConstantKernel(1e2, fixed) * IntegralKernel()"),
     "signal_1e4": ({"expert": _expert(1e4)}, "ConstantKernel(1e4, fixed) * IntegralKernel()"),
     "signal_learned": (
@@ -238,6 +248,17 @@ SWEEPS = [
         extra=("length_scale",),
     ),
     Sweep(
+        "hyperparameter_window",
+        "`hyperparameter_window` (radius of the windows that learn the shared kernel)",
+        [
+            Entry("None (experts' own data)", "default", default=True),
+            Entry("1.5", "window_1.5"),
+            Entry("3", "window_3"),
+            Entry("6", "window_6"),
+        ],
+        extra=("length_scale",),
+    ),
+    Sweep(
         "signal_variance",
         "the default expert's signal variance (`ConstantKernel` of `expert=None`)",
         [
@@ -272,22 +293,22 @@ class Dataset:
     sim: object = None  # simulated worlds: the generator's bunch
 
 
-def load_aces(seed):
+def load_aces(seed, every=ACES_EVERY, name="aces"):
     path = LOGS["aces"][0]
     if not path.is_file():
         return None
     scans = load_carmen(path)
-    bunch = blocks_protocol(scans, train_every=ACES_EVERY, random_state=seed)
+    bunch = blocks_protocol(scans, train_every=every, random_state=seed)
     X, y, _, scan_index = bunch.train.to_observations(return_scan_index=True)
     info = dict(
         log=str(path),
         n_scans=len(scans),
-        train_every=ACES_EVERY,
+        train_every=every,
         n_train_scans=len(bunch.train),
         n_train=int(len(X)),
         n_test=int(len(bunch.points)),
     )
-    return Dataset("aces", X, y, scan_index, as_segments(bunch.points), info, labels=bunch.labels)
+    return Dataset(name, X, y, scan_index, as_segments(bunch.points), info, labels=bunch.labels)
 
 
 def load_sim(world, seed):
@@ -331,7 +352,7 @@ def score(model, data, row):
     """Scores of a fitted model on its dataset, into ``row``."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        if data.name == "aces":
+        if data.name.startswith("aces"):
             proba, predict_s = timed_predict(model, data.queries, PREDICT_REPEATS)
             row["auc"] = float(roc_auc_score(data.labels, proba))
         else:
@@ -393,7 +414,12 @@ def run(args, result, save):
     rows = result.setdefault("rows", [])
     for name in args.datasets:
         print(f"\nTuning: loading {name} (seed {SEED}) ...", flush=True)
-        data = load_aces(SEED) if name == "aces" else load_sim(name, SEED)
+        if name == "aces_all":
+            data = load_aces(SEED, every=1, name=name)
+        elif name == "aces":
+            data = load_aces(SEED)
+        else:
+            data = load_sim(name, SEED)
         if data is None:
             path = LOGS["aces"][0]
             print(f"Tuning: {path} not found, ACES skipped", flush=True)
@@ -516,11 +542,13 @@ def tables(sweeps, rows, args):
     for sweep in sweeps:
         header = [sweep.name]
         for name in names:
-            short = {"aces": "ACES", "office": "office", "paper": "paper"}[name]
-            columns = DATASET_COLUMNS["aces" if name == "aces" else "sim"]
+            short = {"aces": "ACES", "aces_all": "ACES all", "office": "office", "paper": "paper"}[
+                name
+            ]
+            columns = DATASET_COLUMNS["aces" if name.startswith("aces") else "sim"]
             header += [f"{short} {title}" for title, _ in columns]
             for extra in sweep.extra:
-                if name in EXTRA_DATASETS.get(extra, DATASETS):
+                if name in EXTRA_DATASETS.get(extra, DATASETS + EXTRA_DATASETS_ALL):
                     header.append(f"{short} {EXTRA_COLUMNS[extra][0]}")
         header.append("fit s (" + " / ".join(names) + ")")
         table, json_rows = [], []
@@ -539,14 +567,14 @@ def tables(sweeps, rows, args):
                     {},
                 )
                 record[name] = {k: v for k, v in row.items() if k not in ("dataset", "warnings")}
-                columns = DATASET_COLUMNS["aces" if name == "aces" else "sim"]
+                columns = DATASET_COLUMNS["aces" if name.startswith("aces") else "sim"]
                 if "error" in row:
                     cells += ["error: " + row["error"][:60].replace("|", "/")]
                     cells += [""] * (len(columns) - 1)
                 else:
                     cells += [cell(row) for _, cell in columns]
                 for extra in sweep.extra:
-                    if name in EXTRA_DATASETS.get(extra, DATASETS):
+                    if name in EXTRA_DATASETS.get(extra, DATASETS + EXTRA_DATASETS_ALL):
                         cells.append("" if "error" in row else EXTRA_COLUMNS[extra][1](row))
                 fit_s.append(fmt(row.get("fit_s"), ".0f") or "-")
             cells.append(" / ".join(fit_s))
@@ -584,9 +612,10 @@ def parse_args(argv=None):
     parser.add_argument(
         "--datasets",
         nargs="+",
-        choices=DATASETS,
+        choices=DATASETS + EXTRA_DATASETS_ALL,
         default=list(DATASETS),
-        help="tuning datasets (default all)",
+        help="tuning datasets (default: " + " ".join(DATASETS) + "; aces_all trains on every "
+        "ACES scan)",
     )
     parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
     parser.add_argument(

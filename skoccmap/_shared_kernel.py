@@ -3,21 +3,25 @@
 Product-of-experts training of distributed GPs (Deisenroth & Ng, ICML 2015, eq. 8): the
 experts are independent given the hyperparameters, so the log evidence of the whole map is
 approximated by the sum of the experts' log evidences, and its gradient by the sum of their
-gradients. Each term is computed on one spatially compact piece of the map (an expert's
-data), which is the data the kernel will be used on; a sparse sample spread over the whole
-map is not, and was seen to learn a 70 m length scale on the Intel log.
+gradients. Each term is computed on one spatially compact piece of the map, the kind of
+data the kernel will be used on; a sparse sample spread over the whole map is not, and was
+seen to learn a 70 m length scale on the Intel log. The pieces are the experts' own data, or
+windows of a fixed radius holding at most an expert's number of rows (:func:`window_pieces`):
+the same area and the same number of observations however dense the scans, so that the
+learned length scale does not follow the density of the scans.
 """
 
 import warnings
 
 import numpy as np
+from scipy.spatial import cKDTree
 from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.utils.parallel import Parallel, delayed
 
 from .classifier import _minimize_in_bounds
 
-__all__ = ["learn_shared_kernel", "warn_at_bounds"]
+__all__ = ["learn_shared_kernel", "warn_at_bounds", "window_pieces"]
 
 # A learned log-hyperparameter within this distance of a bound counts as at the bound.
 _AT_BOUND_ATOL = 1e-3
@@ -41,6 +45,52 @@ def _negative_sum(theta, fitted, n_jobs):
     if not (np.isfinite(value) and np.all(np.isfinite(grad))):
         return np.inf, np.zeros_like(theta)
     return -value, -grad
+
+
+def window_pieces(points, y, *, radius, max_rows, n_pieces, random_state):
+    """Row indices of up to ``n_pieces`` spatial windows, each holding both classes.
+
+    A window is centred on an occupied row drawn at random and holds the rows whose
+    ``points`` lie within ``radius`` of the centre, a random ``max_rows`` of them when there
+    are more. Centres are drawn until ``n_pieces`` windows hold both classes, or
+    ``10 * n_pieces`` centres were tried.
+
+    Parameters
+    ----------
+    points : ndarray of shape (n_rows, n_dims)
+        A location per row (a segment's midpoint).
+    y : ndarray of shape (n_rows,)
+        Labels, 1 for occupied.
+    radius : float
+        Radius of a window, in the units of ``points``.
+    max_rows : int
+        Rows kept per window.
+    n_pieces : int
+        Windows wanted.
+    random_state : RandomState
+        Draws the centres and the rows kept.
+
+    Returns
+    -------
+    pieces : list of ndarray of int
+        Sorted row indices of each window.
+    """
+    occupied = np.flatnonzero(y == 1)
+    if occupied.size == 0 or occupied.size == y.size:
+        return []
+    tree = cKDTree(points)
+    pieces = []
+    for _ in range(10 * n_pieces):
+        centre = points[occupied[random_state.randint(occupied.size)]]
+        rows = np.asarray(tree.query_ball_point(centre, radius), dtype=np.intp)
+        if rows.size > max_rows:
+            rows = random_state.choice(rows, max_rows, replace=False)
+        labels = y[rows]
+        if 0 < labels.sum() < rows.size:
+            pieces.append(np.sort(rows))
+            if len(pieces) == n_pieces:
+                break
+    return pieces
 
 
 def learn_shared_kernel(expert, pieces, *, n_jobs=None):

@@ -24,7 +24,7 @@ from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._reach import ExpertReach, kernel_reach
-from ._shared_kernel import learn_shared_kernel, warn_at_bounds
+from ._shared_kernel import learn_shared_kernel, warn_at_bounds, window_pieces
 from .combine import COMBINERS, combine_pairs
 from .observations import HIT, NO_RETURN, RETURN, split_segments
 
@@ -42,9 +42,11 @@ _NO_RETURN_PAIRS = 1 << 18
 _NO_RETURN_FIRST = 4
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
-# Experts whose summed evidence learns the shared hyperparameters: a few dozen fix one or
-# two hyperparameters, at a cost that does not grow with the map.
+# Pieces (experts or windows) whose summed evidence learns the shared hyperparameters: a
+# few dozen fix one or two hyperparameters, at a cost that does not grow with the map; rows
+# per window when experts are not size-bounded.
 _SHARED_PIECES = 32
+_SHARED_WINDOW_ROWS = 400
 
 
 def _as_segment_rows(X, layout):
@@ -684,6 +686,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "max_beam_length": [Interval(Real, 0, None, closed="neither"), None],
         "beam_end_length": [Interval(Real, 0, None, closed="neither"), None],
         "share_hyperparameters": ["boolean"],
+        "hyperparameter_window": [Interval(Real, 0, None, closed="neither"), None],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "reach_tolerance": [Interval(Real, 0, 1, closed="neither")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
@@ -706,6 +709,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         max_beam_length=1.0,
         beam_end_length=0.5,
         share_hyperparameters=True,
+        hyperparameter_window=None,
         gating_threshold=1e-3,
         reach_tolerance=1e-2,
         return_radius=0.1,
@@ -724,6 +728,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.max_beam_length = max_beam_length
         self.beam_end_length = beam_end_length
         self.share_hyperparameters = share_hyperparameters
+        self.hyperparameter_window = hyperparameter_window
         self.gating_threshold = gating_threshold
         self.reach_tolerance = reach_tolerance
         self.return_radius = return_radius
@@ -1372,19 +1377,30 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 "share_hyperparameters=True needs an expert with 'kernel' and 'optimizer' "
                 f"parameters; {type(expert).__name__} lacks them."
             )
-        two_class = [k for k, r in enumerate(rows) if 0 < y[r].sum() < r.size]
-        if not two_class:
+        if self.hyperparameter_window is None:
+            # Experts' own (compact) pieces, a random subset of them: each term is one
+            # expert's fit, so a few dozen fix a handful of hyperparameters at a bounded
+            # cost however large the map.
+            two_class = [r for r in rows if 0 < y[r].sum() < r.size]
+            chosen = rng.choice(len(two_class), min(len(two_class), _SHARED_PIECES), replace=False)
+            windows = [two_class[k] for k in np.sort(chosen)]
+        else:
+            windows = window_pieces(
+                _midpoints(X),
+                y,
+                radius=self.hyperparameter_window,
+                max_rows=self.max_expert_size or _SHARED_WINDOW_ROWS,
+                n_pieces=_SHARED_PIECES,
+                random_state=rng,
+            )
+        if not windows:
             return expert
-        # The summed evidence of experts' own (compact) pieces, on a random subset of them:
-        # each term is one expert's fit, so a few dozen pieces fix a handful of
-        # hyperparameters at a bounded cost however large the map.
-        chosen = np.sort(rng.choice(two_class, min(len(two_class), _SHARED_PIECES), replace=False))
-        _log(self.verbose, f"learning shared hyperparameters on {chosen.size} expert(s)")
+        _log(self.verbose, f"learning shared hyperparameters on {len(windows)} piece(s)")
         learner = clone(expert)
         if "random_state" in learner.get_params():
             learner.set_params(random_state=rng.randint(np.iinfo(np.int32).max))
         self.shared_kernel_ = learn_shared_kernel(
-            learner, [(X[rows[k]], y[rows[k]]) for k in chosen], n_jobs=self.n_jobs
+            learner, [(X[piece], y[piece]) for piece in windows], n_jobs=self.n_jobs
         )
         if params["optimizer"] is not None:
             warn_at_bounds(self.shared_kernel_, "shared kernel")

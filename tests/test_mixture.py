@@ -368,6 +368,36 @@ def test_share_hyperparameters_learns_once():
     assert not np.allclose(own.theta, learned.theta, atol=1e-2)
 
 
+def test_hyperparameter_window_learns_on_windows(paper, monkeypatch):
+    import skoccmap.mixture as mixture_module
+    from skoccmap._shared_kernel import learn_shared_kernel, window_pieces
+
+    seen = {}
+
+    def recording(points, y, **kwargs):
+        seen["pieces"] = window_pieces(points, y, **kwargs)
+        seen["radius"] = kwargs["radius"]
+        seen["max_rows"] = kwargs["max_rows"]
+        return seen["pieces"]
+
+    monkeypatch.setattr(mixture_module, "window_pieces", recording)
+    expert = GaussianProcessClassifier(C(4.0, "fixed") * RBF(1.0))
+    model = _mixture(
+        expert=expert, hyperparameter_window=2.5, max_expert_size=150, share_hyperparameters=True
+    ).fit(paper.X, paper.y)
+    assert seen["radius"] == 2.5 and seen["max_rows"] == 150
+    assert seen["pieces"] and all(p.size <= 150 for p in seen["pieces"])
+    # The learned kernel is the summed-evidence optimum of exactly those windows.
+    pieces, source = _beam_pieces(
+        paper.X, paper.kind, model.max_beam_length, model.beam_end_length
+    )
+    y = paper.y[source]
+    expected = learn_shared_kernel(expert, [(pieces[p], y[p]) for p in seen["pieces"]])
+    np.testing.assert_allclose(model.shared_kernel_.theta, expected.theta, atol=1e-4)
+    default = _mixture(expert=expert, share_hyperparameters=True).fit(paper.X, paper.y)
+    assert not np.allclose(default.shared_kernel_.theta, model.shared_kernel_.theta, atol=1e-3)
+
+
 def test_share_hyperparameters_needs_kernel_param(paper):
     model = _mixture(expert=_NoKernelExpert(), share_hyperparameters=True)
     with pytest.raises(ValueError, match="share_hyperparameters"):

@@ -2,12 +2,13 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy.spatial.distance import cdist
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process.kernels import RBF
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
 from skoccmap import EPGaussianProcessClassifier
-from skoccmap._shared_kernel import learn_shared_kernel, warn_at_bounds
+from skoccmap._shared_kernel import learn_shared_kernel, warn_at_bounds, window_pieces
 
 
 def _piece(seed, n=40):
@@ -54,3 +55,68 @@ def test_warns_at_bounds_only():
         warnings.simplefilter("error")
         warn_at_bounds(C(10.0, (1e-3, 1e3)) * RBF(0.5, (1e-2, 1e2)), "shared kernel")
         warn_at_bounds(C(1e3, "fixed") * RBF(0.5, (1e-2, 1e2)), "shared kernel")
+
+
+def _scatter(n=600, seed=0):
+    rng = np.random.RandomState(seed)
+    points = rng.uniform(0, 20, size=(n, 2))
+    y = (rng.uniform(size=n) < 0.3).astype(int)
+    return points, y
+
+
+def test_windows_are_balls_around_occupied_points():
+    points, y = _scatter()
+    radius = 2.0
+    pieces = window_pieces(
+        points,
+        y,
+        radius=radius,
+        max_rows=10_000,
+        n_pieces=5,
+        random_state=np.random.RandomState(1),
+    )
+    assert len(pieces) == 5
+    occupied = points[y == 1]
+    for rows in pieces:
+        assert np.all(np.diff(rows) > 0)
+        assert 0 < y[rows].sum() < rows.size
+        # Not capped: the window is exactly the ball around one occupied point.
+        inside = cdist(occupied, points) <= radius
+        assert any(np.array_equal(np.flatnonzero(ball), rows) for ball in inside)
+
+
+def test_windows_are_capped_and_reproducible():
+    points, y = _scatter()
+    kwargs = dict(radius=5.0, max_rows=30, n_pieces=8)
+    first = window_pieces(points, y, random_state=np.random.RandomState(3), **kwargs)
+    again = window_pieces(points, y, random_state=np.random.RandomState(3), **kwargs)
+    assert len(first) == 8
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert a.size == 30
+        assert cdist(points[a], points[a]).max() <= 2 * 5.0
+
+
+def test_windows_need_both_classes():
+    points, _ = _scatter()
+    for y in (np.zeros(len(points), int), np.ones(len(points), int)):
+        assert (
+            window_pieces(
+                points,
+                y,
+                radius=3.0,
+                max_rows=50,
+                n_pieces=4,
+                random_state=np.random.RandomState(0),
+            )
+            == []
+        )
+    # Occupied rows far from every free row: no window holds both classes.
+    y = np.r_[np.ones(10, int), np.zeros(10, int)]
+    points = np.r_[np.zeros((10, 2)), np.full((10, 2), 100.0)]
+    assert (
+        window_pieces(
+            points, y, radius=3.0, max_rows=50, n_pieces=4, random_state=np.random.RandomState(0)
+        )
+        == []
+    )
