@@ -350,33 +350,93 @@ class _ConstantExpert:
         return ndtri(self.proba_) * np.sqrt(1.0 + var), var
 
 
-def _fit_expert(expert, X, y, sites=None):
+def _takes_kernel_matrix(expert):
+    """Whether ``expert`` can be fitted on a kernel matrix computed outside it.
+
+    Only a classifier whose kernel is fixed (no optimiser) uses ``kernel(X, X)`` as it is,
+    and only :class:`~skoccmap.EPGaussianProcessClassifier` takes the matrix.
+    """
+    if not hasattr(expert, "_fit_warm_start") or not hasattr(expert, "get_params"):
+        return False
+    params = expert.get_params()
+    return params.get("kernel") is not None and params.get("optimizer", 0) is None
+
+
+def _packed_kernel(K):
+    """Lower triangle of a symmetric kernel matrix (half of its memory)."""
+    return K[np.tri(K.shape[0], dtype=bool)]
+
+
+def _unpacked_kernel(lower):
+    """The symmetric matrix of a :func:`_packed_kernel` triangle."""
+    n = int(round((np.sqrt(8 * lower.size + 1) - 1) / 2))
+    K = np.empty((n, n))
+    mask = np.tri(n, dtype=bool)
+    K[mask] = lower
+    K.T[mask] = lower
+    return K
+
+
+def _training_kernel(kernel, X, previous=None):
+    """``kernel(X, X)``, reusing the entries of a previous fit's matrix where it can.
+
+    ``previous`` is ``(lower, position)``: the packed matrix of an earlier fit and, per row
+    of ``X``, its row in that fit (-1 for a new row). Only the new rows' blocks are
+    evaluated; the integral kernel over segments is most of an expert's refit, and an
+    update adds a few rows to an expert of hundreds.
+    """
+    if previous is None:
+        return kernel(X)
+    lower, position = previous
+    old, new = np.flatnonzero(position >= 0), np.flatnonzero(position < 0)
+    K = np.empty((X.shape[0], X.shape[0]))
+    K[np.ix_(old, old)] = _unpacked_kernel(lower)[np.ix_(position[old], position[old])]
+    if new.size:
+        # The new-new block by the symmetric evaluation, so that K stays exactly symmetric.
+        K[np.ix_(new, new)] = kernel(X[new])
+        if old.size:
+            cross = kernel(X[new], X[old])
+            K[np.ix_(new, old)] = cross
+            K[np.ix_(old, new)] = cross.T
+    return K
+
+
+def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False):
     """Fit one expert; one-class data get a :class:`_ConstantExpert`.
 
     ``sites``, a pair ``(site_precision, site_nu)`` per row, warm-starts an expert that
     can take them (:class:`~skoccmap.EPGaussianProcessClassifier`); others ignore them.
+    With ``keep_kernel``, an expert with a fixed kernel is fitted on ``kernel(X, X)``
+    computed here (from ``previous``, see :func:`_training_kernel`), which is returned,
+    packed, for the next refit.
 
-    Returns the expert and the warnings its fit raised, as ``(category, message)`` pairs:
-    warnings raised in worker processes would otherwise never reach the caller. Only the
-    main thread of a process records them (``catch_warnings`` is process-wide state, not
-    safe in threads); expert fits in threads warn as usual.
+    Returns the expert, the warnings its fit raised, as ``(category, message)`` pairs
+    (warnings raised in worker processes would otherwise never reach the caller), and the
+    packed kernel matrix or None. Only the main thread of a process records warnings
+    (``catch_warnings`` is process-wide state, not safe in threads); expert fits in threads
+    warn as usual.
     """
     n_positive = int(np.sum(y == 1))
     if n_positive in (0, y.size):
         kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
-        return _ConstantExpert(kernel, n_positive, y.size), []
+        return _ConstantExpert(kernel, n_positive, y.size), [], None
+    K = None
+    if keep_kernel and _takes_kernel_matrix(expert):
+        K = _training_kernel(expert.get_params()["kernel"], X, previous)
     fit = expert.fit
-    if sites is not None and hasattr(expert, "_fit_warm_start"):
+    if (sites is not None or K is not None) and hasattr(expert, "_fit_warm_start"):
+        tau, nu = (None, None) if sites is None else sites
 
         def fit(X, y):
-            return expert._fit_warm_start(X, y, *sites)
+            return expert._fit_warm_start(X, y, tau, nu, kernel_matrix=K)
 
+    lower = None if K is None else _packed_kernel(K)
     if threading.current_thread() is not threading.main_thread():
-        return fit(X, y), []
+        return fit(X, y), [], lower
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         expert = fit(X, y)
-    return expert, [(w.category, str(w.message)) for w in caught]
+    return expert, [(w.category, str(w.message)) for w in caught], lower
 
 
 def _warn_once_each(expert_warnings, n_experts):
@@ -567,6 +627,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         with the expert kernel's length scale (the paper's rule; see Notes). Keep it a
         few cm above the ``free_margin`` of
         :func:`~skoccmap.observations.scans_to_observations` (0.05 m).
+    kernel_cache_size : float, default=256
+        Memory (MB) for the training kernel matrices of the experts, kept between
+        :meth:`partial_fit` calls (their lower triangles, of the most recently fitted
+        experts). The refit of a kept expert evaluates the kernel only between its new
+        rows and all its rows, and reuses the rest: an update adds tens of rows to each of
+        dozens of experts of hundreds, and evaluating the integral kernel over segments is
+        about half the cost of a refit. A 400-row expert's triangle takes 0.64 MB. Used
+        only when the experts' kernel is fixed (``share_hyperparameters=True``, or an
+        expert without optimiser); :meth:`refit_hyperparameters` empties it. Refits match
+        those without the cache to rounding (entries of ``k(new, old)`` are evaluated with
+        the new row first). 0 keeps none. Not pickled.
     layout : {"segments", "points"}, default="segments"
         How rows of ``X`` are read. ``"segments"``: ``[start, end]`` rows with ``2 * D``
         columns, as everywhere in skoccmap (odd column counts are rejected).
@@ -687,6 +758,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "reach_tolerance": [Interval(Real, 0, 1, closed="neither")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
+        "kernel_cache_size": [Interval(Real, 0, None, closed="left")],
         "layout": [StrOptions({"segments", "points"})],
         "n_jobs": [Integral, None],
         "random_state": ["random_state"],
@@ -709,6 +781,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         gating_threshold=1e-3,
         reach_tolerance=1e-2,
         return_radius=0.1,
+        kernel_cache_size=256,
         layout="segments",
         n_jobs=None,
         random_state=None,
@@ -727,6 +800,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.gating_threshold = gating_threshold
         self.reach_tolerance = reach_tolerance
         self.return_radius = return_radius
+        self.kernel_cache_size = kernel_cache_size
         self.layout = layout
         self.n_jobs = n_jobs
         self.random_state = random_state
@@ -736,6 +810,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         tags = super().__sklearn_tags__()
         tags.classifier_tags.multi_class = False
         return tags
+
+    def __getstate__(self):
+        # The kernel cache only speeds up later partial_fit calls; a pickled map (and a
+        # deep copy) goes without it.
+        state = super().__getstate__()
+        state.pop("_kernel_cache", None)
+        return state
 
     # -- fit -------------------------------------------------------------------------
 
@@ -784,6 +865,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         labels = self._split_clusters(X, labels, anchor, n_pieces)
         self.cluster_labels_ = labels
         self.n_experts_ = int(self.expert_cluster_.size)
+        self._kernel_cache = {}
         self.experts_ = self._fit_experts(pieces, y_enc[source], labels[source], expert, rng)
         _log(
             self.verbose,
@@ -923,6 +1005,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             raise ValueError("refit_hyperparameters needs share_hyperparameters=True.")
         expert = self._make_expert()
         rows = _groups(self._piece_expert, self.n_experts_)
+        # The kept kernel matrices are of the old hyperparameters.
+        self._kernel_cache = {}
         base = self._learn_shared(self._pieces, self._piece_y, rows, expert, self._rng)
         self._expert_base = base
         everyone = np.arange(self.n_experts_)
@@ -1189,15 +1273,57 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 np.where(found, old.site_nu_[where], 0.0),
             )
 
+        cache = getattr(self, "_kernel_cache", {})
+        keep = self.kernel_cache_size > 0
+
+        def previous(k):
+            # The old expert's kernel matrix, and the row of it each row of k had.
+            lower = cache.get(old_experts[origin[k]]) if keep else None
+            source = old_rows[origin[k]]
+            if lower is None or lower.size != source.size * (source.size + 1) // 2:
+                return None
+            where = np.searchsorted(source, rows[k]).clip(0, max(source.size - 1, 0))
+            return lower, np.where(source[where] == rows[k], where, -1)
+
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            delayed(_fit_expert)(prepared(j), pieces[rows[k]], piece_y[rows[k]], sites(k))
+            delayed(_fit_expert)(
+                prepared(j),
+                pieces[rows[k]],
+                piece_y[rows[k]],
+                sites(k),
+                previous=previous(k),
+                keep_kernel=keep,
+            )
             for j, k in enumerate(touched)
         )
-        _warn_once_each([w for _, w in results], len(touched))
+        _warn_once_each([w for _, w, _ in results], len(touched))
         experts = list(old_experts)
-        for k, (est, _) in zip(touched, results, strict=True):
+        for k, (est, _, _) in zip(touched, results, strict=True):
             experts[k] = est
+        self._cache_kernels(
+            [est for est, _, _ in results], [lower for _, _, lower in results], experts
+        )
         return experts
+
+    def _cache_kernels(self, fitted, lowers, experts):
+        """Keep the kernel matrices of the ``fitted`` experts, within ``kernel_cache_size``.
+
+        The cache maps an expert (the object) to its packed matrix, the most recently
+        fitted last; matrices of experts no longer in ``experts`` (refitted or split) are
+        dropped, then the oldest until the cache fits its budget.
+        """
+        cache = self.__dict__.setdefault("_kernel_cache", {})
+        for est, lower in zip(fitted, lowers, strict=True):
+            if lower is not None:
+                cache.pop(est, None)
+                cache[est] = lower
+        alive = {id(est) for est in experts}
+        for est in [est for est in cache if id(est) not in alive]:
+            del cache[est]
+        budget = self.kernel_cache_size * 2**20
+        total = sum(lower.nbytes for lower in cache.values())
+        while cache and total > budget:
+            total -= cache.pop(next(iter(cache))).nbytes
 
     def _update_index(self):
         """Reach and spatial index of prediction from all training pieces."""
@@ -1357,12 +1483,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         self._expert_base = base
         _log(self.verbose, f"fitting {n_experts} expert(s) with n_jobs={self.n_jobs}")
+        # Kernel matrices kept for later partial_fit calls: of the last experts, as many as
+        # the cache holds, so that no more than its budget is ever returned by the workers.
+        packed_bytes = np.array([8 * r.size * (r.size + 1) // 2 for r in rows])
+        from_end = np.cumsum(packed_bytes[::-1])[::-1]
+        keep = from_end <= self.kernel_cache_size * 2**20
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]])
+            delayed(_fit_expert)(
+                prepared(k, base), X[rows[k]], y[rows[k]], keep_kernel=bool(keep[k])
+            )
             for k in range(n_experts)
         )
-        _warn_once_each([expert_warnings for _, expert_warnings in results], n_experts)
-        return [est for est, _ in results]
+        _warn_once_each([expert_warnings for _, expert_warnings, _ in results], n_experts)
+        experts = [est for est, _, _ in results]
+        self._cache_kernels(experts, [lower for _, _, lower in results], experts)
+        return experts
 
     def _learn_shared(self, X, y, rows, expert, rng):
         """The expert with the shared kernel, fixed (or ``expert`` if no piece can learn)."""
