@@ -277,6 +277,36 @@ def test_refit_hyperparameters_empties_the_kernel_cache():
     assert not set(map(id, model._kernel_cache)) & set(map(id, before))
 
 
+@pytest.mark.parametrize("growth, relearns", [(2.0, True), (2.5, False), (None, False)])
+def test_hyperparameters_relearned_when_the_rows_grow(growth, relearns):
+    data = make_paper_scans(random_state=0)
+    model = MixtureGPOccupancyMap(
+        max_expert_size=300, hyperparameter_growth=growth, random_state=0
+    ).fit(data.X, data.y)
+    kernel, n_rows = model.shared_kernel_, model._pieces.shape[0]
+    # The same scans again, shifted: about twice the rows (a few beams end near a hit of
+    # the other copy and are cut as return beams).
+    model.partial_fit(data.X + 0.01, data.y)
+    assert 2 * n_rows <= model._pieces.shape[0] < 2.5 * n_rows
+    assert (model.shared_kernel_ is not kernel) == relearns
+    assert model._learned_rows == (model._pieces.shape[0] if relearns else n_rows)
+    if relearns:
+        # Every expert has the new kernel, and the cache none of the old matrices.
+        assert {repr(e.kernel_) for e in model.experts_ if hasattr(e, "site_nu_")} == {
+            repr(model.shared_kernel_)
+        }
+        assert set(map(id, model._kernel_cache)) <= set(map(id, model.experts_))
+
+
+def test_fixed_kernel_is_not_relearned(office):
+    data, _ = office
+    model = _model().partial_fit(*_batch(data, 0, 5), classes=[0, 1])
+    n_rows, kernel = model._pieces.shape[0], model.shared_kernel_
+    model.partial_fit(*_batch(data, 5, 15))
+    assert model._pieces.shape[0] >= 2 * n_rows
+    assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
+
+
 # -- DPGMMClusterer.partial_fit ----------------------------------------------------------
 
 
