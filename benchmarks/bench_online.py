@@ -48,6 +48,7 @@ def replay(train, batch, n_jobs, n_batches=None, log=True):
     for b, first in enumerate(starts, 1):
         X, y, _ = train[first : first + batch].to_observations()
         tic = time.perf_counter()
+        learned = getattr(model, "_learned_rows", None)
         model.partial_fit(X, y, classes=[0, 1])
         seconds = time.perf_counter() - tic
         records.append(
@@ -59,21 +60,24 @@ def replay(train, batch, n_jobs, n_batches=None, log=True):
                 touched=int(model.touched_experts_.size),
                 n_experts=int(model.n_experts_),
                 n_clusters=int(model.n_clusters_),
+                # hyperparameter_growth re-learned the shared kernel (all experts refitted).
+                relearned=bool(b > 1 and model._learned_rows != learned),
             )
         )
         if log:
             r = records[-1]
             print(
                 f"batch {b}/{len(starts)}: {r['scans_seen']} scans, {seconds:.2f} s, "
-                f"{r['touched']} of {r['n_experts']} experts touched",
+                f"{r['touched']} of {r['n_experts']} experts touched"
+                + (", hyperparameters re-learned" if r["relearned"] else ""),
                 flush=True,
             )
     return model, records
 
 
-def slope(records):
+def slope(records, skip_relearned=False):
     """Log-log slope of update time against scans seen, updates after the first."""
-    later = records[1:]
+    later = [r for r in records[1:] if not (skip_relearned and r["relearned"])]
     if len(later) < 2:
         return float("nan")
     x = np.log([r["scans_seen"] for r in later])
@@ -137,6 +141,8 @@ def main(argv=None):
         median_update_share_of_fit=median_s / fit_s,
         median_touched_last_half=float(np.median([r["touched"] for r in last_half])),
         slope=slope(records),
+        slope_without_relearning=slope(records, skip_relearned=True),
+        relearned_at_scans=[r["scans_seen"] for r in records if r["relearned"]],
         records=records,
     )
     if args.check_n_jobs:
@@ -166,8 +172,9 @@ def main(argv=None):
          abs(online_auc - fit_auc) <= 0.005),
         ("median update (last half) <= 5 % of fit", f"{median_s:.2f} s = "
          f"{100 * median_s / fit_s:.1f} %", median_s <= 0.05 * fit_s),
-        ("log-log slope of update time <= 0.2", f"{result['slope']:.2f}",
-         result["slope"] <= 0.2),
+        ("log-log slope of update time <= 0.2", f"{result['slope']:.2f} "
+         f"({result['slope_without_relearning']:.2f} without the "
+         f"{len(result['relearned_at_scans'])} re-learning updates)", result["slope"] <= 0.2),
     ]  # fmt: skip
     if args.check_n_jobs:
         checks.append(

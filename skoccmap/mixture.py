@@ -887,7 +887,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             self.verbose,
             f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
         )
-        self.reach_ = self._reach(pieces)
+        kernels = self._kernels()
+        self.reach_ = self._reach(pieces, kernels)
+        self._reach_kernels = None if kernels is None else frozenset(kernels)
         self._reach_index = ExpertReach(pieces, labels[source], self.n_experts_, self.reach_)
         self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
         self._keep_training_state(X, y_enc, anchor, pieces, source, rng)
@@ -1278,7 +1280,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
         if relearn:
             self._relearn_shared(rows, old_experts, old_rows, origin)
-        self._update_index()
+            self._update_index()
+        else:
+            previous = np.full(n_experts, -1, dtype=np.intp)
+            previous[renumber[:n_old_experts]] = np.arange(n_old_experts)
+            self._update_index(touched, previous)
         if self.gating == "gpc":
             mids = self._row_mids
             self.gating_ = self._fit_gpc_gate(np.hstack([mids, mids]), row_expert, rng)
@@ -1370,29 +1376,59 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         while cache and total > budget:
             total -= cache.pop(next(iter(cache))).nbytes
 
-    def _update_index(self):
-        """Reach and spatial index of prediction from all training pieces."""
-        self.reach_ = self._reach(self._pieces)
+    def _update_index(self, touched=None, previous=None):
+        """Reach and spatial index of prediction from all training pieces.
+
+        With ``touched`` (experts whose pieces changed) and ``previous`` (every expert's
+        number in the current index, -1 if new), and the experts' kernels as when the
+        reach was found, the reach stays and only the touched experts' entries of the
+        index are recomputed (:meth:`ExpertReach.updated`, equal to a rebuild on the same
+        grid). The reach is probed on a grid scaled by the data's extent, so a rebuild
+        from scratch could move it by a few percent as the map grows; any value from the
+        probes bounds the kernel below the tolerance beyond it.
+        """
+        kernels = self._kernels()
+        index = getattr(self, "_reach_index", None)
+        if (
+            touched is not None
+            and index is not None
+            and np.isfinite(self.reach_)
+            and kernels is not None
+            and frozenset(kernels) == getattr(self, "_reach_kernels", None)
+        ):
+            self._reach_index = index.updated(
+                self._pieces, self._piece_expert, self.n_experts_, touched, previous
+            )
+            return
+        self.reach_ = self._reach(self._pieces, kernels)
+        self._reach_kernels = None if kernels is None else frozenset(kernels)
         self._reach_index = ExpertReach(
             self._pieces, self._piece_expert, self.n_experts_, self.reach_
         )
 
-    def _reach(self, pieces):
+    def _kernels(self):
+        """The experts' distinct fitted kernels by repr; None if one exposes none."""
+        kernels = {}
+        for est in self.experts_:
+            kernel = getattr(est, "kernel_", None)
+            if kernel is None and not isinstance(est, _ConstantExpert):
+                return None
+            if kernel is not None:
+                kernels.setdefault(repr(kernel), kernel)
+        return kernels
+
+    def _reach(self, pieces, kernels=None):
         """Distance beyond which the experts' kernels fall below ``reach_tolerance``.
 
         The largest over the experts' fitted kernels (one kernel when shared); ``inf``
         when an expert exposes no ``kernel_`` or its kernel does not decay.
         """
+        kernels = self._kernels() if kernels is None else kernels
+        if kernels is None:
+            return np.inf
         dim = pieces.shape[1] // 2
         ends = np.vstack([pieces[:, :dim], pieces[:, dim:]])
         extent = float(np.linalg.norm(np.ptp(ends, axis=0)))
-        kernels = {}
-        for est in self.experts_:
-            kernel = getattr(est, "kernel_", None)
-            if kernel is None and not isinstance(est, _ConstantExpert):
-                return np.inf
-            if kernel is not None:
-                kernels.setdefault(repr(kernel), kernel)
         reaches = [kernel_reach(k, dim, self.reach_tolerance, extent) for k in kernels.values()]
         return max(reaches, default=np.inf)
 

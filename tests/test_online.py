@@ -307,6 +307,22 @@ def test_fixed_kernel_is_not_relearned(office):
     assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
 
 
+def test_updated_index_equals_a_rebuilt_one(office):
+    from skoccmap._reach import ExpertReach
+
+    data, queries = office
+    model = _model()
+    for first in range(0, 20, 5):
+        model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+        index = model._reach_index
+        rebuilt = ExpertReach(
+            model._pieces, model._piece_expert, model.n_experts_, model.reach_, index.origin
+        )
+        for got, want in zip(index.candidates(queries), rebuilt.candidates(queries), strict=True):
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(index._table_experts, rebuilt._table_experts)
+
+
 # -- DPGMMClusterer.partial_fit ----------------------------------------------------------
 
 
