@@ -8,6 +8,7 @@ every expert so that a query is sent to the experts with data within a *reach* o
 """
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 
 __all__ = ["ExpertReach", "kernel_reach"]
@@ -173,6 +174,13 @@ class ExpertReach:
             centre = (np.asarray(sub) + 0.5) * 0.5  # in block units, within its block
             gap = np.maximum(np.maximum(grid - centre, centre - grid - 1.0), 0.0)
             self._stencils.append(grid[np.einsum("ij,ij->i", gap, gap) <= radius**2])
+        # The same offsets as boolean footprints centred on the cell's block.
+        self._span = span
+        self._footprints = []
+        for stencil in self._stencils:
+            footprint = np.zeros((2 * span + 1,) * dim, dtype=bool)
+            footprint[tuple((stencil + span).T)] = True
+            self._footprints.append(footprint)
 
     def _cells_of(self, segments, expert, which):
         """Unique cells (sorted) of the points sampled along each expert's segments.
@@ -208,38 +216,44 @@ class ExpertReach:
         return out
 
     def _blocks_of(self, cells_list):
-        """Sorted unique codes of the blocks within reach of each expert's cells."""
-        stencils = self._stencils
-        step = max(1, _BATCH // max(len(s) for s in stencils))
-        sizes = np.array([len(c) for c in cells_list], dtype=np.int64)
+        """Sorted unique codes of the blocks within reach of each expert's cells.
+
+        Per compact expert, a raster of blocks over its cells' bounding box (grown by the
+        stencils' span) is dilated by the stencil of each position of a cell in its
+        block: the cost is that of the expert's area, not of cells times stencil. An
+        expert whose box holds more blocks than its cells' stencils have entries lists
+        those entries instead.
+        """
+        span = self._span
+        entries = max(len(s) for s in self._stencils)
         out = []
-        first = 0
-        while first < len(cells_list):
-            # Whole experts, about ``step`` cells in all.
-            last = first + max(1, int(np.searchsorted(np.cumsum(sizes[first:]), step)))
-            last = min(last, len(cells_list))
-            cells = np.concatenate([cells_list[k] for k in range(first, last)])
-            local = np.repeat(np.arange(last - first), sizes[first:last])
+        for cells in cells_list:
+            if len(cells) == 0:
+                out.append(np.empty(0, dtype=np.int64))
+                continue
             # A cell is half a block: its block and its position in it are exact in
             # integers.
             cell_block, sub = np.divmod(cells, 2)
             sub_code = sub @ (1 << np.arange(self.dim)[::-1])
-            codes, owners = [], []
-            for code, stencil in enumerate(stencils):
-                mine = np.flatnonzero(sub_code == code)
-                blocks = cell_block[mine, None, :] + stencil[None]
-                codes.append(_codes(blocks.reshape(-1, self.dim)))
-                owners.append(np.repeat(local[mine], len(stencil)))
-            codes, owners = np.concatenate(codes), np.concatenate(owners)
-            keep = codes >= 0
-            codes, owners = codes[keep], owners[keep]
-            order = np.lexsort((codes, owners))
-            codes, owners = codes[order], owners[order]
-            new = np.r_[True, (codes[1:] != codes[:-1]) | (owners[1:] != owners[:-1])]
-            codes, owners = codes[new], owners[new]
-            split = np.searchsorted(owners, np.arange(last - first + 1))
-            out.extend(codes[lo:hi] for lo, hi in zip(split[:-1], split[1:], strict=True))
-            first = last
+            lo = cell_block.min(axis=0) - span
+            shape = tuple(cell_block.max(axis=0) - lo + span + 1)
+            if np.prod(shape, dtype=np.float64) > len(cells) * entries:
+                blocks = [
+                    (cell_block[sub_code == code, None, :] + stencil[None]).reshape(-1, self.dim)
+                    for code, stencil in enumerate(self._stencils)
+                ]
+                out.append(np.unique(_codes(np.concatenate(blocks))))
+                continue
+            covered = np.zeros(shape, dtype=bool)
+            for code, footprint in enumerate(self._footprints):
+                mine = cell_block[sub_code == code] - lo
+                if len(mine) == 0:
+                    continue
+                seed = np.zeros(shape, dtype=bool)
+                seed[tuple(mine.T)] = True
+                covered |= binary_dilation(seed, structure=footprint)
+            # np.argwhere runs in C order, the order of the codes.
+            out.append(_codes(np.argwhere(covered) + lo))
         return out
 
     def _tree_of(self, cells):

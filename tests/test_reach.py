@@ -170,3 +170,20 @@ def test_updated_index_equals_a_rebuilt_one(dim):
     )
     # The old index is unchanged.
     assert index.n_experts == n_experts and index.cell_expert.max() == n_experts - 1
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_block_table_is_the_stencils_around_every_cell(dim):
+    from skoccmap._reach import _codes
+
+    segments, expert, n_experts = _random_experts(dim, seed=6)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    for k in range(n_experts):
+        # Every cell's block plus every offset of the stencil of its position in it.
+        block, sub = np.divmod(index._cells[k], 2)
+        code = sub @ (1 << np.arange(dim)[::-1])
+        blocks = np.concatenate(
+            [(block[code == c, None, :] + s[None]).reshape(-1, dim) for c, s in
+             enumerate(index._stencils)]
+        )  # fmt: skip
+        np.testing.assert_array_equal(index._blocks[k], np.unique(_codes(blocks)))
