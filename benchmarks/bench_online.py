@@ -9,7 +9,9 @@ same scans. Prints a markdown table and writes ``benchmarks/results/b5_online.js
 
 Targets: final AUC within 0.005 of the fit; the median update time over the last half of the
 replay at most 5 % of the fit's time; the log-log slope of update time against scans seen at
-most 0.2 (updates after the first, which is a fit); the same map for ``n_jobs`` 1 and 2
+most 0.2 (updates after the first, which is a fit, and other than those that re-learn the
+shared hyperparameters and refit every expert: their few large times, early in the replay,
+would pull the slope down); the same map for ``n_jobs`` 1 and 2
 (``--check-n-jobs K`` replays the first K batches with both and compares the predictions).
 With ``--n-jobs 1`` all work runs in this process, and the update and fit times are also
 measured as its CPU time (``time.process_time``), which other jobs on a shared machine do
@@ -199,18 +201,19 @@ def main(argv=None):
          abs(online_auc - fit_auc) <= 0.005),
         ("median update (last half) <= 5 % of fit", f"{median_s:.2f} s = "
          f"{100 * median_s / fit_s:.1f} %", median_s <= 0.05 * fit_s),
-        ("log-log slope of update time <= 0.2", f"{result['slope']:.2f} "
-         f"({result['slope_without_relearning']:.2f} without the "
-         f"{len(result['relearned_at_scans'])} re-learning updates)", result["slope"] <= 0.2),
+        ("log-log slope of update time <= 0.2 (without re-learning updates)",
+         f"{result['slope_without_relearning']:.2f} ({result['slope']:.2f} with the "
+         f"{len(result['relearned_at_scans'])} re-learning updates)",
+         result["slope_without_relearning"] <= 0.2),
     ]  # fmt: skip
     if args.n_jobs == 1:
         # One process does all the work: its CPU time does not count other jobs' load.
         checks += [
             ("median update CPU (last half) <= 5 % of fit CPU", f"{median_cpu:.2f} s = "
              f"{100 * median_cpu / fit_cpu_s:.1f} %", median_cpu <= 0.05 * fit_cpu_s),
-            ("log-log slope of update CPU time <= 0.2", f"{result['slope_cpu']:.2f} "
-             f"({result['slope_cpu_without_relearning']:.2f} without re-learning)",
-             result["slope_cpu"] <= 0.2),
+            ("log-log slope of update CPU time <= 0.2 (without re-learning updates)",
+             f"{result['slope_cpu_without_relearning']:.2f} ({result['slope_cpu']:.2f} with "
+             "them)", result["slope_cpu_without_relearning"] <= 0.2),
         ]  # fmt: skip
     if args.check_n_jobs:
         checks.append(
