@@ -8,6 +8,7 @@ every expert so that a query is sent to the experts with data within a *reach* o
 """
 
 import numpy as np
+from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 
 __all__ = ["ExpertReach", "kernel_reach"]
@@ -16,7 +17,8 @@ __all__ = ["ExpertReach", "kernel_reach"]
 _PROBE = np.geomspace(1e-6, 10.0, 600)
 # Index cells and query blocks, as fractions of the reach: the finer they are, the closer
 # the consulted set comes to "data within reach" (see ExpertReach.slack) and the more
-# entries the index holds.
+# entries the index holds. Cells are half blocks: ExpertReach finds a cell's block and its
+# position in it in integers.
 _CELL = 1.0 / 8.0
 _BLOCK = 1.0 / 4.0
 # The block table's stencils grow as 5**D: beyond 3-D (not a map) every expert is a
@@ -24,6 +26,10 @@ _BLOCK = 1.0 / 4.0
 _MAX_DIM = 3
 # Sample points, or (cell, block) pairs, handled at once while the index is built.
 _BATCH = 1 << 21
+# Bits per axis of a block code (3 axes in a non-negative int64): blocks within 2**20
+# blocks of the origin (about 2.6e5 reaches) are indexed.
+_CODE_BITS = 21
+_CODE_OFFSET = 1 << (_CODE_BITS - 1)
 
 
 def kernel_reach(kernel, dim, tolerance, extent):
@@ -71,6 +77,21 @@ def kernel_reach(kernel, dim, tolerance, extent):
     return float(reach)
 
 
+def _codes(blocks):
+    """Code of each block (integer coordinates relative to the origin), -1 out of range.
+
+    ``_CODE_BITS`` bits per axis, coordinates offset to be non-negative: codes are
+    absolute, so that an expert's blocks keep their codes whatever the other experts'
+    extent, and ordered like the blocks' coordinates lexicographically.
+    """
+    shifted = blocks + _CODE_OFFSET
+    inside = np.all((shifted >= 0) & (shifted < 2 * _CODE_OFFSET), axis=1)
+    code = np.zeros(len(blocks), dtype=np.int64)
+    for d in range(blocks.shape[1]):
+        code = (code << _CODE_BITS) | np.where(inside, shifted[:, d], 0)
+    return np.where(inside, code, -1)
+
+
 def _segment_samples(segments, spacing):
     """Points along each segment no further than ``spacing / 2`` from any of its points."""
     dim = segments.shape[1] // 2
@@ -109,9 +130,12 @@ class ExpertReach:
     reach : float
         Distance beyond which an expert cannot inform a query (``inf``: every expert is a
         candidate everywhere, as for data of more than 3 dimensions).
+    origin : array-like of shape (D,), default=None
+        Corner of the grid of cells; None means the smallest coordinates of the segments.
+        :meth:`updated` keeps it, so that the cells of unchanged experts stay valid.
     """
 
-    def __init__(self, segments, expert, n_experts, reach):
+    def __init__(self, segments, expert, n_experts, reach, origin=None):
         self.dim = dim = segments.shape[1] // 2
         self.n_experts = int(n_experts)
         self.reach = float(reach)
@@ -119,99 +143,179 @@ class ExpertReach:
         if not np.isfinite(self.reach) or len(segments) == 0 or dim > _MAX_DIM:
             self.reach = np.inf
             return
+        if origin is None:
+            origin = np.minimum(segments[:, :dim].min(axis=0), segments[:, dim:].min(axis=0))
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self._set_geometry()
+        everyone = np.arange(self.n_experts)
+        self._cells = self._cells_of(segments, np.asarray(expert), everyone)
+        self._blocks = self._blocks_of(self._cells)
+        self._expert_trees = [self._tree_of(cells) for cells in self._cells]
+        self._assemble()
+
+    def _set_geometry(self):
+        """Cell and block sizes, slack and block stencils, all proportional to the reach."""
+        dim = self.dim
         self.cell = _CELL * self.reach
         self.block = _BLOCK * self.reach
-        grown = 0.5 * self.cell * (np.sqrt(dim) + 1.0)
-        self.slack = self.block * np.sqrt(dim) + 2.0 * grown
-        self.origin = np.minimum(segments[:, :dim].min(axis=0), segments[:, dim:].min(axis=0))
-        self.cell_expert, cells = self._cells(segments, np.asarray(expert))
-        centres = self.origin + (cells + 0.5) * self.cell
-        self.tree = cKDTree(centres)
-        self._grown = grown
-        # Keys are sorted by expert: each expert's cells are a contiguous run.
-        bounds = np.searchsorted(self.cell_expert, np.arange(self.n_experts + 1))
-        self._expert_trees = [
-            cKDTree(centres[lo:hi]) if hi > lo else None
-            for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)
-        ]
-        self._tabulate(centres, self.reach + grown)
-
-    def _cells(self, segments, expert):
-        """Unique (expert, cell) of the points sampled along the segments, by expert.
-
-        Experts are taken in batches of about ``_BATCH`` sample points, so that the samples
-        of millions of segments never exist at once.
-        """
-        order = np.argsort(expert, kind="stable")
-        bounds = np.searchsorted(expert[order], np.arange(self.n_experts + 1))
-        dim = self.dim
-        delta = segments[:, dim:] - segments[:, :dim]
-        count = np.ceil(np.sqrt(np.einsum("ij,ij->i", delta, delta)) / self.cell) + 1
-        per_expert = np.cumsum(np.bincount(expert, weights=count, minlength=self.n_experts))
-        ends = np.searchsorted(per_expert, np.arange(_BATCH, per_expert[-1], _BATCH)) + 1
-        ends = np.unique(np.r_[np.minimum(ends, self.n_experts), self.n_experts])
-        experts_out, cells_out = [], []
-        for first, last in zip(np.r_[0, ends[:-1]], ends, strict=True):
-            rows = order[bounds[first] : bounds[last]]
-            if rows.size == 0:
-                continue
-            points, row = _segment_samples(segments[rows], self.cell)
-            cells = np.floor((points - self.origin) / self.cell).astype(np.int64)
-            keys = np.unique(np.column_stack([expert[rows][row], cells]), axis=0)
-            experts_out.append(keys[:, 0])
-            cells_out.append(keys[:, 1:])
-        # Batches hold disjoint experts in increasing order: the result is sorted by expert.
-        return np.concatenate(experts_out).astype(np.intp), np.concatenate(cells_out)
-
-    def _tabulate(self, centres, radius):
-        """CSR table block code -> candidate experts, from the cells grown by ``radius``."""
-        dim, block = self.dim, self.block
-        lo = np.floor((centres.min(axis=0) - radius - self.origin) / block).astype(np.int64)
-        hi = np.floor((centres.max(axis=0) + radius - self.origin) / block).astype(np.int64)
-        self._block_lo, self._block_shape = lo, hi - lo + 1
-        self._block_stride = np.r_[np.cumprod(self._block_shape[::-1])[::-1][1:], 1]
-        # Blocks whose box lies within radius of a cell centre: offsets from the cell's
-        # block, by the cell's position inside it (two per axis: cells are half blocks).
-        span = int(np.ceil(radius / block)) + 1
+        self._grown = 0.5 * self.cell * (np.sqrt(dim) + 1.0)
+        self.slack = self.block * np.sqrt(dim) + 2.0 * self._grown
+        # Blocks whose box lies within reach (of a cell grown by its half-diagonal and half
+        # the sample spacing) of a cell centre: offsets from the cell's block, by the
+        # cell's position inside it (two per axis: cells are half blocks).
+        radius = (self.reach + self._grown) / self.block
+        span = int(np.ceil(radius)) + 1
         grid = np.stack(
             np.meshgrid(*[np.arange(-span, span + 1)] * dim, indexing="ij"), axis=-1
         ).reshape(-1, dim)
-        # np.ndindex runs through the positions in the order of sub_code below.
-        stencils = []
+        # np.ndindex runs through the positions in the order of their codes in _blocks_of.
+        self._stencils = []
         for sub in np.ndindex(*(2,) * dim):
             centre = (np.asarray(sub) + 0.5) * 0.5  # in block units, within its block
             gap = np.maximum(np.maximum(grid - centre, centre - grid - 1.0), 0.0)
-            stencils.append(grid[np.einsum("ij,ij->i", gap, gap) <= (radius / block) ** 2])
-        rel = (centres - self.origin) / block
-        cell_block = np.floor(rel).astype(np.int64)
-        sub = np.minimum((2.0 * (rel - cell_block)).astype(np.int64), 1)
-        sub_code = sub @ (1 << np.arange(dim)[::-1])
-        # Cells are sorted by expert; batches of whole experts give disjoint pair sets, each
-        # made unique within its batch, so that no more than a batch of pairs is ever held.
-        bounds = np.searchsorted(self.cell_expert, np.arange(self.n_experts + 1))
-        step = max(1, _BATCH // max(len(s) for s in stencils))
-        cut = np.searchsorted(bounds, np.arange(step, len(centres), step))
-        pairs = []
-        for first, last in zip(np.r_[0, cut], np.r_[cut, self.n_experts], strict=True):
-            part = np.arange(bounds[first], bounds[last])
-            if part.size == 0:
+            self._stencils.append(grid[np.einsum("ij,ij->i", gap, gap) <= radius**2])
+        # The same offsets as boolean footprints centred on the cell's block.
+        self._span = span
+        self._footprints = []
+        for stencil in self._stencils:
+            footprint = np.zeros((2 * span + 1,) * dim, dtype=bool)
+            footprint[tuple((stencil + span).T)] = True
+            self._footprints.append(footprint)
+
+    def _cells_of(self, segments, expert, which):
+        """Unique cells (sorted) of the points sampled along each expert's segments.
+
+        One array of cell coordinates (relative to ``origin``) per expert of ``which``.
+        Experts are taken in batches of about ``_BATCH`` sample points, so that the samples
+        of millions of segments never exist at once.
+        """
+        dim = self.dim
+        order = np.argsort(expert, kind="stable")
+        bounds = np.searchsorted(expert[order], np.arange(self.n_experts + 1))
+        delta = segments[:, dim:] - segments[:, :dim]
+        count = np.ceil(np.sqrt(np.einsum("ij,ij->i", delta, delta)) / self.cell) + 1
+        per_expert = np.bincount(expert, weights=count, minlength=self.n_experts)[which]
+        total = np.cumsum(per_expert)
+        ends = np.searchsorted(total, np.arange(_BATCH, total[-1] if total.size else 0, _BATCH))
+        ends = np.unique(np.r_[np.minimum(ends + 1, which.size), which.size])
+        out = []
+        for first, last in zip(np.r_[0, ends[:-1]], ends, strict=True):
+            batch = which[first:last]
+            rows = np.concatenate([order[bounds[k] : bounds[k + 1]] for k in batch] + [[]])
+            rows = rows.astype(np.intp)
+            local = np.repeat(np.arange(batch.size), bounds[batch + 1] - bounds[batch])
+            empty = np.empty((0, dim), dtype=np.int64)
+            if rows.size == 0:
+                out.extend([empty] * batch.size)
                 continue
-            found = []
-            for code, stencil in enumerate(stencils):
-                mine = part[sub_code[part] == code]
-                blocks = cell_block[mine, None, :] + stencil[None]
-                found.append(
-                    ((blocks - lo) @ self._block_stride) * self.n_experts
-                    + self.cell_expert[mine, None]
-                )
-            pairs.append(np.unique(np.concatenate([f.ravel() for f in found])))
-        # Unique (block, expert) pairs, sorted by block then expert.
-        pair = np.sort(np.concatenate(pairs))
-        block_code, self._table_experts = np.divmod(pair, self.n_experts)
-        self._table_codes, first = np.unique(block_code, return_index=True)
-        self._table_start = np.r_[first, pair.size]
+            points, row = _segment_samples(segments[rows], self.cell)
+            cells = np.floor((points - self.origin) / self.cell).astype(np.int64)
+            keys = np.unique(np.column_stack([local[row], cells]), axis=0)
+            split = np.searchsorted(keys[:, 0], np.arange(batch.size + 1))
+            out.extend(keys[lo:hi, 1:] for lo, hi in zip(split[:-1], split[1:], strict=True))
+        return out
+
+    def _blocks_of(self, cells_list):
+        """Sorted unique codes of the blocks within reach of each expert's cells.
+
+        Per compact expert, a raster of blocks over its cells' bounding box (grown by the
+        stencils' span) is dilated by the stencil of each position of a cell in its
+        block: the cost is that of the expert's area, not of cells times stencil. An
+        expert whose box holds more blocks than its cells' stencils have entries lists
+        those entries instead.
+        """
+        span = self._span
+        entries = max(len(s) for s in self._stencils)
+        out = []
+        for cells in cells_list:
+            if len(cells) == 0:
+                out.append(np.empty(0, dtype=np.int64))
+                continue
+            # A cell is half a block: its block and its position in it are exact in
+            # integers.
+            cell_block, sub = np.divmod(cells, 2)
+            sub_code = sub @ (1 << np.arange(self.dim)[::-1])
+            lo = cell_block.min(axis=0) - span
+            shape = tuple(cell_block.max(axis=0) - lo + span + 1)
+            if np.prod(shape, dtype=np.float64) > len(cells) * entries:
+                blocks = [
+                    (cell_block[sub_code == code, None, :] + stencil[None]).reshape(-1, self.dim)
+                    for code, stencil in enumerate(self._stencils)
+                ]
+                out.append(np.unique(_codes(np.concatenate(blocks))))
+                continue
+            covered = np.zeros(shape, dtype=bool)
+            for code, footprint in enumerate(self._footprints):
+                mine = cell_block[sub_code == code] - lo
+                if len(mine) == 0:
+                    continue
+                seed = np.zeros(shape, dtype=bool)
+                seed[tuple(mine.T)] = True
+                covered |= binary_dilation(seed, structure=footprint)
+            # np.argwhere runs in C order, the order of the codes.
+            out.append(_codes(np.argwhere(covered) + lo))
+        return out
+
+    def _tree_of(self, cells):
+        return cKDTree(self.origin + (cells + 0.5) * self.cell) if len(cells) else None
+
+    def _assemble(self):
+        """KD-tree over all cells and the CSR table block code -> candidate experts."""
+        counts = [len(c) for c in self._cells]
+        self.cell_expert = np.repeat(np.arange(self.n_experts), counts)
+        cells = np.concatenate(self._cells + [np.empty((0, self.dim), dtype=np.int64)])
+        self.tree = cKDTree(self.origin + (cells + 0.5) * self.cell)
+        codes = np.concatenate(self._blocks + [np.empty(0, dtype=np.int64)])
+        owners = np.repeat(np.arange(self.n_experts), [len(b) for b in self._blocks])
+        # Sorted by block, then expert (the stable sort keeps the experts' order).
+        order = np.argsort(codes, kind="stable")
+        self._table_experts = owners[order]
+        self._table_codes, first = np.unique(codes[order], return_index=True)
+        self._table_start = np.r_[first, codes.size]
         counts = np.diff(self._table_start)
         self.max_candidates = int(counts.max()) if counts.size else 1
+
+    def updated(self, segments, expert, n_experts, touched, previous):
+        """The index after some experts changed, recomputing only theirs.
+
+        Equal to ``ExpertReach(segments, expert, n_experts, reach, origin=self.origin)``:
+        cells are on the grid of this index's origin, and the block table is keyed by
+        absolute block coordinates, so an expert's entries do not depend on the others.
+
+        Parameters
+        ----------
+        segments, expert, n_experts
+            All training segments, their experts and the number of experts, as for the
+            constructor.
+        touched : array-like of int
+            Experts whose segments changed (or that are new).
+        previous : ndarray of shape (n_experts,)
+            For every other expert, its index in this index.
+
+        Returns
+        -------
+        index : ExpertReach
+            A new index; this one is left as it was.
+        """
+        if not np.isfinite(self.reach):
+            return ExpertReach(segments, expert, n_experts, self.reach)
+        new = object.__new__(ExpertReach)
+        new.dim, new.reach, new.origin = self.dim, self.reach, self.origin
+        new.n_experts = int(n_experts)
+        new._set_geometry()
+        touched = np.unique(np.asarray(touched, dtype=np.intp))
+        cells = new._cells_of(segments, np.asarray(expert), touched)
+        new._cells, new._blocks, new._expert_trees = [], [], []
+        for k in range(new.n_experts):
+            j = previous[k]
+            new._cells.append(self._cells[j] if j >= 0 else None)
+            new._blocks.append(self._blocks[j] if j >= 0 else None)
+            new._expert_trees.append(self._expert_trees[j] if j >= 0 else None)
+        blocks = new._blocks_of(cells)
+        for k, c, b in zip(touched, cells, blocks, strict=True):
+            new._cells[k], new._blocks[k], new._expert_trees[k] = c, b, new._tree_of(c)
+        new._assemble()
+        return new
 
     def within_reach(self, queries, query_index, expert_index):
         """Whether each (query, expert) pair has data of the expert within reach.
@@ -241,10 +345,8 @@ class ExpertReach:
         return keep
 
     def _block_codes(self, mids):
-        """Table code of the block of each point, -1 outside the table."""
-        blocks = np.floor((mids - self.origin) / self.block).astype(np.int64) - self._block_lo
-        inside = np.all((blocks >= 0) & (blocks < self._block_shape), axis=1)
-        return np.where(inside, blocks @ self._block_stride, -1)
+        """Table code of the block of each point (-1 too far from the origin to code)."""
+        return _codes(np.floor((mids - self.origin) / self.block).astype(np.int64))
 
     def spatial_order(self, queries):
         """Order of the queries block by block, so that consecutive queries are near."""

@@ -394,11 +394,16 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         # Sites of the last EP run: each optimiser step starts from them (a warm start).
         # _fit_warm_start sets the first start.
         warm = [self.__dict__.pop("_initial_sites", None)]
+        # A kernel matrix handed in by _fit_warm_start is K(X, X) of ``kernel``: valid only
+        # while kernel_ is that kernel, i.e. unless hyperparameters are learned here.
+        K = self.__dict__.pop("_initial_kernel", None)
         if self.optimizer is not None and self.kernel_.n_dims > 0:
             self._optimize_hyperparameters(warm)
             _warn_at_bounds(self.kernel_)
+            K = None
 
-        K = self.kernel_(self.X_train_)
+        if K is None:
+            K = self.kernel_(self.X_train_)
         result = self._run_ep(K, warm)
         if not result.converged:
             warnings.warn(
@@ -420,21 +425,28 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
             )
         )
 
-    def _fit_warm_start(self, X, y, site_precision, site_nu):
+    def _fit_warm_start(self, X, y, site_precision=None, site_nu=None, kernel_matrix=None):
         """``fit``, with the first EP run started from the given sites (a warm start).
 
         EP iterates to the same fixed point (within ``tol``) from any start; sites from an
         earlier fit on most of the same rows (zeros for new rows) need fewer sweeps. If EP
         does not converge from them it restarts from zero sites, as every warm start here.
+        ``kernel_matrix``, ``kernel(X, X)`` computed by the caller (e.g. mostly from an
+        earlier fit's matrix), replaces that evaluation in a binary fit whose kernel is not
+        learned; it is ignored otherwise.
         """
-        self._initial_sites = (
-            np.asarray(site_precision, dtype=np.float64),
-            np.asarray(site_nu, dtype=np.float64),
-        )
+        if site_precision is not None:
+            self._initial_sites = (
+                np.asarray(site_precision, dtype=np.float64),
+                np.asarray(site_nu, dtype=np.float64),
+            )
+        if kernel_matrix is not None:
+            self._initial_kernel = np.asarray(kernel_matrix, dtype=np.float64)
         try:
             return self.fit(X, y)
         finally:
             self.__dict__.pop("_initial_sites", None)
+            self.__dict__.pop("_initial_kernel", None)
 
     def _run_ep(self, K, warm):
         """EP started from the sites in ``warm[0]`` (zeros if None); from zero sites if that

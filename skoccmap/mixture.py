@@ -352,33 +352,93 @@ class _ConstantExpert:
         return ndtri(self.proba_) * np.sqrt(1.0 + var), var
 
 
-def _fit_expert(expert, X, y, sites=None):
+def _takes_kernel_matrix(expert):
+    """Whether ``expert`` can be fitted on a kernel matrix computed outside it.
+
+    Only a classifier whose kernel is fixed (no optimiser) uses ``kernel(X, X)`` as it is,
+    and only :class:`~skoccmap.EPGaussianProcessClassifier` takes the matrix.
+    """
+    if not hasattr(expert, "_fit_warm_start") or not hasattr(expert, "get_params"):
+        return False
+    params = expert.get_params()
+    return params.get("kernel") is not None and params.get("optimizer", 0) is None
+
+
+def _packed_kernel(K):
+    """Lower triangle of a symmetric kernel matrix (half of its memory)."""
+    return K[np.tri(K.shape[0], dtype=bool)]
+
+
+def _unpacked_kernel(lower):
+    """The symmetric matrix of a :func:`_packed_kernel` triangle."""
+    n = int(round((np.sqrt(8 * lower.size + 1) - 1) / 2))
+    K = np.empty((n, n))
+    mask = np.tri(n, dtype=bool)
+    K[mask] = lower
+    K.T[mask] = lower
+    return K
+
+
+def _training_kernel(kernel, X, previous=None):
+    """``kernel(X, X)``, reusing the entries of a previous fit's matrix where it can.
+
+    ``previous`` is ``(lower, position)``: the packed matrix of an earlier fit and, per row
+    of ``X``, its row in that fit (-1 for a new row). Only the new rows' blocks are
+    evaluated; the integral kernel over segments is most of an expert's refit, and an
+    update adds a few rows to an expert of hundreds.
+    """
+    if previous is None:
+        return kernel(X)
+    lower, position = previous
+    old, new = np.flatnonzero(position >= 0), np.flatnonzero(position < 0)
+    K = np.empty((X.shape[0], X.shape[0]))
+    K[np.ix_(old, old)] = _unpacked_kernel(lower)[np.ix_(position[old], position[old])]
+    if new.size:
+        # The new-new block by the symmetric evaluation, so that K stays exactly symmetric.
+        K[np.ix_(new, new)] = kernel(X[new])
+        if old.size:
+            cross = kernel(X[new], X[old])
+            K[np.ix_(new, old)] = cross
+            K[np.ix_(old, new)] = cross.T
+    return K
+
+
+def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False):
     """Fit one expert; one-class data get a :class:`_ConstantExpert`.
 
     ``sites``, a pair ``(site_precision, site_nu)`` per row, warm-starts an expert that
     can take them (:class:`~skoccmap.EPGaussianProcessClassifier`); others ignore them.
+    With ``keep_kernel``, an expert with a fixed kernel is fitted on ``kernel(X, X)``
+    computed here (from ``previous``, see :func:`_training_kernel`), which is returned,
+    packed, for the next refit.
 
-    Returns the expert and the warnings its fit raised, as ``(category, message)`` pairs:
-    warnings raised in worker processes would otherwise never reach the caller. Only the
-    main thread of a process records them (``catch_warnings`` is process-wide state, not
-    safe in threads); expert fits in threads warn as usual.
+    Returns the expert, the warnings its fit raised, as ``(category, message)`` pairs
+    (warnings raised in worker processes would otherwise never reach the caller), and the
+    packed kernel matrix or None. Only the main thread of a process records warnings
+    (``catch_warnings`` is process-wide state, not safe in threads); expert fits in threads
+    warn as usual.
     """
     n_positive = int(np.sum(y == 1))
     if n_positive in (0, y.size):
         kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
-        return _ConstantExpert(kernel, n_positive, y.size), []
+        return _ConstantExpert(kernel, n_positive, y.size), [], None
+    K = None
+    if keep_kernel and _takes_kernel_matrix(expert):
+        K = _training_kernel(expert.get_params()["kernel"], X, previous)
     fit = expert.fit
-    if sites is not None and hasattr(expert, "_fit_warm_start"):
+    if (sites is not None or K is not None) and hasattr(expert, "_fit_warm_start"):
+        tau, nu = (None, None) if sites is None else sites
 
         def fit(X, y):
-            return expert._fit_warm_start(X, y, *sites)
+            return expert._fit_warm_start(X, y, tau, nu, kernel_matrix=K)
 
+    lower = None if K is None else _packed_kernel(K)
     if threading.current_thread() is not threading.main_thread():
-        return fit(X, y), []
+        return fit(X, y), [], lower
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         expert = fit(X, y)
-    return expert, [(w.category, str(w.message)) for w in caught]
+    return expert, [(w.category, str(w.message)) for w in caught], lower
 
 
 def _warn_once_each(expert_warnings, n_experts):
@@ -554,12 +614,29 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         1.26 / 0.58 / 0.61 / 0.60 m with every 10th training scan and 1.59 / 0.51 / 0.61 /
         0.68 m with every scan (changes of 26 / 14 / 0 / 13 %), for held-out AUC 0.952 /
         0.928 / 0.930 / 0.930 (every 10th) and 0.973 / 0.974 / 0.975 / 0.975 (every scan);
-        the office finds 92.6 / 93.3 / 92.7 /
-        92.7 % of its walls (ECE 0.021 / 0.035 / 0.024 / 0.023) and the paper's world 84.9
-        / 90.7 / 88.2 / 86.3 %. The windows' shorter length scale extrapolates less into
-        space the training scans barely saw, which costs held-out AUC on sparse scans:
-        ``None`` stays the default. Use a radius where maps are refitted as scans
-        accumulate and should keep one length scale.
+        the office finds 92.6 / 93.3 / 92.7 / 92.7 % of its walls (ECE 0.021 / 0.035 /
+        0.024 / 0.023) and the paper's world 84.9 / 90.7 / 88.2 / 86.3 %. The windows'
+        shorter length scale extrapolates less into space the training scans barely saw,
+        which costs held-out AUC on sparse scans: ``None`` stays the default. Use a radius
+        where maps are refitted as scans accumulate and should keep one length scale.
+    hyperparameter_growth : float or None, default=2.0
+        :meth:`partial_fit` re-learns the shared hyperparameters, and refits every expert
+        with them (as :meth:`refit_hyperparameters` does), whenever the training rows
+        (beam pieces) have grown by this factor since they were last learned. Learned on
+        the first batch only, the length scale fits a few scans of the map: replaying the
+        first 120 training scans of Intel (``benchmarks/bench_online.py``, every 2nd scan,
+        batches of 5, never re-learned) ends at 1.30 m against 1.16 m for one fit on the
+        same scans, and held-out AUC 0.919 against 0.935; one
+        :meth:`refit_hyperparameters` call at the end gives 0.937. With the default the
+        same replay re-learns at 10, 20, 45 and 95 scans and ends at 1.20 m and AUC 0.924;
+        on the first 200 scans (re-learned at 190 scans too) at 0.90 m and AUC 0.946,
+        against 1.35 m and 0.932 for the fit. The length scale learned from 32 pieces
+        varies by tens of percent from one draw to another, and the AUC with it: one fit
+        of the 120 scans gives 0.929 to 0.935 over four seeds. Re-learning at a fixed
+        growth factor refits all experts a logarithmic number of times, i.e. a constant
+        amortised cost per added row; 2 was not tuned. ``None`` keeps the first batch's
+        hyperparameters. Only with ``share_hyperparameters=True`` and hyperparameters to
+        learn.
     gating_threshold : float, default=1e-3
         Of the experts within reach of a query (see ``reach_tolerance``), those whose
         gating weight there is below this are skipped (the one with the largest weight
@@ -587,6 +664,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         with the expert kernel's length scale (the paper's rule; see Notes). Keep it a
         few cm above the ``free_margin`` of
         :func:`~skoccmap.observations.scans_to_observations` (0.05 m).
+    kernel_cache_size : float, default=256
+        Memory (MB) for the training kernel matrices of the experts, kept between
+        :meth:`partial_fit` calls (their lower triangles, of the most recently fitted
+        experts). The refit of a kept expert evaluates the kernel only between its new
+        rows and all its rows, and reuses the rest: an update adds tens of rows to each of
+        dozens of experts of hundreds, and evaluating the integral kernel over segments is
+        about half the cost of a refit. A 400-row expert's triangle takes 0.64 MB. Used
+        only when the experts' kernel is fixed (``share_hyperparameters=True``, or an
+        expert without optimiser); :meth:`refit_hyperparameters` empties it. Refits match
+        those without the cache to rounding (entries of ``k(new, old)`` are evaluated with
+        the new row first). 0 keeps none. Not pickled.
     layout : {"segments", "points"}, default="segments"
         How rows of ``X`` are read. ``"segments"``: ``[start, end]`` rows with ``2 * D``
         columns, as everywhere in skoccmap (odd column counts are rejected).
@@ -705,9 +793,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "beam_end_length": [Interval(Real, 0, None, closed="neither"), None],
         "share_hyperparameters": ["boolean"],
         "hyperparameter_window": [Interval(Real, 0, None, closed="neither"), None],
+        "hyperparameter_growth": [Interval(Real, 1, None, closed="neither"), None],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "reach_tolerance": [Interval(Real, 0, 1, closed="neither")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
+        "kernel_cache_size": [Interval(Real, 0, None, closed="left")],
         "layout": [StrOptions({"segments", "points"})],
         "n_jobs": [Integral, None],
         "random_state": ["random_state"],
@@ -728,9 +818,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         beam_end_length=0.5,
         share_hyperparameters=True,
         hyperparameter_window=None,
+        hyperparameter_growth=2.0,
         gating_threshold=1e-3,
         reach_tolerance=1e-2,
         return_radius=0.1,
+        kernel_cache_size=256,
         layout="segments",
         n_jobs=None,
         random_state=None,
@@ -747,9 +839,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.beam_end_length = beam_end_length
         self.share_hyperparameters = share_hyperparameters
         self.hyperparameter_window = hyperparameter_window
+        self.hyperparameter_growth = hyperparameter_growth
         self.gating_threshold = gating_threshold
         self.reach_tolerance = reach_tolerance
         self.return_radius = return_radius
+        self.kernel_cache_size = kernel_cache_size
         self.layout = layout
         self.n_jobs = n_jobs
         self.random_state = random_state
@@ -759,6 +853,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         tags = super().__sklearn_tags__()
         tags.classifier_tags.multi_class = False
         return tags
+
+    def __getstate__(self):
+        # The kernel cache only speeds up later partial_fit calls; a pickled map (and a
+        # deep copy) goes without it.
+        state = super().__getstate__()
+        state.pop("_kernel_cache", None)
+        return state
 
     # -- fit -------------------------------------------------------------------------
 
@@ -807,12 +908,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         labels = self._split_clusters(X, labels, anchor, n_pieces)
         self.cluster_labels_ = labels
         self.n_experts_ = int(self.expert_cluster_.size)
+        self._kernel_cache = {}
         self.experts_ = self._fit_experts(pieces, y_enc[source], labels[source], expert, rng)
         _log(
             self.verbose,
             f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
         )
-        self.reach_ = self._reach(pieces)
+        kernels = self._kernels()
+        self.reach_ = self._reach(pieces, kernels)
+        self._reach_kernels = None if kernels is None else frozenset(kernels)
         self._reach_index = ExpertReach(pieces, labels[source], self.n_experts_, self.reach_)
         self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
         self._keep_training_state(X, y_enc, anchor, pieces, source, rng)
@@ -848,7 +952,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         Untouched experts stay the same objects. The training rows (cut into pieces)
         are kept, so memory grows linearly with the data; :meth:`refit_hyperparameters`
-        re-learns the shared hyperparameters from all of them.
+        re-learns the shared hyperparameters from all of them, and so does an update
+        that grows the rows by ``hyperparameter_growth`` since they were last learned
+        (it then refits every expert instead of step 3's).
 
         Parameters
         ----------
@@ -920,10 +1026,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def refit_hyperparameters(self):
         """Re-learn the shared hyperparameters on all data so far and refit every expert.
 
-        :meth:`partial_fit` keeps the hyperparameters learned by the first fit; after the
-        map has grown much, this learns them again as :meth:`fit` does (from up to 32
-        experts' pieces), refits all experts (warm-started from their sites), and
-        updates the reach and the spatial index. Clusters and pieces stay.
+        :meth:`partial_fit` keeps the hyperparameters learned by the first fit, or last
+        re-learned when the rows grew by ``hyperparameter_growth``; this learns them again
+        now as :meth:`fit` does (from up to 32 experts' pieces), refits all experts
+        (warm-started from their sites), and updates the reach and the spatial index.
+        Clusters and pieces stay.
 
         Returns
         -------
@@ -944,17 +1051,38 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         check_is_fitted(self)
         if not self.share_hyperparameters:
             raise ValueError("refit_hyperparameters needs share_hyperparameters=True.")
-        expert = self._make_expert()
         rows = _groups(self._piece_expert, self.n_experts_)
-        base = self._learn_shared(self._pieces, self._piece_y, rows, expert, self._rng)
-        self._expert_base = base
-        everyone = np.arange(self.n_experts_)
-        self.experts_ = self._refit_experts(
-            everyone, rows, self._piece_y, self.experts_, rows, everyone
-        )
-        self.touched_experts_ = everyone
+        self._relearn_shared(rows, self.experts_, rows, np.arange(self.n_experts_))
         self._update_index()
         return self
+
+    def _relearn_shared(self, rows, old_experts, old_rows, origin):
+        """Learn the shared kernel on the training state and refit every expert with it.
+
+        ``old_experts``, ``old_rows`` and ``origin`` give each expert its warm start, as in
+        :meth:`_refit_experts`.
+        """
+        expert = self._make_expert()
+        # The kept kernel matrices are of the old hyperparameters.
+        self._kernel_cache = {}
+        base = self._learn_shared(self._pieces, self._piece_y, rows, expert, self._rng)
+        self._expert_base = base
+        self._learned_rows = self._pieces.shape[0]
+        everyone = np.arange(self.n_experts_)
+        self.experts_ = self._refit_experts(
+            everyone, rows, self._piece_y, old_experts, old_rows, origin
+        )
+        self.touched_experts_ = everyone
+
+    def _relearns_at(self, n_rows):
+        """Whether an update to ``n_rows`` training rows re-learns the shared kernel."""
+        if self.hyperparameter_growth is None or not self.share_hyperparameters:
+            return False
+        params = self._make_expert().get_params()
+        kernel = params.get("kernel")
+        if params.get("optimizer") is None or kernel is None or kernel.n_dims == 0:
+            return False
+        return n_rows >= self.hyperparameter_growth * self._learned_rows
 
     def _keep_training_state(self, X, y_enc, anchor, pieces, source, rng):
         """What :meth:`partial_fit` needs of the training data: pieces, hits, anchors."""
@@ -970,6 +1098,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._piece_y = y_enc[source]
         self._piece_expert = self.cluster_labels_[source]
         self._piece_hit = self._row_hit[source]
+        self._learned_rows = pieces.shape[0]
         self.touched_experts_ = np.arange(self.n_experts_)
 
     def _new_hit_clusters(self, hits):
@@ -1153,10 +1282,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 row_groups = _groups(row_expert, n_experts)
             piece_gates[c] = _PieceGate([row_mids[row_groups[k]] for k in ks])
 
-        # 7. Refit the touched experts (in parallel, warm-started).
-        experts = self._refit_experts(
-            touched, rows, piece_y, old_experts, old_rows, origin, pieces=all_pieces
-        )
+        # 7. Refit the touched experts (in parallel, warm-started), or every expert with
+        # re-learned hyperparameters once the data have grown enough (after the commit).
+        relearn = self._relearns_at(all_pieces.shape[0])
+        experts = old_experts
+        if not relearn:
+            experts = self._refit_experts(
+                touched, rows, piece_y, old_experts, old_rows, origin, pieces=all_pieces
+            )
 
         # Commit.
         self.cluster_ids_, self.cluster_merge_ = cluster_ids, cluster_merge
@@ -1172,7 +1305,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._row_hit = row_hit
         self._pieces, self._piece_y = all_pieces, piece_y
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
-        self._update_index()
+        if relearn:
+            self._relearn_shared(rows, old_experts, old_rows, origin)
+            self._update_index()
+        else:
+            previous = np.full(n_experts, -1, dtype=np.intp)
+            previous[renumber[:n_old_experts]] = np.arange(n_old_experts)
+            self._update_index(touched, previous)
         if self.gating == "gpc":
             mids = self._row_mids
             self.gating_ = self._fit_gpc_gate(np.hstack([mids, mids]), row_expert, rng)
@@ -1212,39 +1351,111 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 np.where(found, old.site_nu_[where], 0.0),
             )
 
+        cache = getattr(self, "_kernel_cache", {})
+        keep = self.kernel_cache_size > 0
+
+        def previous(k):
+            # The old expert's kernel matrix, and the row of it each row of k had.
+            lower = cache.get(old_experts[origin[k]]) if keep else None
+            source = old_rows[origin[k]]
+            if lower is None or lower.size != source.size * (source.size + 1) // 2:
+                return None
+            where = np.searchsorted(source, rows[k]).clip(0, max(source.size - 1, 0))
+            return lower, np.where(source[where] == rows[k], where, -1)
+
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            delayed(_fit_expert)(prepared(j), pieces[rows[k]], piece_y[rows[k]], sites(k))
+            delayed(_fit_expert)(
+                prepared(j),
+                pieces[rows[k]],
+                piece_y[rows[k]],
+                sites(k),
+                previous=previous(k),
+                keep_kernel=keep,
+            )
             for j, k in enumerate(touched)
         )
-        _warn_once_each([w for _, w in results], len(touched))
+        _warn_once_each([w for _, w, _ in results], len(touched))
         experts = list(old_experts)
-        for k, (est, _) in zip(touched, results, strict=True):
+        for k, (est, _, _) in zip(touched, results, strict=True):
             experts[k] = est
+        self._cache_kernels(
+            [est for est, _, _ in results], [lower for _, _, lower in results], experts
+        )
         return experts
 
-    def _update_index(self):
-        """Reach and spatial index of prediction from all training pieces."""
-        self.reach_ = self._reach(self._pieces)
+    def _cache_kernels(self, fitted, lowers, experts):
+        """Keep the kernel matrices of the ``fitted`` experts, within ``kernel_cache_size``.
+
+        The cache maps an expert (the object) to its packed matrix, the most recently
+        fitted last; matrices of experts no longer in ``experts`` (refitted or split) are
+        dropped, then the oldest until the cache fits its budget.
+        """
+        cache = self.__dict__.setdefault("_kernel_cache", {})
+        for est, lower in zip(fitted, lowers, strict=True):
+            if lower is not None:
+                cache.pop(est, None)
+                cache[est] = lower
+        alive = {id(est) for est in experts}
+        for est in [est for est in cache if id(est) not in alive]:
+            del cache[est]
+        budget = self.kernel_cache_size * 2**20
+        total = sum(lower.nbytes for lower in cache.values())
+        while cache and total > budget:
+            total -= cache.pop(next(iter(cache))).nbytes
+
+    def _update_index(self, touched=None, previous=None):
+        """Reach and spatial index of prediction from all training pieces.
+
+        With ``touched`` (experts whose pieces changed) and ``previous`` (every expert's
+        number in the current index, -1 if new), and the experts' kernels as when the
+        reach was found, the reach stays and only the touched experts' entries of the
+        index are recomputed (:meth:`ExpertReach.updated`, equal to a rebuild on the same
+        grid). The reach is probed on a grid scaled by the data's extent, so a rebuild
+        from scratch could move it by a few percent as the map grows; any value from the
+        probes bounds the kernel below the tolerance beyond it.
+        """
+        kernels = self._kernels()
+        index = getattr(self, "_reach_index", None)
+        if (
+            touched is not None
+            and index is not None
+            and np.isfinite(self.reach_)
+            and kernels is not None
+            and frozenset(kernels) == getattr(self, "_reach_kernels", None)
+        ):
+            self._reach_index = index.updated(
+                self._pieces, self._piece_expert, self.n_experts_, touched, previous
+            )
+            return
+        self.reach_ = self._reach(self._pieces, kernels)
+        self._reach_kernels = None if kernels is None else frozenset(kernels)
         self._reach_index = ExpertReach(
             self._pieces, self._piece_expert, self.n_experts_, self.reach_
         )
 
-    def _reach(self, pieces):
+    def _kernels(self):
+        """The experts' distinct fitted kernels by repr; None if one exposes none."""
+        kernels = {}
+        for est in self.experts_:
+            kernel = getattr(est, "kernel_", None)
+            if kernel is None and not isinstance(est, _ConstantExpert):
+                return None
+            if kernel is not None:
+                kernels.setdefault(repr(kernel), kernel)
+        return kernels
+
+    def _reach(self, pieces, kernels=None):
         """Distance beyond which the experts' kernels fall below ``reach_tolerance``.
 
         The largest over the experts' fitted kernels (one kernel when shared); ``inf``
         when an expert exposes no ``kernel_`` or its kernel does not decay.
         """
+        kernels = self._kernels() if kernels is None else kernels
+        if kernels is None:
+            return np.inf
         dim = pieces.shape[1] // 2
         ends = np.vstack([pieces[:, :dim], pieces[:, dim:]])
         extent = float(np.linalg.norm(np.ptp(ends, axis=0)))
-        kernels = {}
-        for est in self.experts_:
-            kernel = getattr(est, "kernel_", None)
-            if kernel is None and not isinstance(est, _ConstantExpert):
-                return np.inf
-            if kernel is not None:
-                kernels.setdefault(repr(kernel), kernel)
         reaches = [kernel_reach(k, dim, self.reach_tolerance, extent) for k in kernels.values()]
         return max(reaches, default=np.inf)
 
@@ -1380,12 +1591,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         self._expert_base = base
         _log(self.verbose, f"fitting {n_experts} expert(s) with n_jobs={self.n_jobs}")
+        # Kernel matrices kept for later partial_fit calls: of the last experts, as many as
+        # the cache holds, so that no more than its budget is ever returned by the workers.
+        packed_bytes = np.array([8 * r.size * (r.size + 1) // 2 for r in rows])
+        from_end = np.cumsum(packed_bytes[::-1])[::-1]
+        keep = from_end <= self.kernel_cache_size * 2**20
         results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            delayed(_fit_expert)(prepared(k, base), X[rows[k]], y[rows[k]])
+            delayed(_fit_expert)(
+                prepared(k, base), X[rows[k]], y[rows[k]], keep_kernel=bool(keep[k])
+            )
             for k in range(n_experts)
         )
-        _warn_once_each([expert_warnings for _, expert_warnings in results], n_experts)
-        return [est for est, _ in results]
+        _warn_once_each([expert_warnings for _, expert_warnings, _ in results], n_experts)
+        experts = [est for est, _, _ in results]
+        self._cache_kernels(experts, [lower for _, _, lower in results], experts)
+        return experts
 
     def _learn_shared(self, X, y, rows, expert, rng):
         """The expert with the shared kernel, fixed (or ``expert`` if no piece can learn)."""

@@ -204,6 +204,125 @@ def test_refit_hyperparameters():
         _model(share_hyperparameters=False).fit(data.X, data.y).refit_hyperparameters()
 
 
+def test_training_kernel_from_a_previous_matrix():
+    from skoccmap.mixture import _packed_kernel, _training_kernel, _unpacked_kernel
+
+    data = make_office_scans(random_state=0)
+    kernel = ConstantKernel(100.0) * IntegralKernel(0.8)
+    rows = data.X[np.random.default_rng(0).permutation(data.X.shape[0])[:120]]
+    full = kernel(rows)
+    np.testing.assert_array_equal(_unpacked_kernel(_packed_kernel(full)), full)
+    # An earlier fit on 80 of the rows, in another order, and 10 rows it had that are gone.
+    rng = np.random.default_rng(1)
+    earlier = rng.permutation(np.r_[np.arange(80), np.arange(120, 130)])
+    other = np.vstack([rows, data.X[-10:]])
+    lower = _packed_kernel(kernel(other[earlier]))
+    inverse = np.full(130, -1)
+    inverse[earlier] = np.arange(earlier.size)
+    K = _training_kernel(kernel, rows, (lower, inverse[:120]))
+    np.testing.assert_array_equal(K, K.T)
+    np.testing.assert_allclose(K, full, rtol=1e-10, atol=1e-10 * full.max())
+    np.testing.assert_array_equal(_training_kernel(kernel, rows), full)
+
+
+def test_kernel_cache_gives_the_same_map(office):
+    data, queries = office
+    maps, models = [], []
+    for cache in (256, 0):
+        model = _model(kernel_cache_size=cache)
+        for first in range(0, 30, 5):
+            model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+        maps.append(model.latent_mean_and_variance(queries))
+        models.append(model)
+    cached, fresh = models
+    # Every fitted GP expert's matrix is kept (the budget holds them all), none without.
+    n_gp = sum(hasattr(est, "site_nu_") for est in cached.experts_)
+    assert len(cached._kernel_cache) == n_gp > 0
+    assert set(map(id, cached._kernel_cache)) <= set(map(id, cached.experts_))
+    assert not fresh._kernel_cache
+    for a, b in zip(maps[0], maps[1], strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-8)
+    for a, b in zip(cached.experts_, fresh.experts_, strict=True):
+        if hasattr(a, "site_nu_"):
+            np.testing.assert_allclose(a.site_nu_, b.site_nu_, rtol=1e-6, atol=1e-8)
+
+
+def test_kernel_cache_budget_and_pickle(office):
+    import pickle
+
+    data, _ = office
+    # About two 150-row experts' triangles.
+    model = _model(kernel_cache_size=0.2)
+    for first in range(0, 20, 5):
+        model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+    cache = model._kernel_cache
+    assert 0 < len(cache) < model.n_experts_
+    assert sum(lower.nbytes for lower in cache.values()) <= 0.2 * 2**20
+    # The most recently refitted experts are the ones kept.
+    touched = {id(model.experts_[k]) for k in model.touched_experts_}
+    assert set(map(id, cache)) <= touched
+    copy = pickle.loads(pickle.dumps(model))
+    assert not hasattr(copy, "_kernel_cache")
+    copy.partial_fit(*_batch(data, 20, 25))
+    model.partial_fit(*_batch(data, 20, 25))
+    assert copy.n_experts_ == model.n_experts_
+
+
+def test_refit_hyperparameters_empties_the_kernel_cache():
+    data = make_paper_scans(random_state=0)
+    model = MixtureGPOccupancyMap(max_expert_size=300, random_state=0).fit(data.X, data.y)
+    before = dict(model._kernel_cache)
+    assert before
+    model.refit_hyperparameters()
+    assert not set(map(id, model._kernel_cache)) & set(map(id, before))
+
+
+@pytest.mark.parametrize("growth, relearns", [(2.0, True), (2.5, False), (None, False)])
+def test_hyperparameters_relearned_when_the_rows_grow(growth, relearns):
+    data = make_paper_scans(random_state=0)
+    model = MixtureGPOccupancyMap(
+        max_expert_size=300, hyperparameter_growth=growth, random_state=0
+    ).fit(data.X, data.y)
+    kernel, n_rows = model.shared_kernel_, model._pieces.shape[0]
+    # The same scans again, shifted: about twice the rows (a few beams end near a hit of
+    # the other copy and are cut as return beams).
+    model.partial_fit(data.X + 0.01, data.y)
+    assert 2 * n_rows <= model._pieces.shape[0] < 2.5 * n_rows
+    assert (model.shared_kernel_ is not kernel) == relearns
+    assert model._learned_rows == (model._pieces.shape[0] if relearns else n_rows)
+    if relearns:
+        # Every expert has the new kernel, and the cache none of the old matrices.
+        assert {repr(e.kernel_) for e in model.experts_ if hasattr(e, "site_nu_")} == {
+            repr(model.shared_kernel_)
+        }
+        assert set(map(id, model._kernel_cache)) <= set(map(id, model.experts_))
+
+
+def test_fixed_kernel_is_not_relearned(office):
+    data, _ = office
+    model = _model().partial_fit(*_batch(data, 0, 5), classes=[0, 1])
+    n_rows, kernel = model._pieces.shape[0], model.shared_kernel_
+    model.partial_fit(*_batch(data, 5, 15))
+    assert model._pieces.shape[0] >= 2 * n_rows
+    assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
+
+
+def test_updated_index_equals_a_rebuilt_one(office):
+    from skoccmap._reach import ExpertReach
+
+    data, queries = office
+    model = _model()
+    for first in range(0, 20, 5):
+        model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+        index = model._reach_index
+        rebuilt = ExpertReach(
+            model._pieces, model._piece_expert, model.n_experts_, model.reach_, index.origin
+        )
+        for got, want in zip(index.candidates(queries), rebuilt.candidates(queries), strict=True):
+            np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(index._table_experts, rebuilt._table_experts)
+
+
 # -- DPGMMClusterer.partial_fit ----------------------------------------------------------
 
 

@@ -138,3 +138,52 @@ def test_building_the_index_in_batches_changes_nothing(dim, monkeypatch):
     queries = np.hstack([segments[:, :dim], segments[:, :dim]]) + 0.3
     for got, want in zip(batched.candidates(queries), whole.candidates(queries), strict=True):
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_updated_index_equals_a_rebuilt_one(dim):
+    segments, expert, n_experts = _random_experts(dim, seed=4)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    # Rows added to experts 3 and 7 and to a new expert, partly below the grid's origin;
+    # experts renumbered (reversed).
+    rng = np.random.default_rng(0)
+    extra = segments[:50] + rng.normal(0, 3, size=(50, 2 * dim)) - 2.0
+    number = np.r_[np.arange(n_experts)[::-1], n_experts]
+    all_segments = np.vstack([segments, extra])
+    all_expert = number[np.r_[expert, np.full(25, 3), np.full(25, n_experts)]]
+    previous = np.full(n_experts + 1, -1)
+    previous[number[:n_experts]] = np.arange(n_experts)
+    touched = [number[3], number[7], n_experts]
+    updated = index.updated(all_segments, all_expert, n_experts + 1, touched, previous)
+    rebuilt = ExpertReach(all_segments, all_expert, n_experts + 1, 1.5, origin=index.origin)
+    for name in ("cell_expert", "_table_codes", "_table_experts", "_table_start"):
+        np.testing.assert_array_equal(getattr(updated, name), getattr(rebuilt, name))
+    np.testing.assert_array_equal(updated.tree.data, rebuilt.tree.data)
+    assert updated.max_candidates == rebuilt.max_candidates
+    queries = np.hstack([all_segments[:, :dim], all_segments[:, :dim]]) + 0.3
+    queries[::5, dim:] += 0.5  # some query segments
+    for got, want in zip(updated.candidates(queries), rebuilt.candidates(queries), strict=True):
+        np.testing.assert_array_equal(got, want)
+    pairs = updated.candidates(queries)
+    np.testing.assert_array_equal(
+        updated.within_reach(queries, *pairs), rebuilt.within_reach(queries, *pairs)
+    )
+    # The old index is unchanged.
+    assert index.n_experts == n_experts and index.cell_expert.max() == n_experts - 1
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_block_table_is_the_stencils_around_every_cell(dim):
+    from skoccmap._reach import _codes
+
+    segments, expert, n_experts = _random_experts(dim, seed=6)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    for k in range(n_experts):
+        # Every cell's block plus every offset of the stencil of its position in it.
+        block, sub = np.divmod(index._cells[k], 2)
+        code = sub @ (1 << np.arange(dim)[::-1])
+        blocks = np.concatenate(
+            [(block[code == c, None, :] + s[None]).reshape(-1, dim) for c, s in
+             enumerate(index._stencils)]
+        )  # fmt: skip
+        np.testing.assert_array_equal(index._blocks[k], np.unique(_codes(blocks)))
