@@ -628,15 +628,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         batches of 5, never re-learned) ends at 1.30 m against 1.16 m for one fit on the
         same scans, and held-out AUC 0.919 against 0.935; one
         :meth:`refit_hyperparameters` call at the end gives 0.937. With the default the
-        same replay re-learns at 10, 20, 45 and 95 scans and ends at 1.20 m and AUC 0.924;
-        on the first 200 scans (re-learned at 190 scans too) at 0.90 m and AUC 0.946,
-        against 1.35 m and 0.932 for the fit. The length scale learned from 32 pieces
-        varies by tens of percent from one draw to another, and the AUC with it: one fit
-        of the 120 scans gives 0.929 to 0.935 over four seeds. Re-learning at a fixed
-        growth factor refits all experts a logarithmic number of times, i.e. a constant
-        amortised cost per added row; 2 was not tuned. ``None`` keeps the first batch's
-        hyperparameters. Only with ``share_hyperparameters=True`` and hyperparameters to
-        learn.
+        same replay re-learns at 10, 20, 45 and 95 scans and ends at 1.20 m and AUC 0.924.
+        On the first 200 scans (re-learned at 190 scans too) it ends at 0.90 m and AUC
+        0.946, against 0.928 never re-learned, and 1.35 m and 0.932 for the fit. The
+        length scale learned from 32 pieces varies by tens of percent from one draw to
+        another, and the AUC with it: one fit of the 120 scans gives 0.929 to 0.935 over
+        four seeds. Re-learning at a fixed growth factor refits all experts a logarithmic
+        number of times, i.e. a constant amortised cost per added row; 2 was not tuned.
+        ``None`` keeps the first batch's hyperparameters. Only with
+        ``share_hyperparameters=True`` and hyperparameters to learn.
     gating_threshold : float, default=1e-3
         Of the experts within reach of a query (see ``reach_tolerance``), those whose
         gating weight there is below this are skipped (the one with the largest weight
@@ -669,8 +669,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         :meth:`partial_fit` calls (their lower triangles, of the most recently fitted
         experts). The refit of a kept expert evaluates the kernel only between its new
         rows and all its rows, and reuses the rest: an update adds tens of rows to each of
-        dozens of experts of hundreds, and evaluating the integral kernel over segments is
-        about half the cost of a refit. A 400-row expert's triangle takes 0.64 MB. Used
+        dozens of experts of hundreds, and evaluating the integral kernel over segments was
+        about half the cost of a refit. Replaying Intel (``benchmarks/bench_online.py``)
+        a refitted expert has a quarter of its rows new on median, and the kernel's share
+        of the refits falls to about a quarter. A 400-row expert's triangle takes 0.64
+        MB. Used
         only when the experts' kernel is fixed (``share_hyperparameters=True``, or an
         expert without optimiser); :meth:`refit_hyperparameters` empties it. Refits match
         those without the cache to rounding (entries of ``k(new, old)`` are evaluated with
