@@ -47,6 +47,22 @@ _BINARY_ATTRIBUTES = (
 _MULTI_CLASS_ATTRIBUTES = ("_multi_class_estimator",)
 
 
+def _lower_triangle(M):
+    """The lower triangle of a square matrix, row by row: half of its memory."""
+    return M[np.tri(M.shape[0], dtype=bool)]
+
+
+def _from_lower_triangle(lower, *, symmetric=False):
+    """The square matrix of a :func:`_lower_triangle`: zeros above it, or its mirror."""
+    n = int(round((np.sqrt(8 * lower.size + 1) - 1) / 2))
+    mask = np.tri(n, dtype=bool)
+    M = np.zeros((n, n))
+    M[mask] = lower
+    if symmetric:
+        M.T[mask] = lower
+    return M
+
+
 def _packed(posterior):
     """The posterior without its Cholesky factor, and the factor's lower triangle.
 
@@ -56,18 +72,14 @@ def _packed(posterior):
     """
     if posterior.L is None:
         return posterior, None
-    n = posterior.L.shape[0]
-    return posterior._replace(L=None), posterior.L[np.tri(n, dtype=bool)]
+    return posterior._replace(L=None), _lower_triangle(posterior.L)
 
 
 def _unpacked(posterior, lower):
     """The posterior with its Cholesky factor rebuilt from :func:`_packed`'s triangle."""
     if lower is None:
         return posterior
-    n = posterior.alpha.shape[0]
-    L = np.zeros((n, n))
-    L[np.tri(n, dtype=bool)] = lower
-    return posterior._replace(L=L)
+    return posterior._replace(L=_from_lower_triangle(lower))
 
 
 # Projected gradient (of -log evidence) below this, relative to max(1, |value|), counts as

@@ -25,6 +25,7 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._reach import ExpertReach, kernel_reach
 from ._shared_kernel import learn_shared_kernel, warn_at_bounds, window_pieces
+from .classifier import _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .observations import HIT, NO_RETURN, RETURN, split_segments
 
@@ -364,35 +365,22 @@ def _takes_kernel_matrix(expert):
     return params.get("kernel") is not None and params.get("optimizer", 0) is None
 
 
-def _packed_kernel(K):
-    """Lower triangle of a symmetric kernel matrix (half of its memory)."""
-    return K[np.tri(K.shape[0], dtype=bool)]
-
-
-def _unpacked_kernel(lower):
-    """The symmetric matrix of a :func:`_packed_kernel` triangle."""
-    n = int(round((np.sqrt(8 * lower.size + 1) - 1) / 2))
-    K = np.empty((n, n))
-    mask = np.tri(n, dtype=bool)
-    K[mask] = lower
-    K.T[mask] = lower
-    return K
-
-
 def _training_kernel(kernel, X, previous=None):
     """``kernel(X, X)``, reusing the entries of a previous fit's matrix where it can.
 
-    ``previous`` is ``(lower, position)``: the packed matrix of an earlier fit and, per row
-    of ``X``, its row in that fit (-1 for a new row). Only the new rows' blocks are
-    evaluated; the integral kernel over segments is most of an expert's refit, and an
-    update adds a few rows to an expert of hundreds.
+    ``previous`` is ``(lower, position)``: the lower triangle of an earlier fit's matrix
+    (:func:`~skoccmap.classifier._lower_triangle`) and, per row of ``X``, its row in that
+    fit (-1 for a new row). Only the new rows' blocks are evaluated; the integral kernel
+    over segments is most of an expert's refit, and an update adds a few rows to an expert
+    of hundreds.
     """
     if previous is None:
         return kernel(X)
     lower, position = previous
     old, new = np.flatnonzero(position >= 0), np.flatnonzero(position < 0)
     K = np.empty((X.shape[0], X.shape[0]))
-    K[np.ix_(old, old)] = _unpacked_kernel(lower)[np.ix_(position[old], position[old])]
+    kept = np.ix_(position[old], position[old])
+    K[np.ix_(old, old)] = _from_lower_triangle(lower, symmetric=True)[kept]
     if new.size:
         # The new-new block by the symmetric evaluation, so that K stays exactly symmetric.
         K[np.ix_(new, new)] = kernel(X[new])
@@ -432,7 +420,7 @@ def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False):
         def fit(X, y):
             return expert._fit_warm_start(X, y, tau, nu, kernel_matrix=K)
 
-    lower = None if K is None else _packed_kernel(K)
+    lower = None if K is None else _lower_triangle(K)
     if threading.current_thread() is not threading.main_thread():
         return fit(X, y), [], lower
     with warnings.catch_warnings(record=True) as caught:

@@ -205,18 +205,21 @@ def test_refit_hyperparameters():
 
 
 def test_training_kernel_from_a_previous_matrix():
-    from skoccmap.mixture import _packed_kernel, _training_kernel, _unpacked_kernel
+    from skoccmap.classifier import _from_lower_triangle, _lower_triangle
+    from skoccmap.mixture import _training_kernel
 
     data = make_office_scans(random_state=0)
     kernel = ConstantKernel(100.0) * IntegralKernel(0.8)
     rows = data.X[np.random.default_rng(0).permutation(data.X.shape[0])[:120]]
     full = kernel(rows)
-    np.testing.assert_array_equal(_unpacked_kernel(_packed_kernel(full)), full)
+    np.testing.assert_array_equal(
+        _from_lower_triangle(_lower_triangle(full), symmetric=True), full
+    )
     # An earlier fit on 80 of the rows, in another order, and 10 rows it had that are gone.
     rng = np.random.default_rng(1)
     earlier = rng.permutation(np.r_[np.arange(80), np.arange(120, 130)])
     other = np.vstack([rows, data.X[-10:]])
-    lower = _packed_kernel(kernel(other[earlier]))
+    lower = _lower_triangle(kernel(other[earlier]))
     inverse = np.full(130, -1)
     inverse[earlier] = np.arange(earlier.size)
     K = _training_kernel(kernel, rows, (lower, inverse[:120]))
