@@ -847,6 +847,32 @@ def run_stability(args, result, save, cache):
 # ---------------------------------------------------------------------------------------
 
 
+def run_record(benchmark, args, path, **fields):
+    """A run's JSON record (machine, commit, ``fields``, arguments) and its ``save()``.
+
+    ``save()`` writes the record to ``path`` with the run's time so far, so that a run cut
+    short still leaves what it measured.
+    """
+    started = time.perf_counter()
+    result = {
+        "benchmark": benchmark,
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": platform.platform(),
+        "processor": platform.processor(),
+        "cpu_count": os.cpu_count(),
+        "blas_threads": 1,
+        "git": git_state(),
+        **fields,
+        "params": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+    }
+
+    def save():
+        result["total_s"] = time.perf_counter() - started
+        path.write_text(json.dumps(result, indent=2, default=str))
+
+    return result, save
+
+
 def git_state():
     """Commit of the code measured, and whether the package had uncommitted changes."""
     root = HERE.parent
@@ -954,27 +980,17 @@ def main(argv=None):
     if args.seed_role == "tuning":
         name += "_tuning"
     path = args.out / f"{name}.json"
-    started = time.perf_counter()
-    result = {
-        "benchmark": "B4 map quality",
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "blas_threads": 1,
-        "git": git_state(),
-        "quick": args.quick,
-        "seeds": args.seeds,
-        "seed_role": args.seed_role,
-        "report_seeds": list(REPORT_SEEDS),
-        "tuning_seeds": list(TUNING_SEEDS),
-        "params": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-        "targets": {k: dict(kind=v[0], bound=v[1]) for k, v in TARGETS.items()},
-    }
-
-    def save():
-        result["total_s"] = time.perf_counter() - started
-        path.write_text(json.dumps(result, indent=2))
+    result, save = run_record(
+        "B4 map quality",
+        args,
+        path,
+        quick=args.quick,
+        seeds=args.seeds,
+        seed_role=args.seed_role,
+        report_seeds=list(REPORT_SEEDS),
+        tuning_seeds=list(TUNING_SEEDS),
+        targets={k: dict(kind=v[0], bound=v[1]) for k, v in TARGETS.items()},
+    )
 
     cache = {}  # (log, every, seed, max_beam_length) -> the mixture's length scale
     if args.only in (None, "sim"):

@@ -52,9 +52,6 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
-import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
@@ -73,9 +70,9 @@ from bench_quality import (  # noqa: E402
     Method,
     fit_model,
     fmt,
-    git_state,
     guarded,
     model_facts,
+    run_record,
 )
 from sklearn.gaussian_process.kernels import ConstantKernel  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
@@ -637,25 +634,14 @@ def main(argv=None):
     if list(args.datasets) != list(DATASETS):
         name += "_" + "_".join(args.datasets)
     path = args.out / f"{name}.json"
-    started = time.perf_counter()
-    result = {
-        "benchmark": "tuning sweeps of MixtureGPOccupancyMap",
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "blas_threads": 1,
-        "git": git_state(),
-        "seed": SEED,
-        "note": "fit and predict times are informative only (shared machine)",
-        "params": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-        "datasets": {},
-    }
-
-    def save():
-        result["total_s"] = time.perf_counter() - started
-        path.write_text(json.dumps(result, indent=2, default=str))
-
+    result, save = run_record(
+        "tuning sweeps of MixtureGPOccupancyMap",
+        args,
+        path,
+        seed=SEED,
+        note="fit and predict times are informative only (shared machine)",
+        datasets={},
+    )
     run(args, result, save)
     save()
     print(f"\nTuning done in {result['total_s']:.0f} s; JSON in {path}")

@@ -42,11 +42,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ[_var] = "1"
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import sys  # noqa: E402
-import time  # noqa: E402
 import warnings  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -60,8 +57,8 @@ from bench_quality import (  # noqa: E402
     Method,
     fit_model,
     fmt,
-    git_state,
     guarded,
+    run_record,
 )
 from bench_tuning import ACES_EVERY, SEED, load_aces, load_sim, score  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
@@ -440,23 +437,13 @@ def main(argv=None):
     if args.sweeps:
         name += "_" + "_".join(args.sweeps)
     path = args.out / f"{name}.json"
-    started = time.perf_counter()
-    result = {
-        "benchmark": "tuning sweeps of the baselines (HilbertMap, OccupancyGridMap)",
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": platform.platform(),
-        "processor": platform.processor(),
-        "cpu_count": os.cpu_count(),
-        "blas_threads": 1,
-        "git": git_state(),
-        "seed": SEED,
-        "note": "fit times are informative only (shared machine)",
-        "params": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-    }
-
-    def save():
-        result["total_s"] = time.perf_counter() - started
-        path.write_text(json.dumps(result, indent=2, default=str))
+    result, save = run_record(
+        "tuning sweeps of the baselines (HilbertMap, OccupancyGridMap)",
+        args,
+        path,
+        seed=SEED,
+        note="fit times are informative only (shared machine)",
+    )
 
     if "hilbert" in groups:
         run_hilbert(args, result, save)
