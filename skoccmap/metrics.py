@@ -465,7 +465,9 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
     estimator_or_proba : fitted classifier or array-like of shape (n_cells,)
         A classifier whose ``predict_proba`` is evaluated at the cell centres (as zero-length
         segments), or P(occupied) per cell of ``environment.ground_truth_grid(resolution,
-        extent)`` in its order (or, with ``scans``, per observed cell only).
+        extent)`` in its order (or, with ``scans``, per observed cell only). The centre
+        stands for the whole cell here, so that AUCs stay comparable with earlier results;
+        :func:`map_quality` reads a classifier's cell by its largest value over the cell.
     environment : Environment2D or Room3D
         The simulated world.
     resolution : float, default=0.2
@@ -695,6 +697,26 @@ def _runs(occupied, seeds):
     return last_free[rows, seed] + 1, next_free[:, ::-1][rows, seed] - 1, found
 
 
+def _cell_maximum(probability_at, grid, scored):
+    """A point map's value for each cell: its largest P(occupied) over the closed cell.
+
+    The true grids mark a cell occupied when any of its closed square (cube) touches occupied
+    space, so the probability that a cell is occupied is at least that of any of its points.
+    Queried at the centre alone, the exact map misses every cell that overlaps a wall by less
+    than half a cell. The cell is sampled at its corners, edge (and face) midpoints and centre,
+    a lattice of step ``resolution / 2`` shared between neighbouring cells: walls at least a
+    cell thick never fall between its points.
+    """
+    centres, half, lo = grid.points[scored], grid.resolution / 2, grid.extent[0::2]
+    n_dims = centres.shape[1]
+    offsets = np.stack(np.meshgrid(*[[-1, 0, 1]] * n_dims, indexing="ij"), -1).reshape(-1, n_dims)
+    # Integer lattice coordinates in half cells, so that shared points are queried once.
+    lattice = np.rint((centres - lo) / half).astype(np.int64)[:, None, :] + offsets[None]
+    points, cell_of_point = np.unique(lattice.reshape(-1, n_dims), axis=0, return_inverse=True)
+    proba = probability_at(lo + points * half, "grid-cell point")
+    return proba[cell_of_point.reshape(len(centres), -1)].max(axis=1)
+
+
 def _probability_source(estimator_or_proba, grid, scored):
     """P(occupied) of the scored cells and a function giving it at any points."""
     if hasattr(estimator_or_proba, "predict_proba"):
@@ -710,7 +732,7 @@ def _probability_source(estimator_or_proba, grid, scored):
                 )
             return _check_probabilities(proba, f"predict_proba at the {what}s")
 
-        return at(grid.points[scored], "grid cell"), at
+        return _cell_maximum(at, grid, scored), at
 
     proba = np.asarray(estimator_or_proba, dtype=np.float64)
     n_cells, n_scored = len(grid.points), int(scored.sum())
@@ -795,11 +817,17 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
     Parameters
     ----------
     estimator_or_proba : fitted classifier or array-like
-        A classifier whose ``predict_proba`` (column of class 1) is evaluated at the cell
-        centres and at the wall-band points, as zero-length segments; or P(occupied) per cell
+        A classifier whose ``predict_proba`` (column of class 1) is evaluated, as zero-length
+        segments, over each cell and at the wall-band points; or P(occupied) per cell
         of the grid, of shape (n_cells,) in the grid's order or the grid's ``shape`` (an
         image), or (with ``scans``) of shape (n_observed_cells,) for the observed cells only.
-        The wall-band points of an array take the value of the cell holding them.
+        The wall-band points of an array take the value of the cell holding them. A
+        classifier's value for a cell is its largest probability over the cell's corners,
+        edge (3-D: and face) midpoints and centre: the true grid marks a cell occupied when
+        any of it touches occupied space, and a cell is at least as likely occupied as any
+        of its points. The exact map queried at the centres alone would miss every cell
+        that overlaps a wall by less than half a cell (it finds 26-27 % of the walls of the
+        paper's world and the office).
     environment : Environment2D or Room3D
         The simulated world.
     resolution : float, default=0.1

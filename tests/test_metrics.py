@@ -21,7 +21,7 @@ from skoccmap.metrics import (
     split_scan_blocks,
     split_scans,
 )
-from skoccmap.observations import Scans
+from skoccmap.observations import Scans, as_segments
 
 
 class _TruthClassifier:
@@ -525,6 +525,8 @@ def test_map_quality_exact_classifier_2d(paper):
     exact = _ExactMap(env)
     q = map_quality(exact, env, scans=paper.scans)
     assert (q["phantom_rate"], q["free_found"]) == (0.0, 1.0)
+    # Its cells are as occupied as the true grid's, those overlapping a wall by a sliver too.
+    assert (q["auc"], q["walls_found"], q["ece"], q["brier"]) == (1.0, 1.0, 0.0, 0.0)
     assert_allclose(q["wall_thickness"], 0.1)  # the walls' own thickness, in 0.1 m steps
     assert exact.n_queries > q["n_cells"]  # cells, then the band points
 
@@ -558,11 +560,38 @@ def test_map_quality_array_shapes_and_classifier_agree(paper):
     queried = map_quality(_CellMap(grid, values), env, scans=scans)
     assert image == by_cell
     cell_keys = ["auc", "brier", "ece", "phantom_rate", "free_found", "walls_found", "n_cells"]
-    for other in (observed_only, queried):
-        assert {k: other[k] for k in cell_keys} == {k: by_cell[k] for k in cell_keys}
+    assert {k: observed_only[k] for k in cell_keys} == {k: by_cell[k] for k in cell_keys}
+    # Queried as a classifier, a cell takes the largest value over its closed square: a
+    # point on its edge may lie in the next cell, so walls come out a cell thicker.
+    assert queried["walls_found"] == 1.0 and queried["phantom_rate"] >= by_cell["phantom_rate"]
     # 0.2 m more on the observed side of a 0.1 m wall, however the map is given.
     for scores in (by_cell, queried, observed_only):
         assert_allclose(scores["wall_thickness"], 0.1 + 0.2)
+
+
+class _Ripples:
+    """A smooth map, so that the value of a point does not hinge on rounding."""
+
+    classes_ = np.array([0, 1])
+
+    def predict_proba(self, X):
+        p = 0.5 + 0.5 * np.sin(3.1 * X[:, 0]) * np.cos(2.3 * X[:, 1])
+        return np.column_stack([1 - p, p])
+
+
+def test_map_quality_classifier_cells_take_their_largest_value(paper):
+    env, scans = paper.environment, paper.scans
+    grid = env.ground_truth_grid(0.1, scans=scans)
+    h = grid.resolution / 2
+    square = np.array([[dx, dy] for dx in (-h, 0, h) for dy in (-h, 0, h)])
+    largest = [
+        _Ripples().predict_proba(as_segments(c + square))[:, 1].max()
+        for c in grid.points[grid.observed]
+    ]
+    by_hand = map_quality(np.array(largest), env, scans=scans)
+    queried = map_quality(_Ripples(), env, scans=scans)
+    for key in ["auc", "brier", "ece", "phantom_rate", "free_found", "walls_found", "n_cells"]:
+        assert_allclose(queried[key], by_hand[key], rtol=1e-12, err_msg=key)
 
 
 def test_map_quality_no_band():
@@ -583,14 +612,15 @@ def test_map_quality_room3d(room):
     grid = env.ground_truth_grid(0.1)
     true = map_quality(grid.occupied, env)
     assert (true["auc"], true["ece"], true["phantom_rate"], true["free_found"]) == (1, 0, 0, 1)
-    # the cell at each face: half a step inside the solid
-    assert_allclose(true["wall_thickness"], 0.1)
+    # the cell at each face, half a step inside the solid, and the voxel touching the face
+    assert_allclose(true["wall_thickness"], 0.2)
     thick = map_quality(_thickened(env, grid, 0.5), env)
     assert_allclose(thick["wall_thickness"], 0.1 + 0.5)  # on the free side only
     assert thick["phantom_rate"] > 0.1 and thick["walls_found"] == 1.0
     exact = map_quality(_ExactMap(env), env, resolution=0.2, scans=room.scans)
     assert_allclose(exact["wall_thickness"], 0.2)
     assert (exact["phantom_rate"], exact["free_found"]) == (0.0, 1.0)
+    assert (exact["auc"], exact["walls_found"], exact["ece"]) == (1.0, 1.0, 0.0)
     assert 0 < exact["n_wall_samples"] < thick["n_wall_samples"]
 
 
@@ -601,7 +631,7 @@ def test_map_quality_room3d_skips_covered_faces():
     def samples(cube):
         env = Room3D(size=(2, 2, 2), obstacles=[cube], wall_thickness=0.2)
         q = map_quality(env.ground_truth_grid(0.1).occupied, env)
-        assert_allclose(q["wall_thickness"], 0.1)
+        assert_allclose(q["wall_thickness"], 0.2)
         return q["n_wall_samples"]
 
     floating = samples([0.7, 0.7, 0.7, 1.2, 1.2, 1.2])
@@ -627,7 +657,7 @@ def test_map_quality_errors(paper):
         def predict_proba(self, X):
             return np.full((len(X), 2), np.nan)
 
-    with pytest.raises(ValueError, match="predict_proba at the grid cells: .* NaN"):
+    with pytest.raises(ValueError, match="predict_proba at the grid-cell points: .* NaN"):
         map_quality(NaNMap(), env, resolution=0.5)
     # only free space: the AUC and the thresholded rates are undefined
     with pytest.raises(ValueError, match="AUC is undefined"):

@@ -379,7 +379,7 @@ def test_room_grid_matches_supersampling():
     room = make_room3d_environment()
     grid = room.ground_truth_grid(0.5)
     assert grid.shape == (7, 11, 13)  # z, y, x over [-0.2, 3.2] x [-0.2, 5.2] x [-0.2, 6.2]
-    offsets = (np.arange(1, 10) / 10 - 0.5) * 0.5  # interior samples: positive-volume overlap
+    offsets = np.linspace(-0.5, 0.5, 11) * 0.5  # closed voxels: faces touching count
     sub = np.stack(np.meshgrid(offsets, offsets, offsets), -1).reshape(-1, 3)
     ref = np.array([room.occupancy(c + sub).any() for c in grid.points])
     assert_array_equal(grid.occupied, ref)

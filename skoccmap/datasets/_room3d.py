@@ -178,13 +178,15 @@ class Room3D:
         return out
 
     def _cells_occupied(self, centres, resolution):
-        # A voxel is occupied when it overlaps occupied space with positive volume: faces
-        # touching a wall or an obstacle (as on a grid aligned with the room) do not count.
+        # A voxel is occupied when its closed cube meets occupied space (closed sets, as the
+        # cells of Environment2D): a voxel touching a face counts. On a grid aligned with the
+        # room the faces lie on voxel boundaries, and a hit on a face with range noise falls
+        # into the voxel in front of it half the time; that voxel is a wall's, not free space.
         half, tol = resolution / 2, _SURFACE_TOL
         lo, hi = centres - half, centres + half
-        occupied = np.any((lo < -tol) | (hi > self.size + tol), axis=1)
+        occupied = np.any((lo <= tol) | (hi >= self.size - tol), axis=1)
         for o_lo, o_hi in zip(self.obstacles[:, :3], self.obstacles[:, 3:], strict=True):
-            occupied |= np.all(np.minimum(hi, o_hi) - np.maximum(lo, o_lo) > tol, axis=1)
+            occupied |= np.all(np.minimum(hi, o_hi) - np.maximum(lo, o_lo) >= -tol, axis=1)
         return occupied
 
     def ground_truth_grid(self, resolution, extent=None, *, scans=None):
@@ -193,15 +195,18 @@ class Room3D:
     ground_truth_grid.__doc__ = (
         "True occupancy of a regular grid of cubic voxels.\n"
         + _GRID_DOC.format(n2=6, zext=", z_min, z_max", d=3, idx="[z, y, x]")
-        .replace("overlaps an obstacle (closed sets)", "overlaps occupied space with positive")
-        .replace("else 0;", "volume, else 0;")
         + """
         Examples
         --------
         >>> from skoccmap.datasets import Room3D
-        >>> grid = Room3D(size=(2, 2, 2), wall_thickness=1.0).ground_truth_grid(1.0)
+        >>> grid = Room3D(size=(3, 3, 3), wall_thickness=1.0).ground_truth_grid(1.0)
         >>> grid.shape, int(grid.occupied.sum())
-        ((4, 4, 4), 56)
+        ((5, 5, 5), 124)
+
+        Voxels touching a wall count as occupied: only the centre one is free.
+
+        >>> grid.points[grid.occupied == 0]
+        array([[1.5, 1.5, 1.5]])
         """
     )
 
