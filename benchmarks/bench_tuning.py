@@ -32,7 +32,7 @@ The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``
 
 **Sweeps** (one parameter at a time, all others at their defaults): ``combiner``,
 ``gating_threshold`` and ``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
-``max_beam_length`` (with ``beam_end_length`` 0.5, and the whole-beam model with both
+``max_beam_length`` (with ``beam_end_length`` 0.35, and the whole-beam model with both
 ``None``), ``beam_end_length``, ``share_hyperparameters``, ``hyperparameter_window`` (with
 the learned length scale; ``--datasets aces_all`` adds ACES trained on every scan, for the
 length scale's stability against the density of the scans), and the default expert's signal
@@ -95,11 +95,15 @@ DATASETS = ("aces", "office", "paper")
 # density of the scans (with --datasets; not in the default run, its fits are ten times
 # larger).
 EXTRA_DATASETS_ALL = ("aces_all",)
+# The 3-D room at both sparsities of B4 (with --datasets; not in the default run).
+EXTRA_DATASETS_ROOM = ("room3d", "room3d_dense")
 DATASET_TITLES = {
     "aces": f"ACES, blocks protocol, every {ACES_EVERY}th scan",
     "aces_all": "ACES, blocks protocol, every scan",
     "office": WORLD_TITLES["office"],
     "paper": WORLD_TITLES["paper"],
+    "room3d": WORLD_TITLES["room3d"] + ", sparse",
+    "room3d_dense": WORLD_TITLES["room3d"] + ", dense",
 }
 
 
@@ -134,6 +138,7 @@ FITS = {
         "max_beam_length=None, beam_end_length=None",
     ),
     "end_none": ({"beam_end_length": None}, "beam_end_length=None"),
+    "end_0.5": ({"beam_end_length": 0.5}, "beam_end_length=0.5"),
     "end_0.25": ({"beam_end_length": 0.25}, "beam_end_length=0.25"),
     "no_share": ({"share_hyperparameters": False}, "share_hyperparameters=False"),
     "window_1.5": ({"hyperparameter_window": 1.5}, "hyperparameter_window=1.5"),
@@ -217,7 +222,7 @@ SWEEPS = [
     ),
     Sweep(
         "max_beam_length",
-        "`max_beam_length` (`beam_end_length` 0.5; first row: whole beams, both None)",
+        "`max_beam_length` (`beam_end_length` 0.35; first row: whole beams, both None)",
         [
             Entry("None, beam_end_length None (whole beams)", "whole_beams"),
             Entry("None", "beam_none"),
@@ -233,7 +238,8 @@ SWEEPS = [
         "`beam_end_length` (`max_beam_length` 1)",
         [
             Entry("None", "end_none"),
-            Entry("0.5", "default", default=True),
+            Entry("0.5", "end_0.5"),
+            Entry("0.35", "default", default=True),
             Entry("0.25", "end_0.25"),
         ],
         extra=("thickness",),
@@ -308,9 +314,9 @@ def load_aces(seed, every=ACES_EVERY, name="aces"):
     return Dataset(name, X, y, scan_index, as_segments(bunch.points), info, labels=bunch.labels)
 
 
-def load_sim(world, seed):
+def load_sim(world, seed, sparsity="sparse"):
     world_, sparsity, generator, kwargs, description = next(
-        s for s in SIM_SETTINGS if s[0] == world and s[1] == "sparse"
+        s for s in SIM_SETTINGS if s[0] == world and s[1] == sparsity
     )
     data = generator(noise_std=NOISE_STD, random_state=seed, **kwargs)
     grid = data.environment.ground_truth_grid(RESOLUTION, scans=data.scans)
@@ -415,6 +421,8 @@ def run(args, result, save):
             data = load_aces(SEED, every=1, name=name)
         elif name == "aces":
             data = load_aces(SEED)
+        elif name.startswith("room3d"):
+            data = load_sim("room3d", SEED, "dense" if name.endswith("dense") else "sparse")
         else:
             data = load_sim(name, SEED)
         if data is None:
@@ -530,7 +538,7 @@ EXTRA_COLUMNS = {
     "signal": ("signal variance", _value("signal_variance", ".3g")),
 }
 # Extras that only make sense where they are measured.
-EXTRA_DATASETS = {"thickness": ("office", "paper")}
+EXTRA_DATASETS = {"thickness": ("office", "paper", *EXTRA_DATASETS_ROOM)}
 
 
 def tables(sweeps, rows, args):
@@ -539,13 +547,18 @@ def tables(sweeps, rows, args):
     for sweep in sweeps:
         header = [sweep.name]
         for name in names:
-            short = {"aces": "ACES", "aces_all": "ACES all", "office": "office", "paper": "paper"}[
-                name
-            ]
+            short = {
+                "aces": "ACES",
+                "aces_all": "ACES all",
+                "office": "office",
+                "paper": "paper",
+                "room3d": "room",
+                "room3d_dense": "dense room",
+            }[name]
             columns = DATASET_COLUMNS["aces" if name.startswith("aces") else "sim"]
             header += [f"{short} {title}" for title, _ in columns]
             for extra in sweep.extra:
-                if name in EXTRA_DATASETS.get(extra, DATASETS + EXTRA_DATASETS_ALL):
+                if name in EXTRA_DATASETS.get(extra, (*DATASETS, *EXTRA_DATASETS_ALL)):
                     header.append(f"{short} {EXTRA_COLUMNS[extra][0]}")
         header.append("fit s (" + " / ".join(names) + ")")
         table, json_rows = [], []
@@ -571,7 +584,7 @@ def tables(sweeps, rows, args):
                 else:
                     cells += [cell(row) for _, cell in columns]
                 for extra in sweep.extra:
-                    if name in EXTRA_DATASETS.get(extra, DATASETS + EXTRA_DATASETS_ALL):
+                    if name in EXTRA_DATASETS.get(extra, (*DATASETS, *EXTRA_DATASETS_ALL)):
                         cells.append("" if "error" in row else EXTRA_COLUMNS[extra][1](row))
                 fit_s.append(fmt(row.get("fit_s"), ".0f") or "-")
             cells.append(" / ".join(fit_s))
@@ -609,10 +622,10 @@ def parse_args(argv=None):
     parser.add_argument(
         "--datasets",
         nargs="+",
-        choices=DATASETS + EXTRA_DATASETS_ALL,
+        choices=DATASETS + EXTRA_DATASETS_ALL + EXTRA_DATASETS_ROOM,
         default=list(DATASETS),
         help="tuning datasets (default: " + " ".join(DATASETS) + "; aces_all trains on every "
-        "ACES scan)",
+        "ACES scan; room3d and room3d_dense are the 3-D room of B4)",
     )
     parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
     parser.add_argument(

@@ -129,9 +129,9 @@ def add_model_arguments(parser):
     parser.add_argument(
         "--beam-end-length",
         type=_length_or_none,
-        default=0.5,
+        default=0.35,
         help="pieces of a beam halve in length towards its hit down to this, in metres "
-        "('none': equal pieces; default 0.5)",
+        "('none': equal pieces; default 0.35)",
     )
     parser.add_argument(
         "--learn-all-hyperparameters",
