@@ -71,7 +71,7 @@ from skoccmap.datasets import (  # noqa: E402
     make_paper_scans,
     make_room3d_scans,
 )
-from skoccmap.metrics import blocks_protocol, map_quality  # noqa: E402
+from skoccmap.metrics import HILBERT_MAX_BEAM_RANGE, blocks_protocol, map_quality  # noqa: E402
 from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
 
@@ -188,21 +188,30 @@ WHOLE_BEAM_MIXTURE = Method(
 HILBERT = Method("hilbert", "hilbert", "Hilbert map", _hilbert)
 
 
-def _frequency(r):
+def _grid_names(r, max_free):
+    """Key suffix and table label of a grid of cell ``r`` using free beams up to ``max_free``."""
+    if max_free is None:
+        return f"{r}", f"{r} m"
+    return f"{r}_{max_free:g}m", f"{r} m, beams <= {max_free:g} m"
+
+
+def _frequency(r, max_free=None):
+    key, label = _grid_names(r, max_free)
     return Method(
-        f"frequency_{r}",
+        f"frequency_{key}",
         "frequency",
-        f"frequency grid ({r} m)",
-        lambda s, j: FrequencyGridMap(resolution=r),
+        f"frequency grid ({label})",
+        lambda s, j: FrequencyGridMap(resolution=r, max_free_length=max_free),
     )
 
 
-def _octomap(r):
+def _octomap(r, max_free=None):
+    key, label = _grid_names(r, max_free)
     return Method(
-        f"octomap_{r}",
+        f"octomap_{key}",
         "octomap",
-        f"log-odds grid per scan ({r} m)",
-        lambda s, j: OccupancyGridMap(resolution=r),
+        f"log-odds grid per scan ({label})",
+        lambda s, j: OccupancyGridMap(resolution=r, max_free_length=max_free),
         per_scan=True,
     )
 
@@ -216,8 +225,11 @@ def sim_methods(families):
 
 
 def log_methods(families):
-    r = LOG_GRID_RESOLUTION
-    methods = [MIXTURE, _frequency(r), _octomap(r), HILBERT]
+    # The grids with every beam and with the protocol's 40 m bound on free beams (the
+    # Hilbert map's default), both fixed before any result.
+    r, bound = LOG_GRID_RESOLUTION, HILBERT_MAX_BEAM_RANGE
+    methods = [MIXTURE, _frequency(r), _frequency(r, bound), _octomap(r), _octomap(r, bound)]
+    methods.append(HILBERT)
     return [m for m in methods if m.family in families]
 
 

@@ -278,10 +278,13 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
 
         Every cell a free row crosses (exact traversal) except its end cell, as OctoMap's ray
         update does, so a beam ending a few centimetres short of its hit does not pass the
-        hit's cell; a free row inside a single cell passes that cell. ``chunk_size`` rows are
-        traversed at once.
+        hit's cell; a free row inside a single cell passes that cell. Free rows longer than
+        ``max_free_length`` pass nothing. ``chunk_size`` rows are traversed at once.
         """
         free = np.flatnonzero(~hit)
+        if self.max_free_length is not None:
+            length = np.linalg.norm(ends[free] - starts[free], axis=1)
+            free = free[length <= self.max_free_length]
         res = float(self.resolution)
         for lo in range(0, free.size, self.chunk_size):
             rows = free[lo : lo + self.chunk_size]
@@ -389,6 +392,9 @@ class OccupancyGridMap(_CountingGridBase):
         Log-odds added per beam passing a cell (-0.4 = log(0.4/0.6), miss probability 0.4).
     l_min, l_max : float, default=-2.0, 3.5
         Clamping bounds of the log-odds (OctoMap's 0.12 and 0.97).
+    max_free_length : float or None, default=None
+        Free rows longer than this (metres) update no cell, as OctoMap's ``maxrange``
+        shortens them; ``None`` uses them all. See :class:`FrequencyGridMap`.
     layout : {"auto", "segments", "points"}, default="auto"
         How rows of ``X`` are read. ``"segments"``: ``[start, end]`` with ``2 * D`` columns;
         ``"points"``: every row is a point of ``D = n_columns`` coordinates (a free point
@@ -448,6 +454,7 @@ class OccupancyGridMap(_CountingGridBase):
         "l_free": [Interval(Real, None, 0, closed="neither")],
         "l_min": [Interval(Real, None, 0, closed="right")],
         "l_max": [Interval(Real, 0, None, closed="left")],
+        "max_free_length": [Interval(Real, 0, None, closed="neither"), None],
         "layout": [StrOptions({"auto", "segments", "points"})],
         "chunk_size": [Interval(Integral, 1, None, closed="left")],
     }
@@ -460,6 +467,7 @@ class OccupancyGridMap(_CountingGridBase):
         l_free=-0.4,
         l_min=-2.0,
         l_max=3.5,
+        max_free_length=None,
         layout="auto",
         chunk_size=100_000,
     ):
@@ -468,6 +476,7 @@ class OccupancyGridMap(_CountingGridBase):
         self.l_free = l_free
         self.l_min = l_min
         self.l_max = l_max
+        self.max_free_length = max_free_length
         self.layout = layout
         self.chunk_size = chunk_size
 
@@ -586,6 +595,12 @@ class FrequencyGridMap(_CountingGridBase):
     ----------
     resolution : float, default=0.1
         Cell edge length in metres (0.1 m: the protocol's grid).
+    max_free_length : float or None, default=None
+        Free rows longer than this (metres) pass no cell; ``None`` counts them all. The
+        Hilbert-maps protocol skips readings beyond 40 m, as :class:`HilbertMap` does by
+        default: beams without a return run to the sensor's maximum range through walls
+        that glass or a grazing angle hid, and lower those walls' frequency everywhere
+        they cross.
     layout : {"auto", "segments", "points"}, default="auto"
         How rows of ``X`` are read; see :class:`OccupancyGridMap`.
     chunk_size : int, default=100_000
@@ -629,12 +644,14 @@ class FrequencyGridMap(_CountingGridBase):
 
     _parameter_constraints: dict = {
         "resolution": [Interval(Real, 0, None, closed="neither")],
+        "max_free_length": [Interval(Real, 0, None, closed="neither"), None],
         "layout": [StrOptions({"auto", "segments", "points"})],
         "chunk_size": [Interval(Integral, 1, None, closed="left")],
     }
 
-    def __init__(self, resolution=0.1, *, layout="auto", chunk_size=100_000):
+    def __init__(self, resolution=0.1, *, max_free_length=None, layout="auto", chunk_size=100_000):
         self.resolution = resolution
+        self.max_free_length = max_free_length
         self.layout = layout
         self.chunk_size = chunk_size
 

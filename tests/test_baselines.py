@@ -488,6 +488,21 @@ def test_frequency_hand_built_rays():
     assert point.hits_.tolist() == [1, 0] and point.passes_.tolist() == [0, 2]  # x: 1.05, 2.0
 
 
+@pytest.mark.parametrize("grid", [FrequencyGridMap(0.1), OccupancyGridMap(0.1)])
+def test_free_rows_beyond_max_free_length_pass_no_cell(grid):
+    # A 3 m beam through the hit's cell and a 1 m beam: with a 2 m bound only the short one
+    # counts, as if the long one were not there.
+    hit, short, long = [0.55, 0.05] * 2, [0.0, 0.05, 1.0, 0.05], [0.0, 0.05, 3.0, 0.05]
+    X, y = np.array([hit, short, long]), [1, 0, 0]
+    queries = np.array([hit, [0.25, 0.05] * 2, [2.05, 0.05] * 2])
+    bounded = clone(grid).set_params(max_free_length=2.0).fit(X, y)
+    without = clone(grid).fit(X[:2], y[:2])
+    everything = clone(grid).fit(X, y)
+    np.testing.assert_allclose(bounded.predict_proba(queries), without.predict_proba(queries))
+    assert bounded.predict_proba(queries)[2, 1] == 0.5  # only the long beam passed it
+    assert everything.predict_proba(queries)[0, 1] < bounded.predict_proba(queries)[0, 1]
+
+
 def test_frequency_counts_match_loop_reference():
     rng = np.random.default_rng(7)
     sensor = rng.uniform(-1, 1, (40, 2))
