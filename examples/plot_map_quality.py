@@ -9,7 +9,7 @@ near the beam's end, next to the wall the beam hit: the paper's whole-beam model
 walls as thick bands and marks free cells next to them occupied.
 :class:`~skoccmap.MixtureGPOccupancyMap` therefore cuts beams into pieces no longer than
 ``max_beam_length`` (1 m), halving them towards the hit down to ``beam_end_length``
-(0.5 m), so that the free-space evidence stays local.
+(0.35 m), so that the free-space evidence stays local.
 
 This example maps the simulated office of :func:`~skoccmap.datasets.make_office_scans`
 both ways and scores each map against the true walls with

@@ -501,12 +501,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``ConstantKernel(1e3, "fixed") * IntegralKernel()``: only the length scale is
         learned. Occupancy data are nearly separable, so the EP evidence grows with the
         signal variance until the map saturates: learned within [1e-2, 1e5] on the tuning
-        data it ends at the upper bound on the office (1e5), near it on the paper's world
-        (9.3e4) and at 2.6e3 on ACES (``benchmarks/bench_tuning.py``). Fixed at 1e2 / 1e3 /
-        1e4 it gives ACES held-out AUC 0.956 / 0.952 / 0.946, office ECE 0.034 / 0.021 /
-        0.017 and walls found on the paper's world 0.78 / 0.85 / 0.89: 1e3 keeps most of
-        the walls and calibration that larger values gain, loses less of ACES' ranking, and
-        leaves no learned value pinned at a bound.
+        data it ends at the upper bound on the office and the paper's world (1e5) and at
+        4.0e3 on ACES (``benchmarks/bench_tuning.py``). Fixed at 1e2 / 1e3 / 1e4 it gives
+        ACES held-out AUC 0.956 / 0.951 / 0.944, office ECE 0.048 / 0.038 / 0.034 and walls
+        found on the paper's world 0.83 / 0.90 / 0.95: 1e4 finds more of the sparse walls
+        at 0.007 less ACES AUC and three times the office's phantoms (0.15 % against
+        0.05 %); 1e3 is the middle, and leaves no learned value pinned at a bound.
     gating : {"clusterer", "gpc"}, default="clusterer"
         ``"clusterer"``: the clusterer's posterior responsibilities at the query's
         midpoint. ``"gpc"``: a GP classifier over the expert labels of the training
@@ -516,11 +516,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         Merging rule, see :mod:`skoccmap.combine`. The robust BCM is the default by
         measurement on tuning data (``benchmarks/bench_tuning.py``: ACES, blocks protocol,
         every 10th scan, seed 100; the office and the paper's world, noise seed 100): ACES
-        held-out AUC rbcm 0.952, bcm 0.956, poe 0.957, gpoe 0.948, moe 0.942; walls found
-        on the office (paper's world) rbcm 0.93 (0.85), bcm 0.90 (0.83), poe 0.90 (0.83),
-        gpoe 0.90 (0.83), moe 0.80 (0.79), at ECE 0.021 / 0.018 / 0.019 / 0.031 / 0.055 on
-        the office. The product rules rank ACES' held-out points slightly better; rbcm
-        finds more of the walls at the same calibration. The mixture (``"moe"``, the
+        held-out AUC rbcm 0.951, bcm 0.950, poe 0.957, gpoe 0.952, moe 0.950; walls found
+        on the office (paper's world) rbcm 0.983 (0.900), bcm 0.979 (0.879), poe 0.979
+        (0.879), gpoe 0.974 (0.891), moe 0.879 (0.842), at ECE 0.038 / 0.031 / 0.032 /
+        0.043 / 0.064 on the office. ``"poe"`` ranks ACES' held-out points best; rbcm finds
+        the most walls, at an ECE still under 0.05. The mixture (``"moe"``, the
         paper's rule) lets an expert that knows nothing about a query (latent mean 0,
         probability 1/2) dilute one that does; the product rules weigh experts by their
         confidence.
@@ -546,10 +546,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         time grows about linearly with the number of observations. ``None`` disables
         splitting (the paper's model; cubic cost in the cluster size). Sizes count the
         rows experts are fitted on (beam pieces). On the tuning data
-        (``benchmarks/bench_tuning.py``) 200 / 400 / 800 give ACES held-out AUC 0.949 /
-        0.952 / 0.948 with 291 / 144 / 72 experts (fit 6 / 13 / 154 s on two cores) and
-        office walls found 0.92 / 0.93 / 0.93: 800 costs about ten times the fit of 400
-        for no better map.
+        (``benchmarks/bench_tuning.py``) 200 / 400 / 800 give ACES held-out AUC 0.944 /
+        0.951 / 0.947 with 312 / 157 / 79 experts (fit 9 / 17 / 49 s on one shared core)
+        and office walls found 0.976 / 0.983 / 0.985: 800 costs about three times the fit
+        of 400 for no better ranking.
     max_beam_length : float or None, default=1.0
         Beams longer than this (metres) are cut into pieces no longer than it after the
         assignment; every piece stays with its beam's expert. Under the integral kernel a
@@ -559,13 +559,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``beam_end_length=None`` too, beams stay whole (the paper's model). Chosen on
         tuning data (``benchmarks/bench_tuning.py``: the office and the paper's world with
         noise seed 100, and the ACES log; ``benchmarks/bench_quality.py`` reports other
-        seeds and Intel). Whole beams mark 12.8 % of the office's far free cells occupied
-        and draw its walls 0.5 m thick (0.2 m with the defaults; ECE 0.31). With 0.5 m end
-        pieces (``beam_end_length``) the office's phantoms are gone without any bound
-        (0.04 %), and no bound / 2 m / 1 m / 0.5 m give office ECE 0.041 / 0.031 / 0.021 /
-        0.011 and ACES held-out AUC 0.911 / 0.938 / 0.952 / 0.947 (whole beams 0.901);
-        0.5 m pieces find fewer walls (office 0.90 against 0.93) and need 1.6 times the
-        experts of 1 m on ACES (230 against 144).
+        seeds and Intel). Whole beams mark 16.0 % of the office's far free cells occupied
+        and draw its walls 0.5 m thick (0.2 m with the defaults; ECE 0.35). With 0.35 m end
+        pieces (``beam_end_length``) the office's phantoms are nearly gone without any
+        bound (0.11 %), and no bound / 2 m / 1 m / 0.5 m give office ECE 0.061 / 0.050 /
+        0.038 / 0.032 and ACES held-out AUC 0.918 / 0.911 / 0.951 / 0.948 (whole beams
+        0.901); 0.5 m pieces find fewer walls (office 0.974 against 0.983, paper's world
+        0.886 against 0.900) and need 1.5 times the experts of 1 m on ACES (231 against
+        157).
     beam_end_length : float or None, default=0.35
         Beams with a return are cut into pieces that halve in length towards their hit,
         down to this length (metres), before the ``max_beam_length`` pieces: the
@@ -590,10 +591,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         the kernel is used on. A hyperparameter that ends at a bound raises a
         ``ConvergenceWarning``. The expert must have ``kernel`` and ``optimizer``
         parameters. ``False`` lets every expert learn its own (the paper's model): on the
-        tuning data (``benchmarks/bench_tuning.py``) ACES held-out AUC drops from 0.952 to
-        0.827, 1.2 % of the office's far free cells are marked occupied (0.03 % shared),
-        the paper's world finds 0.42 of its walls (0.85 shared), and ``reach_`` grows from
-        3.9 m to 283 m on ACES.
+        tuning data (``benchmarks/bench_tuning.py``) ACES held-out AUC drops from 0.951 to
+        0.859, 1.4 % of the office's far free cells are marked occupied (0.05 % shared),
+        the paper's world finds 0.49 of its walls (0.90 shared), and ``reach_`` grows from
+        3.8 m to 307 m on ACES.
     hyperparameter_window : float or None, default=None
         Where the shared hyperparameters are learned (``share_hyperparameters=True``).
         ``None``: on the data of up to 32 experts drawn at random. A radius in metres: on
@@ -634,8 +635,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         gating weight there is below this are skipped (the one with the largest weight
         is always kept). 0 consults every expert within reach. On the tuning data (ACES,
         every 10th scan; ``benchmarks/bench_tuning.py``) 1e-1 / 1e-2 / 1e-3 / 1e-4 / 0 give
-        held-out AUC 0.947 / 0.951 / 0.952 / 0.953 / 0.953 with 2.5 / 5.2 / 7.4 / 8.8 / 33
-        experts consulted per query point, at 62 / 112 / 162 / 182 / 454 us per point.
+        held-out AUC 0.943 / 0.954 / 0.951 / 0.950 / 0.953 with 2.6 / 6.0 / 8.6 / 10.3 /
+        35.8 experts consulted per query point, at 54 / 109 / 163 / 184 / 451 us per point;
+        below 1e-1 the AUCs differ by less than one fit's spread over random states.
     reach_tolerance : float, default=1e-2
         Sets the *reach* ``reach_``: the distance beyond which the fitted kernel between
         two points stays below ``reach_tolerance`` times its value at distance 0. An
@@ -647,7 +649,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         is ``sqrt(2 ln(1 / reach_tolerance))`` length scales (3.03 at 1e-2). A query with
         no expert within reach gets the prior (probability 1/2, prior variance). On the
         tuning data (``benchmarks/bench_tuning.py``) 1e-1 / 1e-2 / 1e-3 give the same
-        scores to four decimals (ACES held-out AUC 0.9521) with 7.10 / 7.35 / 7.41 experts
+        scores to four decimals (ACES held-out AUC 0.9513) with 8.36 / 8.61 / 8.72 experts
         consulted per ACES query.
     return_radius : float, default=0.1
         A beam is a *return* beam when a hit lies within this distance (metres) of its
