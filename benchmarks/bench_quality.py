@@ -23,8 +23,9 @@ with the tuning seeds).
 2. **Real logs**, Intel (report log) and ACES (tuning log), on the Hilbert-maps protocol
    (``skoccmap.metrics.blocks_protocol``): trained on every 1st / 10th / 40th remaining scan;
    AUC (``sklearn.metrics.roc_auc_score``) on the held-out points, fit s, predict us/point.
-   Methods: the mixture with its defaults, the frequency grid (0.1 m), the per-scan
-   log-odds grid (0.1 m), the Hilbert map.
+   Methods: the mixture with its defaults, the frequency grid (0.1 m) and the per-scan
+   log-odds grid (0.1 m), each with every beam and with free beams up to the protocol's
+   40 m, the Hilbert map.
 3. **Summary**: per log and sparsity, whether the mixture's mean AUC reaches the best
    baseline's; per simulated setting, the targets (``TARGETS``) met or missed.
 4. **Length-scale stability**: the mixture's learned length scale on Intel with all vs every
