@@ -20,7 +20,6 @@ online model's parameter (``none`` never re-learns).
 """
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -38,6 +37,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 from _tables import print_table  # noqa: E402
+from bench_quality import run_record  # noqa: E402
 
 from skoccmap import MixtureGPOccupancyMap  # noqa: E402
 from skoccmap.metrics import heldout_points, split_scans  # noqa: E402
@@ -146,9 +146,13 @@ def main(argv=None):
     last_half = records[len(records) // 2 :]
     median_s = float(np.median([r["update_s"] for r in last_half]))
     median_cpu = float(np.median([r["update_cpu_s"] for r in last_half]))
-    result = dict(
-        benchmark="B5 online",
-        date=time.strftime("%Y-%m-%d"),
+    suffix = "" if args.max_scans is None else f"_{args.max_scans}"
+    out = Path(args.out) if args.out else HERE / "results" / f"b5_online{suffix}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result, save = run_record(
+        "B5 online",
+        args,
+        out,
         n_scans=len(train),
         n_observations=int(len(X)),
         n_batches=len(records),
@@ -222,10 +226,7 @@ def main(argv=None):
         )  # fmt: skip
     print_table("B5 targets", ["target", "measured", "met"], checks)
     result["targets"] = {name: bool(ok) for name, _, ok in checks}
-    suffix = "" if args.max_scans is None else f"_{args.max_scans}"
-    out = Path(args.out) if args.out else HERE / "results" / f"b5_online{suffix}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+    save()
     print(f"\nwrote {out}")
 
 
