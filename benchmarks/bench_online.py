@@ -46,9 +46,14 @@ from skoccmap.observations import as_segments  # noqa: E402
 INTEL = HERE.parents[1] / "shared" / "data" / "intel.gfs.log"
 
 
-def replay(train, batch, n_jobs, n_batches=None, log=True, growth=2.0):
+def replay(train, batch, n_jobs, n_batches=None, log=True, growth=2.0, refit_fraction=0.0):
     """partial_fit batch by batch; the model and one record per batch."""
-    model = MixtureGPOccupancyMap(n_jobs=n_jobs, random_state=0, hyperparameter_growth=growth)
+    model = MixtureGPOccupancyMap(
+        n_jobs=n_jobs,
+        random_state=0,
+        hyperparameter_growth=growth,
+        refit_fraction=refit_fraction,
+    )
     records = []
     starts = list(range(0, len(train), batch))[:n_batches]
     for b, first in enumerate(starts, 1):
@@ -97,7 +102,10 @@ def slope(records, skip_relearned=False, key="update_s"):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--intel", default=str(INTEL), help="path of intel.gfs.log")
+    parser.add_argument(
+        "--log", "--intel", dest="intel", default=str(INTEL),
+        help="CARMEN log to replay (default: the Intel log)",
+    )  # fmt: skip
     parser.add_argument("--every", type=int, default=2, help="every N-th training scan (2)")
     parser.add_argument("--batch", type=int, default=5, help="scans per update (5)")
     parser.add_argument("--max-scans", type=int, default=None, help="replay a prefix only")
@@ -109,6 +117,10 @@ def main(argv=None):
     parser.add_argument(
         "--hyperparameter-growth", default="2.0",
         help="the online model's hyperparameter_growth ('none': never re-learn)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--refit-fraction", type=float, default=None,
+        help="the online model's refit_fraction (default: the estimator's)",
     )  # fmt: skip
     parser.add_argument("--out", default=None, help="JSON path")
     args = parser.parse_args(argv)
@@ -140,7 +152,11 @@ def main(argv=None):
     tic = time.perf_counter()
     growth = args.hyperparameter_growth
     growth = None if growth.lower() == "none" else float(growth)
-    model, records = replay(train, args.batch, args.n_jobs, growth=growth)
+    if args.refit_fraction is None:
+        args.refit_fraction = MixtureGPOccupancyMap().refit_fraction
+    model, records = replay(
+        train, args.batch, args.n_jobs, growth=growth, refit_fraction=args.refit_fraction
+    )
     replay_s = time.perf_counter() - tic
     online_auc = float(roc_auc_score(labels, model.predict_proba(queries)[:, 1]))
     last_half = records[len(records) // 2 :]
@@ -157,6 +173,7 @@ def main(argv=None):
         n_observations=int(len(X)),
         n_batches=len(records),
         hyperparameter_growth=growth,
+        refit_fraction=args.refit_fraction,
         fit_s=fit_s,
         fit_cpu_s=fit_cpu_s,
         fit_kernel=repr(fitted.shared_kernel_),
@@ -181,14 +198,16 @@ def main(argv=None):
     if args.check_n_jobs:
         maps = []
         for n_jobs in (1, 2):
-            m, _ = replay(train, args.batch, n_jobs, args.check_n_jobs, log=False, growth=growth)
+            m, _ = replay(
+                train, args.batch, n_jobs, args.check_n_jobs, False, growth, args.refit_fraction
+            )
             maps.append(m.predict_proba(queries))
         result["n_jobs_check_batches"] = args.check_n_jobs
         result["n_jobs_same_map"] = bool(np.array_equal(maps[0], maps[1]))
 
     print_table(
-        f"B5: Intel, every {args.every}nd training scan ({len(train)} scans) in batches of "
-        f"{args.batch}",
+        f"B5: {Path(args.intel).name}, every {args.every}nd training scan ({len(train)} "
+        f"scans) in batches of {args.batch}",
         ["", "AUC", "time s", "experts"],
         [
             ("one fit", f"{fit_auc:.4f}", f"{fit_s:.1f}", result["fit_experts"]),

@@ -86,7 +86,10 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
 
 @pytest.mark.parametrize(
     "options, expected",
-    [([], (1.0, 0.35)), (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None))],
+    [
+        ([], (1.0, 0.35)),
+        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None)),
+    ],
 )
 def test_beam_piece_options_reach_the_mixture(options, expected):
     from skoccmap._cmd_map import make_mixture

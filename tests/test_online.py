@@ -318,6 +318,40 @@ def test_fixed_kernel_is_not_relearned(office):
     assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
 
 
+def _fitted_and_pending(model):
+    """Rows each expert was fitted on and rows waiting, checked against its training data."""
+    counts = []
+    for k, est in enumerate(model.experts_):
+        mine = model._piece_expert == k
+        fitted = mine & model._piece_fitted
+        if hasattr(est, "X_train_"):
+            np.testing.assert_array_equal(est.X_train_, model._pieces[fitted])
+        counts.append((int(fitted.sum()), int(mine.sum() - fitted.sum())))
+    return np.array(counts)
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.3])
+def test_refit_fraction_defers_lightly_touched_experts(office, fraction):
+    data, _ = office
+    model = _model(refit_fraction=fraction)
+    deferred_seen = 0
+    for first in range(0, 30, 3):
+        before = list(model.experts_) if first else []
+        model.partial_fit(*_batch(data, first, first + 3), classes=[0, 1])
+        counts = _fitted_and_pending(model)
+        waiting = counts[:, 1] > 0
+        # An expert with rows waiting keeps its fit, and waits only while they stay
+        # under refit_fraction of the rows it was fitted on.
+        assert np.all(counts[waiting, 1] < fraction * counts[waiting, 0])
+        assert not np.intersect1d(np.flatnonzero(waiting), model.touched_experts_).size
+        kept = [model.experts_[k] for k in np.flatnonzero(waiting)]
+        assert all(any(est is old for old in before) for est in kept)
+        deferred_seen += waiting.sum()
+    assert (deferred_seen > 0) == (fraction > 0)
+    model.refit_hyperparameters()
+    assert not _fitted_and_pending(model)[:, 1].any()
+
+
 def test_updated_index_equals_a_rebuilt_one(office):
     from skoccmap._reach import ExpertReach
 
