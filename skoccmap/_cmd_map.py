@@ -55,6 +55,15 @@ def add_arguments(parser):
         help="scans (after --every-nth-scan) per online update (default 10)",
     )
     online.add_argument(
+        "--refit-fraction",
+        type=float,
+        default=None,
+        metavar="F",
+        help="with --online: a touched expert is refitted once its new rows reach F times "
+        "the rows it was fitted on; 0 refits every touched expert (default: the "
+        "estimator's refit_fraction, 0.5)",
+    )
+    online.add_argument(
         "--snapshots",
         metavar="DIR",
         default=None,
@@ -270,6 +279,8 @@ def run(args):
         if getattr(args, "online", False):
             if args.batch_scans < 1:
                 raise ValueError(f"--batch-scans must be >= 1, got {args.batch_scans}")
+            if args.refit_fraction is not None and not args.refit_fraction >= 0:
+                raise ValueError(f"--refit-fraction must be >= 0, got {args.refit_fraction}")
             if args.snapshot_every < 1:
                 raise ValueError(f"--snapshot-every must be >= 1, got {args.snapshot_every}")
         unknown_variance = _unknown_variance(args.unknown_variance)
@@ -329,6 +340,8 @@ def _replay(args, train, unknown_variance):
 
     # One line per batch: the mixture's own progress messages would bury them.
     model = make_mixture(args).set_params(verbose=0)
+    if args.refit_fraction is not None:
+        model.set_params(refit_fraction=args.refit_fraction)
     snapshots = Path(args.snapshots) if args.snapshots else None
     if snapshots is not None:
         snapshots.mkdir(parents=True, exist_ok=True)

@@ -432,3 +432,19 @@ def test_cli_online_bad_batch_size(paper_log, capsys):
     log, _ = paper_log
     assert main(["map", str(log), "--online", "--batch-scans", "0", "--quiet"]) == 2
     assert "--batch-scans must be >= 1" in capsys.readouterr().err
+    assert main(["map", str(log), "--online", "--refit-fraction", "-1", "--quiet"]) == 2
+    assert "--refit-fraction must be >= 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.25])
+def test_cli_refit_fraction_reaches_the_online_model(paper_log, tmp_path, fraction):
+    from skoccmap import _cmd_map
+    from skoccmap.cli import build_parser
+
+    log, _ = paper_log
+    argv = ["map", str(log), "--online", "--batch-scans", "13", "--refit-fraction",
+            str(fraction), "--max-expert-size", "150", "--n-jobs", "1", "--quiet"]  # fmt: skip
+    args = build_parser().parse_args(argv)
+    train = _cmd_map.load_scans(args)
+    model = _cmd_map._replay(args, train, None)
+    assert model.refit_fraction == fraction
