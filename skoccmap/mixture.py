@@ -811,6 +811,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "hyperparameter_window": [Interval(Real, 0, None, closed="neither"), None],
         "hyperparameter_growth": [Interval(Real, 1, None, closed="neither"), None],
         "refit_fraction": [Interval(Real, 0, None, closed="left")],
+        "refit_error": [Interval(Real, 0, 1, closed="both")],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "reach_tolerance": [Interval(Real, 0, 1, closed="neither")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
@@ -837,6 +838,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         hyperparameter_window=None,
         hyperparameter_growth=2.0,
         refit_fraction=0.5,
+        refit_error=0.2,
         gating_threshold=1e-3,
         reach_tolerance=1e-2,
         return_radius=0.1,
@@ -859,6 +861,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.hyperparameter_window = hyperparameter_window
         self.hyperparameter_growth = hyperparameter_growth
         self.refit_fraction = refit_fraction
+        self.refit_error = refit_error
         self.gating_threshold = gating_threshold
         self.reach_tolerance = reach_tolerance
         self.return_radius = return_radius
@@ -1313,7 +1316,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         piece_fitted = np.concatenate([self._piece_fitted, np.zeros(pieces.shape[0], bool)])
         changed = touched
         if not relearn:
-            touched = self._due(touched, rows, piece_y, old_experts, old_rows)
+            touched = self._due(touched, rows, all_pieces, piece_y, old_experts, old_rows)
             experts = self._refit_experts(
                 touched, rows, piece_y, old_experts, old_rows, origin, pieces=all_pieces
             )
@@ -1351,27 +1354,31 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             f"({time.perf_counter() - start:.1f} s)",
         )
 
-    def _due(self, touched, rows, piece_y, old_experts, old_rows):
+    def _due(self, touched, rows, pieces, piece_y, old_experts, old_rows):
         """The ``touched`` experts that :meth:`partial_fit` refits now (see ``refit_fraction``).
 
         An expert is due when it is new, lost rows to a split, gained a class its fit did
-        not see, or its rows not yet fitted reach ``refit_fraction`` of those fitted.
+        not see, its rows not yet fitted reach ``refit_fraction`` of those fitted, or its
+        fit gets more than ``refit_error`` of its new rows' labels wrong.
         """
-        due = []
-        for k in touched:
+        due = np.zeros(len(touched), dtype=bool)
+        for i, k in enumerate(touched):
+            old = old_experts[k]
+            if old is None or isinstance(old, _ConstantExpert):
+                due[i] = old is None or np.unique(piece_y[rows[k]]).size > 1
+                continue
             fitted = old_rows[k]
-            n_kept = np.isin(fitted, rows[k], assume_unique=True).sum()
-            n_new = rows[k].size - n_kept
-            due.append(
-                old_experts[k] is None
-                or n_kept < fitted.size
-                or n_new >= self.refit_fraction * max(n_kept, 1)
-                or (
-                    isinstance(old_experts[k], _ConstantExpert)
-                    and np.unique(piece_y[rows[k]]).size > 1
-                )
-            )
-        return touched[np.asarray(due, dtype=bool)]
+            kept = np.isin(rows[k], fitted, assume_unique=True)
+            n_kept = int(kept.sum())
+            new = rows[k][~kept]
+            if n_kept < fitted.size or new.size >= self.refit_fraction * max(n_kept, 1):
+                due[i] = True
+            elif self.refit_error < 1 and new.size:
+                # Rows its fit already predicts change it little: they may wait. Rows it
+                # gets wrong (free space where it draws a wall) must not.
+                occupied = old.predict_proba(pieces[new])[:, 1] > 0.5
+                due[i] = np.mean(occupied != (piece_y[new] == 1)) > self.refit_error
+        return touched[due]
 
     def _refit_experts(self, touched, rows, piece_y, old_experts, old_rows, origin, pieces=None):
         """Experts list with the ``touched`` ones refitted on their rows, in parallel.
