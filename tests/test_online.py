@@ -352,6 +352,28 @@ def test_refit_fraction_defers_lightly_touched_experts(office, fraction):
     assert not _fitted_and_pending(model)[:, 1].any()
 
 
+@pytest.mark.parametrize(
+    "label, error, refitted", [(0, 0.2, True), (0, 1.0, False), (1, 0.2, False)]
+)
+def test_refit_error_refits_an_expert_its_new_rows_contradict(office, label, error, refitted):
+    data, _ = office
+    model = _model(refit_fraction=10.0, refit_error=error)
+    model.partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    k = np.bincount(model._hit_expert).argmax()
+    hits = model._hits[model._hit_expert == k][:8]
+    before = model.experts_[k]
+    assert before.predict_proba(as_segments(hits))[:, 1].mean() > 0.5
+    # A few short rows at its hits: free space where the expert draws a wall (label 0),
+    # or more hits there (label 1). Far fewer rows than refit_fraction asks for.
+    if label == 0:
+        X = np.hstack([hits + [0.02, 0.0], hits + [0.01, 0.0]])
+    else:
+        X = as_segments(hits + [0.001, 0.0])
+    model.partial_fit(X, np.full(len(X), label))
+    assert any(est is before for est in model.experts_) != refitted
+    _fitted_and_pending(model)
+
+
 def test_updated_index_equals_a_rebuilt_one(office):
     from skoccmap._reach import ExpertReach
 
