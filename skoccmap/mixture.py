@@ -637,7 +637,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         :meth:`partial_fit` refits a touched expert once the rows it was not fitted on
         reach this fraction of those it was fitted on; until then it keeps its fit and
         the new rows wait (they count towards the next update's test). An expert that
-        is new, split, or sees its second class is refitted at once, and
+        is new, split, or fitted on one class only (a count) is refitted at once, and
         :meth:`refit_hyperparameters` refits every expert on all its rows. 0 refits
         every touched expert. Each expert is then refitted after a constant share of new
         rows, so the work per added row stays constant as the map grows, instead of
@@ -1372,15 +1372,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def _due(self, touched, rows, pieces, piece_y, old_experts, old_rows):
         """The ``touched`` experts that :meth:`partial_fit` refits now (see ``refit_fraction``).
 
-        An expert is due when it is new, lost rows to a split, gained a class its fit did
-        not see, its rows not yet fitted reach ``refit_fraction`` of those fitted, or its
-        fit gets more than ``refit_error`` of its new rows' labels wrong.
+        An expert is due when it is new or a one-class count (refitting a count costs
+        nothing, and a waiting row would leave its frequency stale), lost rows to a split,
+        its rows not yet fitted reach ``refit_fraction`` of those fitted, or its fit gets
+        more than ``refit_error`` of its new rows' labels wrong.
         """
         due = np.zeros(len(touched), dtype=bool)
         for i, k in enumerate(touched):
             old = old_experts[k]
             if old is None or isinstance(old, _ConstantExpert):
-                due[i] = old is None or np.unique(piece_y[rows[k]]).size > 1
+                due[i] = True
                 continue
             fitted = old_rows[k]
             kept = np.isin(rows[k], fitted, assume_unique=True)

@@ -374,6 +374,19 @@ def test_refit_error_refits_an_expert_its_new_rows_contradict(office, label, err
     _fitted_and_pending(model)
 
 
+def test_one_class_expert_is_recounted_at_once():
+    from skoccmap.mixture import _ConstantExpert
+
+    # A one-class expert is a count: a new row of its class changes its frequency, and
+    # waiting (here refit_fraction would let 1 new row in 5 wait) would leave it stale.
+    model = _model(refit_fraction=10.0)
+    count = _ConstantExpert(None, 0, 5)
+    due = model._due(
+        np.array([0]), [np.arange(6)], np.zeros((6, 4)), np.zeros(6), [count], [np.arange(5)]
+    )
+    np.testing.assert_array_equal(due, [0])
+
+
 def test_updated_index_equals_a_rebuilt_one(office):
     from skoccmap._reach import ExpertReach
 
