@@ -46,14 +46,13 @@ from skoccmap.observations import as_segments  # noqa: E402
 INTEL = HERE.parents[1] / "shared" / "data" / "intel.gfs.log"
 
 
-def replay(train, batch, n_jobs, n_batches=None, log=True, growth=2.0, refit_fraction=0.0):
-    """partial_fit batch by batch; the model and one record per batch."""
-    model = MixtureGPOccupancyMap(
-        n_jobs=n_jobs,
-        random_state=0,
-        hyperparameter_growth=growth,
-        refit_fraction=refit_fraction,
-    )
+def replay(train, batch, n_jobs, n_batches=None, log=True, growth=2.0, refit_fraction=None):
+    """partial_fit batch by batch; the model and one record per batch.
+
+    ``refit_fraction=None`` keeps the estimator's default."""
+    model = MixtureGPOccupancyMap(n_jobs=n_jobs, random_state=0, hyperparameter_growth=growth)
+    if refit_fraction is not None:
+        model.set_params(refit_fraction=refit_fraction)
     records = []
     starts = list(range(0, len(train), batch))[:n_batches]
     for b, first in enumerate(starts, 1):
@@ -152,8 +151,6 @@ def main(argv=None):
     tic = time.perf_counter()
     growth = args.hyperparameter_growth
     growth = None if growth.lower() == "none" else float(growth)
-    if args.refit_fraction is None:
-        args.refit_fraction = MixtureGPOccupancyMap().refit_fraction
     model, records = replay(
         train, args.batch, args.n_jobs, growth=growth, refit_fraction=args.refit_fraction
     )
@@ -173,7 +170,8 @@ def main(argv=None):
         n_observations=int(len(X)),
         n_batches=len(records),
         hyperparameter_growth=growth,
-        refit_fraction=args.refit_fraction,
+        refit_fraction=model.refit_fraction,
+        refit_error=model.refit_error,
         fit_s=fit_s,
         fit_cpu_s=fit_cpu_s,
         fit_kernel=repr(fitted.shared_kernel_),
