@@ -656,8 +656,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         and may wait; free space seen where the fit draws a wall must not. 1 never
         refits on this ground. Replaying the simulated office (tuning seed 100, 60 poses
         x 90 beams in batches of 6, :func:`~skoccmap.metrics.map_quality` on the cells
-        seen so far) with ``refit_fraction=0.5``, ``refit_error=1`` marks 1.43 % of the
-        far free cells occupied after 36 scans, against 0.20 % when every touched expert
+        seen so far; ``benchmarks/bench_online.py --office-steps``) with
+        ``refit_fraction=0.5``, ``refit_error=1`` marks 1.43 % of the far free cells
+        occupied after 36 scans, against 0.20 % when every touched expert
         is refitted (free found 93.5 against 96.1 %, ECE 0.060 against 0.045); 0.2 gives
         0.18 %, 96.0 % and 0.045, the same map as refitting every touched expert at each
         step to 0.002 in every score. On ACES (as above) 0.05 / 0.2 / 0.35 / 1 give a
