@@ -20,9 +20,10 @@ online model's parameter (``none`` never re-learns).
 
 ``--office-steps`` instead replays the simulated office (``make_office_scans``, 60 poses x 90
 beams, range noise 0.02 m, tuning seed 100) in batches of 6 scans with ``refit_fraction=0``
-(every touched expert refitted), with ``refit_fraction=0.5, refit_error=1`` and with the
-defaults, and prints ``skoccmap.metrics.map_quality`` on the cells seen so far after every
-update: how far waiting rows leave the map behind the one that refits every touched expert.
+(every touched expert refitted), with the default 0.5 and with 1 and 2 (more rows added to
+the experts before a refit), and prints ``skoccmap.metrics.map_quality`` on the cells seen so far
+after every update: how far the added rows leave the map from the one that refits every
+touched expert.
 """
 
 import argparse
@@ -107,8 +108,9 @@ def slope(records, skip_relearned=False, key="update_s"):
 
 OFFICE_VARIANTS = {
     "refit every touched expert": dict(refit_fraction=0.0),
-    "refit_fraction 0.5, refit_error 1": dict(refit_fraction=0.5, refit_error=1.0),
-    "defaults": {},
+    "refit_fraction 0.5 (default)": {},
+    "refit_fraction 1": dict(refit_fraction=1.0),
+    "refit_fraction 2": dict(refit_fraction=2.0),
 }
 
 
@@ -216,7 +218,6 @@ def main(argv=None):
         n_batches=len(records),
         hyperparameter_growth=growth,
         refit_fraction=model.refit_fraction,
-        refit_error=model.refit_error,
         fit_s=fit_s,
         fit_cpu_s=fit_cpu_s,
         fit_kernel=repr(fitted.shared_kernel_),

@@ -11,7 +11,7 @@ the path in the ``SKOCCMAP_INTEL_LOG`` environment variable, or from
 simulated office of :func:`~skoccmap.datasets.make_office_scans` when neither is there.
 
 Every 2nd of the first 300 scans is added in batches of 10 scans. Each update prints its
-time, the experts it refitted and the experts of the map; three snapshots show the map
+time, the experts it updated and the experts of the map; three snapshots show the map
 growing as the robot drives down the lab's corridors. ``skoccmap map intel.gfs.log
 --online --batch-scans 10`` does the same from the command line.
 """
@@ -41,12 +41,13 @@ else:
 # Replay them in batches
 # ----------------------
 # The first call fits the map; each later one clusters the new hits, routes the beams to
-# the experts of their hits and refits the experts that are due (``refit_fraction``).
+# the experts of their hits; those experts take the new rows by EP on their sites alone,
+# and are refitted once the rows added so are due (``refit_fraction``).
 batch = 10
 model = MixtureGPOccupancyMap(n_jobs=2, random_state=0)
 hits = scans.hit_points()  # the snapshots cover the final map's extent
 snapshots = {}
-print(f"{'scans':>6s} {'update s':>9s} {'refitted':>9s} {'experts':>8s}")
+print(f"{'scans':>6s} {'update s':>9s} {'updated':>9s} {'experts':>8s}")
 for first in range(0, len(scans), batch):
     X, y, _ = scans[first : first + batch].to_observations()
     tic = time.perf_counter()

@@ -5,8 +5,10 @@ Online mapping: the map grows as scans come
 
 A robot builds its map while it drives. :meth:`~skoccmap.MixtureGPOccupancyMap.partial_fit`
 adds a batch of scans to a fitted map: new hits join the clusters they belong to (or open
-a new one when the robot enters a new room), and only the experts that received rows are
-refitted, warm-started from their previous EP state. The other experts stay as they were.
+a new one when the robot enters a new room), and only the experts that received rows
+change: they take the new rows by EP on those rows' sites alone, and are refitted
+(warm-started from their EP state) once enough rows have been added. The other experts stay
+as they were.
 
 This example replays the simulated office of
 :func:`~skoccmap.datasets.make_office_scans` (a path through the corridor and seven rooms)

@@ -44,7 +44,7 @@ def add_arguments(parser):
         "--online",
         action="store_true",
         help="replay the log in time order, adding --batch-scans scans at a time with "
-        "partial_fit (only the experts they touch are refitted); prints the update time and "
+        "partial_fit (only the experts they touch change); prints the update time and "
         "the experts touched per batch",
     )
     online.add_argument(
@@ -59,9 +59,9 @@ def add_arguments(parser):
         type=float,
         default=None,
         metavar="F",
-        help="with --online: a touched expert is refitted once its new rows reach F times "
-        "the rows it was fitted on; 0 refits every touched expert (default: the "
-        "estimator's refit_fraction, 0.5)",
+        help="with --online: a touched expert takes its new rows without a refit until "
+        "the rows added so reach F times the rows its last fit settled; 0 refits every "
+        "touched expert (default: the estimator's refit_fraction, 0.5)",
     )
     online.add_argument(
         "--snapshots",

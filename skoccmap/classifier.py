@@ -4,6 +4,7 @@ Binary problems are solved by EP; more classes by one-vs-rest or one-vs-one bina
 problems, as in scikit-learn's ``GaussianProcessClassifier``.
 """
 
+import copy
 import warnings
 from numbers import Integral, Real
 
@@ -22,9 +23,13 @@ from sklearn.utils.optimize import _check_optimize_result
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .ep import (
+    EPResult,
+    ep_append_sites,
+    ep_latent_joint_predictive,
     ep_latent_predictive,
     ep_log_marginal_likelihood,
     ep_log_marginal_likelihood_gradient,
+    ep_posterior,
     expectation_propagation,
 )
 
@@ -409,14 +414,19 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         # A kernel matrix handed in by _fit_warm_start is K(X, X) of ``kernel``: valid only
         # while kernel_ is that kernel, i.e. unless hyperparameters are learned here.
         K = self.__dict__.pop("_initial_kernel", None)
+        hold = self.__dict__.pop("_hold", None)
         if self.optimizer is not None and self.kernel_.n_dims > 0:
             self._optimize_hyperparameters(warm)
             _warn_at_bounds(self.kernel_)
-            K = None
+            K, hold = None, None
 
         if K is None:
             K = self.kernel_(self.X_train_)
-        result = self._run_ep(K, warm)
+        result = None
+        if hold is not None and warm[0] is not None and np.any(hold):
+            result = self._ep_holding(K, *warm[0], hold)
+        if result is None:
+            result = self._run_ep(K, warm)
         if not result.converged:
             warnings.warn(
                 f"EP did not converge in max_iter={self.max_iter} sweeps (largest site "
@@ -437,7 +447,9 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
             )
         )
 
-    def _fit_warm_start(self, X, y, site_precision=None, site_nu=None, kernel_matrix=None):
+    def _fit_warm_start(
+        self, X, y, site_precision=None, site_nu=None, kernel_matrix=None, hold=None
+    ):
         """``fit``, with the first EP run started from the given sites (a warm start).
 
         EP iterates to the same fixed point (within ``tol``) from any start; sites from an
@@ -446,6 +458,10 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         ``kernel_matrix``, ``kernel(X, X)`` computed by the caller (e.g. mostly from an
         earlier fit's matrix), replaces that evaluation in a binary fit whose kernel is not
         learned; it is ignored otherwise.
+
+        ``hold``, a boolean mask of rows, holds those rows' sites at the given values in
+        a binary fit whose kernel is not learned: EP runs on the other rows' sites alone
+        (:meth:`_ep_holding`), and the fit is not EP's fixed point on all rows.
         """
         if site_precision is not None:
             self._initial_sites = (
@@ -454,11 +470,102 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
             )
         if kernel_matrix is not None:
             self._initial_kernel = np.asarray(kernel_matrix, dtype=np.float64)
+        if hold is not None:
+            self._hold = np.asarray(hold, dtype=bool)
         try:
             return self.fit(X, y)
         finally:
-            self.__dict__.pop("_initial_sites", None)
-            self.__dict__.pop("_initial_kernel", None)
+            for name in ("_initial_sites", "_initial_kernel", "_hold"):
+                self.__dict__.pop(name, None)
+
+    def _absorbed(self, X, y, K_cross=None, K_new=None):
+        """A copy with the rows ``X`` appended to the fit, EP run on their sites alone.
+
+        The other sites are held, and the posterior of all is assembled from this one's
+        Cholesky factor (:func:`~skoccmap.ep.ep_append_sites`): ``O(n^2 n_new)``, about
+        a prediction of the new rows, with no kernel at the rows already fitted.
+        ``K_cross`` (``kernel_(X, X_train_)``) and ``K_new`` (``kernel_(X)``) are computed
+        here if None. The log evidence becomes that of the held sites plus that of the
+        new ones given them. Only for a binary fit; ``kernel_`` is kept. Returns None
+        where the posterior is not in Cholesky form or EP on the new sites fails or does
+        not converge (then fit on all rows instead).
+        """
+        check_is_fitted(self)
+        if self.n_classes_ != 2:
+            raise ValueError("Only a binary fit can take rows without a refit.")
+        y = np.asarray(y)
+        if not np.all(np.isin(y, self.classes_)):
+            raise ValueError(
+                f"y holds labels not in classes_ {self.classes_.tolist()}: refit instead."
+            )
+        K_cross = self.kernel_(X, self.X_train_) if K_cross is None else K_cross
+        K_new = self.kernel_(X) if K_new is None else K_new
+        y_new = np.where(y == self.classes_[1], 1.0, -1.0)
+        posterior = _unpacked(self._posterior, self._posterior_lower)
+        result, log_evidence = ep_append_sites(
+            posterior,
+            K_cross,
+            K_new,
+            y_new,
+            update=self.ep_update,
+            damping=self.damping,
+            max_iter=self.max_iter,
+            tol=self.tol,
+        )
+        if result is None:
+            return None
+        absorbed = copy.copy(self)
+        absorbed.X_train_ = np.concatenate([self.X_train_, X])
+        absorbed.y_train_ = np.concatenate([self.y_train_, y_new])
+        absorbed.site_precision_ = np.concatenate([self.site_precision_, result.site_precision])
+        absorbed.site_nu_ = np.concatenate([self.site_nu_, result.site_nu])
+        absorbed.n_iter_ = result.n_iter
+        absorbed._posterior, absorbed._posterior_lower = _packed(result.posterior)
+        absorbed.log_marginal_likelihood_value_ = np.float64(
+            self.log_marginal_likelihood_value_ + log_evidence
+        )
+        return absorbed
+
+    def _ep_holding(self, K, tau, nu, hold):
+        """EP on the sites of the rows not in ``hold``, the others held at ``tau``, ``nu``.
+
+        The free rows' prior is then the held sites' posterior predictive there, jointly
+        (:func:`~skoccmap.ep.ep_latent_joint_predictive`), and EP costs ``n_free^3`` per
+        sweep instead of ``n^3``; the posterior of all sites is computed once at the end.
+        With the held sites at EP's fixed point on all rows, the free sites land on it too.
+        Returns an :class:`~skoccmap.ep.EPResult`, or None where EP on the free sites
+        fails or does not converge.
+        """
+        held, free = np.flatnonzero(hold), np.flatnonzero(~hold)
+        try:
+            posterior = ep_posterior(K[np.ix_(held, held)], tau[held], nu[held])
+            mean, cov = ep_latent_joint_predictive(
+                K[np.ix_(free, held)], K[np.ix_(free, free)], posterior
+            )
+            tau, nu = tau.copy(), nu.copy()
+            n_iter, residual = 0, 0.0
+            if free.size:
+                # EP's sites on the free rows are in the latent centred on ``mean``; in the
+                # latent itself their nu is larger by tau * mean.
+                result = expectation_propagation(
+                    cov,
+                    self.y_train_[free],
+                    mean=mean,
+                    site_precision=tau[free],
+                    site_nu=nu[free] - tau[free] * mean,
+                    update=self.ep_update,
+                    damping=self.damping,
+                    max_iter=self.max_iter,
+                    tol=self.tol,
+                )
+                if not result.converged:
+                    return None
+                tau[free] = result.site_precision
+                nu[free] = result.site_nu + result.site_precision * mean
+                n_iter, residual = result.n_iter, result.residual
+            return EPResult(tau, nu, ep_posterior(K, tau, nu), n_iter, True, residual)
+        except np.linalg.LinAlgError:
+            return None
 
     def _run_ep(self, K, warm):
         """EP started from the sites in ``warm[0]`` (zeros if None); from zero sites if that

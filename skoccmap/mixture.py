@@ -391,11 +391,12 @@ def _training_kernel(kernel, X, previous=None):
     return K
 
 
-def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False):
+def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False, hold=None):
     """Fit one expert; one-class data get a :class:`_ConstantExpert`.
 
     ``sites``, a pair ``(site_precision, site_nu)`` per row, warm-starts an expert that
     can take them (:class:`~skoccmap.EPGaussianProcessClassifier`); others ignore them.
+    ``hold``, a mask of rows, holds their sites fixed: EP runs on the others alone.
     With ``keep_kernel``, an expert with a fixed kernel is fitted on ``kernel(X, X)``
     computed here (from ``previous``, see :func:`_training_kernel`), which is returned,
     packed, for the next refit.
@@ -418,7 +419,7 @@ def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False):
         tau, nu = (None, None) if sites is None else sites
 
         def fit(X, y):
-            return expert._fit_warm_start(X, y, tau, nu, kernel_matrix=K)
+            return expert._fit_warm_start(X, y, tau, nu, kernel_matrix=K, hold=hold)
 
     lower = None if K is None else _lower_triangle(K)
     if threading.current_thread() is not threading.main_thread():
@@ -427,6 +428,31 @@ def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False):
         warnings.simplefilter("always")
         expert = fit(X, y)
     return expert, [(w.category, str(w.message)) for w in caught], lower
+
+
+def _append_rows(old, expert, X, y, n_old, sites=None, previous=None, keep_kernel=False):
+    """``old``, fitted on ``X[:n_old]``, with the rows ``X[n_old:]`` appended.
+
+    EP runs on the new rows' sites alone, the others held, on ``old``'s factor
+    (:meth:`~skoccmap.EPGaussianProcessClassifier._absorbed`): about the cost of predicting
+    the new rows. Where that fails, ``expert`` is fitted as by :func:`_fit_expert`, holding
+    the old rows' ``sites``. Returns what :func:`_fit_expert` does.
+    """
+    if n_old == X.shape[0]:
+        return old, [], None
+    lower = None
+    if previous is not None:
+        # The old matrix is kept: extend it for the expert's next refit.
+        K = _training_kernel(old.kernel_, X, previous)
+        K_cross, K_new = K[n_old:, :n_old], K[n_old:, n_old:]
+        lower = _lower_triangle(K) if keep_kernel else None
+    else:
+        K_cross, K_new = old.kernel_(X[n_old:], X[:n_old]), old.kernel_(X[n_old:])
+    absorbed = old._absorbed(X[n_old:], y[n_old:], K_cross, K_new)
+    if absorbed is not None:
+        return absorbed, [], lower
+    hold = np.arange(X.shape[0]) < n_old
+    return _fit_expert(expert, X, y, sites, previous, keep_kernel, hold=hold)
 
 
 def _warn_once_each(expert_warnings, n_experts):
@@ -634,37 +660,29 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``None`` keeps the first batch's hyperparameters. Only with
         ``share_hyperparameters=True`` and hyperparameters to learn.
     refit_fraction : float, default=0.5
-        :meth:`partial_fit` refits a touched expert once the rows it was not fitted on
-        reach this fraction of those it was fitted on; until then it keeps its fit and
-        the new rows wait (they count towards the next update's test). An expert that
-        is new, split, or fitted on one class only (a count) is refitted at once, and
-        :meth:`refit_hyperparameters` refits every expert on all its rows. 0 refits
-        every touched expert. Each expert is then refitted after a constant share of new
-        rows, so the work per added row stays constant as the map grows, instead of
-        growing with the number of experts a batch's beams reach. On the tuning log
-        (ACES, every 2nd training scan replayed in batches of 5,
-        ``benchmarks/bench_online.py --log``, CPU times) 0 / 0.1 / 0.25 / 0.5 give a
-        median update over the last half of 6.9 / 5.8 / 4.8 / 3.9 % of one fit's time,
-        a log-log slope of update time against scans seen of 0.41 / 0.33 / 0.24 / 0.16,
-        and held-out AUC 0.9735 / 0.9735 / 0.9735 / 0.9739 against the fit's 0.9745
-        (with ``refit_error=1``). 0.5 is the smallest of these that meets both of the
-        online benchmark's time targets (5 % and 0.2).
-    refit_error : float in [0, 1], default=0.2
-        A touched expert is also refitted at once when its current fit gets more than
-        this share of its new rows' labels wrong (probability on the wrong side of 1/2),
-        whatever ``refit_fraction`` says: rows the fit already predicts change it little
-        and may wait; free space seen where the fit draws a wall must not. 1 never
-        refits on this ground. Replaying the simulated office (tuning seed 100, 60 poses
-        x 90 beams in batches of 6, :func:`~skoccmap.metrics.map_quality` on the cells
-        seen so far; ``benchmarks/bench_online.py --office-steps``) with
-        ``refit_fraction=0.5``, ``refit_error=1`` marks 1.43 % of the far free cells
-        occupied after 36 scans, against 0.20 % when every touched expert
-        is refitted (free found 93.5 against 96.1 %, ECE 0.060 against 0.045); 0.2 gives
-        0.18 %, 96.0 % and 0.045, the same map as refitting every touched expert at each
-        step to 0.002 in every score. On ACES (as above) 0.05 / 0.2 / 0.35 / 1 give a
-        median update of 6.0 / 5.2 / 5.5 / 3.9 % of the fit and a slope of 0.37 / 0.31 /
-        0.36 / 0.16, held-out AUC 0.9736 / 0.9738 / 0.9736 / 0.9739: the maps stay right
-        at each step, at the price of the online benchmark's time targets on ACES.
+        How :meth:`partial_fit` updates the experts a batch touches. An expert keeps the
+        EP sites of the rows it has and takes its new rows by EP on their sites alone,
+        with its current posterior at the new rows (jointly) as their prior
+        (:func:`~skoccmap.ep.ep_append_sites`): about the cost of predicting the new
+        rows, and the map shows every row at once. Held, the old sites drift from EP's
+        fixed point on all rows; once the rows added so reach this fraction of the rows
+        its last fit on all its rows settled, the expert is refitted (EP warm-started
+        from all its sites). New experts and one-class counts are fitted at once; an
+        expert split off another holds that one's sites of its rows;
+        :meth:`refit_hyperparameters` refits every expert. 0 refits every touched
+        expert. Replaying the simulated office (tuning seed 100, 60 poses x 90 beams in
+        batches of 6, :func:`~skoccmap.metrics.map_quality` on the cells seen so far;
+        ``benchmarks/bench_online.py --office-steps``), 0.5 draws after every update the
+        map of refitting every touched expert within 0.0002 in AUC, 0.01 points in
+        phantom rate, 0.1 in free and walls found and 0.001 in ECE; 1 and 2 within
+        0.0006, 0.12, 0.4 and 0.003. On the tuning log (ACES, every 2nd training scan
+        replayed in batches of 5, ``benchmarks/bench_online.py --log``, CPU times) 0 /
+        0.5 / 2 give a median update over the last half of 7.1 / 4.9 / 4.1 % of one
+        fit's time, a log-log slope of update time against scans seen of 0.48 / 0.30 /
+        0.27 and held-out AUC 0.9735 / 0.9735 / 0.9734 against the fit's 0.9745. 0.5
+        keeps the held sites closest to EP's fixed point with an update under the 5 %
+        target; no value meets the 0.2 slope target on ACES, where a batch's long beams
+        reach more experts as the map grows (99 per update over the last half).
     gating_threshold : float, default=1e-3
         Of the experts within reach of a query (see ``reach_tolerance``), those whose
         gating weight there is below this are skipped (the one with the largest weight
@@ -759,8 +777,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``reach_tolerance``); ``inf`` when an expert's kernel does not decay or is not
         exposed as ``kernel_``, and then every expert is a candidate everywhere.
     touched_experts_ : ndarray of int
-        Experts (fitted or) refitted by the last :meth:`fit`, :meth:`partial_fit` or
-        :meth:`refit_hyperparameters` call: all of them after a fit.
+        Experts fitted, refitted or given new rows (see ``refit_fraction``) by the last
+        :meth:`fit`, :meth:`partial_fit` or :meth:`refit_hyperparameters` call: all of
+        them after a fit.
 
     See Also
     --------
@@ -827,7 +846,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "hyperparameter_window": [Interval(Real, 0, None, closed="neither"), None],
         "hyperparameter_growth": [Interval(Real, 1, None, closed="neither"), None],
         "refit_fraction": [Interval(Real, 0, None, closed="left")],
-        "refit_error": [Interval(Real, 0, 1, closed="both")],
         "gating_threshold": [Interval(Real, 0, 1, closed="left")],
         "reach_tolerance": [Interval(Real, 0, 1, closed="neither")],
         "return_radius": [Interval(Real, 0, None, closed="left")],
@@ -854,7 +872,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         hyperparameter_window=None,
         hyperparameter_growth=2.0,
         refit_fraction=0.5,
-        refit_error=0.2,
         gating_threshold=1e-3,
         reach_tolerance=1e-2,
         return_radius=0.1,
@@ -877,7 +894,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.hyperparameter_window = hyperparameter_window
         self.hyperparameter_growth = hyperparameter_growth
         self.refit_fraction = refit_fraction
-        self.refit_error = refit_error
         self.gating_threshold = gating_threshold
         self.reach_tolerance = reach_tolerance
         self.return_radius = return_radius
@@ -981,10 +997,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
            and new hits; a no-return beam the hit of the most similar return beam of the
            batch, or the hit nearest to its midpoint if the batch has none) and are cut
            into the same pieces.
-        3. Experts that received rows are refitted, in parallel (those whose new rows
-           are under ``refit_fraction`` of their fitted ones wait), and an expert grown
-           past ``max_expert_size`` is bisected on its hits as clusters are in :meth:`fit`.
-           EP experts start from the site parameters of their previous fit (zeros for new
+        3. Experts that received rows take them, in parallel. Most add them to their
+           fit, EP running on the new rows' sites alone; an expert is refitted once the
+           rows added so reach ``refit_fraction`` of those its last fit settled, and at
+           once when new, split or a one-class count. An expert grown past
+           ``max_expert_size`` is bisected on its hits as clusters are in :meth:`fit`.
+           A refit EP expert starts from the site parameters it has (zeros for new
            rows): EP reaches the same fixed point in fewer sweeps.
         4. The gates of the touched clusters, the clusterer's predictive, the reach and
            the spatial index of prediction are updated.
@@ -1009,7 +1027,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         Returns
         -------
         self : MixtureGPOccupancyMap
-            The updated estimator; ``touched_experts_`` lists the experts refitted by the
+            The updated estimator; ``touched_experts_`` lists the experts updated by the
             last call.
 
         Examples
@@ -1091,8 +1109,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if not self.share_hyperparameters:
             raise ValueError("refit_hyperparameters needs share_hyperparameters=True.")
         rows = _groups(self._piece_expert, self.n_experts_)
-        fitted = [k_rows[self._piece_fitted[k_rows]] for k_rows in rows]
-        self._relearn_shared(rows, self.experts_, fitted, np.arange(self.n_experts_))
+        self._relearn_shared(rows, self.experts_, rows, np.arange(self.n_experts_))
         self._update_index()
         return self
 
@@ -1112,7 +1129,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.experts_ = self._refit_experts(
             everyone, rows, self._piece_y, old_experts, old_rows, origin
         )
-        self._piece_fitted = np.ones(self._pieces.shape[0], dtype=bool)
+        self._piece_settled = np.ones(self._pieces.shape[0], dtype=bool)
         self.touched_experts_ = everyone
 
     def _relearns_at(self, n_rows):
@@ -1139,7 +1156,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._piece_y = y_enc[source]
         self._piece_expert = self.cluster_labels_[source]
         self._piece_hit = self._row_hit[source]
-        self._piece_fitted = np.ones(pieces.shape[0], dtype=bool)
+        self._piece_settled = np.ones(pieces.shape[0], dtype=bool)
         self._learned_rows = pieces.shape[0]
         self.touched_experts_ = np.arange(self.n_experts_)
 
@@ -1299,11 +1316,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         old_experts = [None] * n_experts
         for k in range(n_old_experts):
             old_experts[renumber[k]] = self.experts_[k]
-        # Rows each old expert was fitted on (for its sites), by new number.
+        # Rows each old expert was fitted on (all of its pieces, in order), by new number.
         old_groups = _groups(self._piece_expert, n_old_experts)
         old_rows = [np.empty(0, np.intp)] * n_experts
         for k in range(n_old_experts):
-            old_rows[renumber[k]] = old_groups[k][self._piece_fitted[old_groups[k]]]
+            old_rows[renumber[k]] = old_groups[k]
         # Experts split off an old one start from its sites as well.
         origin = np.arange(n_experts)
         for k in touched:
@@ -1324,20 +1341,19 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 row_groups = _groups(row_expert, n_experts)
             piece_gates[c] = _PieceGate([row_mids[row_groups[k]] for k in ks])
 
-        # 7. Refit the touched experts that are due (in parallel, warm-started), or every
-        # expert with re-learned hyperparameters once the data have grown enough (after
-        # the commit).
+        # 7. Refit the touched experts that are due, and add the new rows to the others
+        # (in parallel, warm-started); or refit every expert with re-learned
+        # hyperparameters once the data have grown enough (after the commit).
         relearn = self._relearns_at(all_pieces.shape[0])
         experts = old_experts
-        piece_fitted = np.concatenate([self._piece_fitted, np.zeros(pieces.shape[0], bool)])
-        changed = touched
+        piece_settled = np.concatenate([self._piece_settled, np.zeros(pieces.shape[0], bool)])
         if not relearn:
-            touched = self._due(touched, rows, all_pieces, piece_y, old_experts, old_rows)
+            due = self._due(touched, rows, old_experts, origin, piece_settled)
             experts = self._refit_experts(
-                touched, rows, piece_y, old_experts, old_rows, origin, pieces=all_pieces
+                touched, rows, piece_y, old_experts, old_rows, origin, all_pieces, due
             )
-            for k in touched:
-                piece_fitted[rows[k]] = True
+            for k in touched[due]:
+                piece_settled[rows[k]] = True
 
         # Commit.
         self.cluster_ids_, self.cluster_merge_ = cluster_ids, cluster_merge
@@ -1353,57 +1369,52 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._row_hit = row_hit
         self._pieces, self._piece_y = all_pieces, piece_y
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
-        self._piece_fitted = piece_fitted
+        self._piece_settled = piece_settled
         if relearn:
             self._relearn_shared(rows, old_experts, old_rows, origin)
             self._update_index()
         else:
             previous = np.full(n_experts, -1, dtype=np.intp)
             previous[renumber[:n_old_experts]] = np.arange(n_old_experts)
-            self._update_index(changed, previous)
+            self._update_index(touched, previous)
         if self.gating == "gpc":
             mids = self._row_mids
             self.gating_ = self._fit_gpc_gate(np.hstack([mids, mids]), row_expert, rng)
         _log(
             self.verbose,
-            f"partial_fit: {touched.size} of {n_experts} expert(s) refitted "
+            f"partial_fit: {touched.size} of {n_experts} expert(s) updated "
             f"({time.perf_counter() - start:.1f} s)",
         )
 
-    def _due(self, touched, rows, pieces, piece_y, old_experts, old_rows):
-        """The ``touched`` experts that :meth:`partial_fit` refits now (see ``refit_fraction``).
+    def _due(self, touched, rows, old_experts, origin, settled):
+        """Which ``touched`` experts :meth:`partial_fit` refits (see ``refit_fraction``).
 
-        An expert is due when it is new or a one-class count (refitting a count costs
-        nothing, and a waiting row would leave its frequency stale), lost rows to a split,
-        its rows not yet fitted reach ``refit_fraction`` of those fitted, or its fit gets
-        more than ``refit_error`` of its new rows' labels wrong.
+        An expert whose rows have EP sites from the expert it comes from (itself, or the
+        one it was split off) takes its other rows by EP on their sites alone, unless the
+        rows not settled by a fit on all of an expert's rows reach ``refit_fraction`` of
+        those settled: then, as for a new expert or a count, it is refitted.
         """
-        due = np.zeros(len(touched), dtype=bool)
+        due = np.ones(len(touched), dtype=bool)
         for i, k in enumerate(touched):
-            old = old_experts[k]
-            if old is None or isinstance(old, _ConstantExpert):
-                due[i] = True
+            source = old_experts[origin[k]]
+            if getattr(source, "n_classes_", 0) != 2 or not hasattr(source, "site_nu_"):
                 continue
-            fitted = old_rows[k]
-            kept = np.isin(rows[k], fitted, assume_unique=True)
-            n_kept = int(kept.sum())
-            new = rows[k][~kept]
-            if n_kept < fitted.size or new.size >= self.refit_fraction * max(n_kept, 1):
-                due[i] = True
-            elif self.refit_error < 1 and new.size:
-                # Rows its fit already predicts change it little: they may wait. Rows it
-                # gets wrong (free space where it draws a wall) must not.
-                occupied = old.predict_proba(pieces[new])[:, 1] > 0.5
-                due[i] = np.mean(occupied != (piece_y[new] == 1)) > self.refit_error
-        return touched[due]
+            n_settled = np.count_nonzero(settled[rows[k]])
+            due[i] = rows[k].size - n_settled >= self.refit_fraction * max(n_settled, 1)
+        return due
 
-    def _refit_experts(self, touched, rows, piece_y, old_experts, old_rows, origin, pieces=None):
-        """Experts list with the ``touched`` ones refitted on their rows, in parallel.
+    def _refit_experts(
+        self, touched, rows, piece_y, old_experts, old_rows, origin, pieces=None, due=None
+    ):
+        """Experts list with the ``touched`` ones fitted on their rows, in parallel.
 
         Expert ``k`` starts from the sites its ``origin`` expert had on the same pieces
-        (``old_rows`` are the pieces each old expert was fitted on), zeros elsewhere.
+        (``old_rows`` are the pieces each old expert was fitted on), zeros elsewhere. Those
+        ``due`` (all by default) run EP on all their sites; the others hold the sites they
+        have and run EP on their new rows' sites alone.
         """
         pieces = self._pieces if pieces is None else pieces
+        due = np.ones(len(touched), dtype=bool) if due is None else due
         base = self._expert_base
         seeds = self._rng.randint(np.iinfo(np.int32).max, size=len(touched))
         has_seed = "random_state" in base.get_params()
@@ -1415,17 +1426,18 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             return est
 
         def sites(k):
+            # The origin's sites of k's rows (zeros for rows it had not), and which it had.
             old = old_experts[origin[k]]
             tau = getattr(old, "site_precision_", None)
             source = old_rows[origin[k]]
             if tau is None or np.shape(tau) != source.shape:
-                return None
+                return None, None
             where = np.searchsorted(source, rows[k]).clip(0, max(source.size - 1, 0))
             found = source[where] == rows[k]
             return (
                 np.where(found, tau[where], 0.0),
                 np.where(found, old.site_nu_[where], 0.0),
-            )
+            ), found
 
         cache = getattr(self, "_kernel_cache", {})
         keep = self.kernel_cache_size > 0
@@ -1439,16 +1451,41 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             where = np.searchsorted(source, rows[k]).clip(0, max(source.size - 1, 0))
             return lower, np.where(source[where] == rows[k], where, -1)
 
-        results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            delayed(_fit_expert)(
+        def appends(k):
+            # Rows only appended to an old binary EP expert (not split, not new).
+            old, n_old = old_experts[k], old_rows[k].size
+            return (
+                origin[k] == k
+                and hasattr(old, "_absorbed")
+                and getattr(old, "n_classes_", 0) == 2
+                and np.array_equal(rows[k][:n_old], old_rows[k])
+            )
+
+        def task(j, k):
+            start, found = sites(k)
+            if not due[j] and appends(k):
+                return delayed(_append_rows)(
+                    old_experts[k],
+                    prepared(j),
+                    pieces[rows[k]],
+                    piece_y[rows[k]],
+                    old_rows[k].size,
+                    start,
+                    previous=previous(k),
+                    keep_kernel=keep,
+                )
+            return delayed(_fit_expert)(
                 prepared(j),
                 pieces[rows[k]],
                 piece_y[rows[k]],
-                sites(k),
+                start,
                 previous=previous(k),
                 keep_kernel=keep,
+                hold=None if due[j] else found,
             )
-            for j, k in enumerate(touched)
+
+        results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
+            task(j, k) for j, k in enumerate(touched)
         )
         _warn_once_each([w for _, w, _ in results], len(touched))
         experts = list(old_experts)

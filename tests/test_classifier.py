@@ -556,3 +556,87 @@ def test_stationarity_ignores_gradients_pressing_on_bounds():
     # Pointing into the box at the bound, or a free gradient: not stationary.
     assert not _is_stationary(result([7.0, 1.0], [0.03, 1e-5]), bounds)
     assert not _is_stationary(result([1.0, 1.0], [0.0, 0.01]), bounds)
+
+
+def _holding(clf, X, y, tau, nu, n_held):
+    """``clf`` fitted on ``X`` with the first ``n_held`` rows' sites held at ``tau``, ``nu``."""
+    tau = np.r_[tau[:n_held], np.zeros(len(X) - n_held)]
+    nu = np.r_[nu[:n_held], np.zeros(len(X) - n_held)]
+    return clf._fit_warm_start(X, y, tau, nu, hold=np.arange(len(X)) < n_held)
+
+
+def test_held_sites_at_the_fixed_point_leave_the_others_there():
+    # With the held rows' sites at the fixed point of EP on all rows, EP on the other
+    # rows' sites alone must land on that fixed point's sites for them: the same posterior.
+    X, y = _data(n=60, seed=3)
+    kernel = C(3.0) * RBF(0.8)
+    whole = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    held = _holding(
+        EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
+        X, y, whole.site_precision_, whole.site_nu_, 45,
+    )  # fmt: skip
+    np.testing.assert_array_equal(held.site_precision_[:45], whole.site_precision_[:45])
+    np.testing.assert_allclose(held.site_precision_, whole.site_precision_, atol=1e-8)
+    np.testing.assert_allclose(held.site_nu_, whole.site_nu_, atol=1e-8)
+    queries = _data(n=30, seed=4)[0]
+    np.testing.assert_allclose(held.predict_proba(queries), whole.predict_proba(queries))
+    np.testing.assert_allclose(
+        held.log_marginal_likelihood_value_, whole.log_marginal_likelihood_value_
+    )
+
+
+def test_held_sites_of_a_smaller_fit_move_the_map_towards_a_refit():
+    X, y = _data(n=80, seed=5)
+    kernel = C(3.0) * RBF(0.8)
+    old = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X[:60], y[:60])
+    whole = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+    held = _holding(
+        EPGaussianProcessClassifier(kernel, optimizer=None),
+        X, y, old.site_precision_, old.site_nu_, 60,
+    )  # fmt: skip
+    assert 0 < held.n_iter_ < whole.n_iter_
+    queries = _data(n=50, seed=6)[0]
+    gap_old = np.abs(old.predict_proba(queries) - whole.predict_proba(queries)).max()
+    gap = np.abs(held.predict_proba(queries) - whole.predict_proba(queries)).max()
+    # Held fixed, the old sites leave a gap to the refit, but a small one.
+    assert gap < 0.25 * gap_old
+
+
+def test_hold_is_ignored_where_the_kernel_is_learned():
+    X, y = _data(n=40)
+    clf = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), random_state=0)
+    held = clone(clf)._fit_warm_start(
+        X, y, np.ones(40), np.zeros(40), hold=np.ones(40, dtype=bool)
+    )
+    plain = clone(clf).fit(X, y)
+    np.testing.assert_allclose(held.site_precision_, plain.site_precision_, rtol=1e-4)
+
+
+def test_absorbed_rows_land_on_the_fixed_point_of_the_whole_fit():
+    X, y = _data(n=60, seed=3)
+    kernel = C(3.0) * RBF(0.8)
+    whole = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    # The first 45 rows' fit, its sites moved to the whole fit's fixed point.
+    old = _holding(
+        EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
+        X[:45], y[:45], whole.site_precision_, whole.site_nu_, 45,
+    )  # fmt: skip
+    absorbed = old._absorbed(X[45:], y[45:])
+    np.testing.assert_allclose(absorbed.site_precision_, whole.site_precision_, atol=1e-8)
+    np.testing.assert_allclose(absorbed.site_nu_, whole.site_nu_, atol=1e-8)
+    queries = _data(n=30, seed=4)[0]
+    np.testing.assert_allclose(absorbed.predict_proba(queries), whole.predict_proba(queries))
+    np.testing.assert_allclose(absorbed.predict_var(queries), whole.predict_var(queries))
+    np.testing.assert_array_equal(absorbed.X_train_, X)
+    assert old.X_train_.shape[0] == 45  # the original is unchanged
+
+
+def test_absorbed_refuses_unknown_labels_and_multi_class():
+    X, y = _data(n=30)
+    clf = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), optimizer=None).fit(X, y)
+    with pytest.raises(ValueError, match="not in classes_"):
+        clf._absorbed(X[:2], [2, 2])
+    multi = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), optimizer=None)
+    multi.fit(X, np.arange(30) % 3)
+    with pytest.raises(ValueError, match="binary"):
+        multi._absorbed(X[:2], [0, 0])

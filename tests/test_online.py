@@ -318,73 +318,71 @@ def test_fixed_kernel_is_not_relearned(office):
     assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
 
 
-def _fitted_and_pending(model):
-    """Rows each expert was fitted on and rows waiting, checked against its training data."""
+def _settled_and_absorbed(model):
+    """Per expert, rows settled by a fit on all its rows and rows added since; every
+    expert's training data must be all of its pieces."""
     counts = []
     for k, est in enumerate(model.experts_):
         mine = model._piece_expert == k
-        fitted = mine & model._piece_fitted
         if hasattr(est, "X_train_"):
-            np.testing.assert_array_equal(est.X_train_, model._pieces[fitted])
-        counts.append((int(fitted.sum()), int(mine.sum() - fitted.sum())))
+            np.testing.assert_array_equal(est.X_train_, model._pieces[mine])
+        settled = int(np.count_nonzero(mine & model._piece_settled))
+        counts.append((settled, int(mine.sum()) - settled))
     return np.array(counts)
 
 
 @pytest.mark.parametrize("fraction", [0.0, 0.3])
-def test_refit_fraction_defers_lightly_touched_experts(office, fraction):
+def test_refit_fraction_refits_after_a_share_of_added_rows(office, fraction):
     data, _ = office
     model = _model(refit_fraction=fraction)
-    deferred_seen = 0
+    absorbed_seen = 0
     for first in range(0, 30, 3):
         before = list(model.experts_) if first else []
         model.partial_fit(*_batch(data, first, first + 3), classes=[0, 1])
-        counts = _fitted_and_pending(model)
-        waiting = counts[:, 1] > 0
-        # An expert with rows waiting keeps its fit, and waits only while they stay
-        # under refit_fraction of the rows it was fitted on.
-        assert np.all(counts[waiting, 1] < fraction * counts[waiting, 0])
-        assert not np.intersect1d(np.flatnonzero(waiting), model.touched_experts_).size
-        kept = [model.experts_[k] for k in np.flatnonzero(waiting)]
-        assert all(any(est is old for old in before) for est in kept)
-        deferred_seen += waiting.sum()
-    assert (deferred_seen > 0) == (fraction > 0)
+        counts = _settled_and_absorbed(model)
+        added = counts[:, 1] > 0
+        # An expert whose added rows are not settled keeps them under refit_fraction of
+        # its settled rows; every touched expert is a new fit.
+        assert np.all(counts[added, 1] < fraction * counts[added, 0])
+        assert not any(model.experts_[k] is old for k in model.touched_experts_ for old in before)
+        absorbed_seen += added.sum()
+    assert (absorbed_seen > 0) == (fraction > 0)
     model.refit_hyperparameters()
-    assert not _fitted_and_pending(model)[:, 1].any()
+    assert not _settled_and_absorbed(model)[:, 1].any()
 
 
-@pytest.mark.parametrize(
-    "label, error, refitted", [(0, 0.2, True), (0, 1.0, False), (1, 0.2, False)]
-)
-def test_refit_error_refits_an_expert_its_new_rows_contradict(office, label, error, refitted):
+@pytest.mark.parametrize("label", [0, 1])
+def test_added_rows_change_the_map_at_once(office, label):
     data, _ = office
-    model = _model(refit_fraction=10.0, refit_error=error)
+    model = _model(refit_fraction=10.0)
     model.partial_fit(*_batch(data, 0, 10), classes=[0, 1])
     k = np.bincount(model._hit_expert).argmax()
     hits = model._hits[model._hit_expert == k][:8]
-    before = model.experts_[k]
-    assert before.predict_proba(as_segments(hits))[:, 1].mean() > 0.5
     # A few short rows at its hits: free space where the expert draws a wall (label 0),
     # or more hits there (label 1). Far fewer rows than refit_fraction asks for.
     if label == 0:
         X = np.hstack([hits + [0.02, 0.0], hits + [0.01, 0.0]])
     else:
         X = as_segments(hits + [0.001, 0.0])
+    p_before = model.experts_[k].predict_proba(X)[:, 1]
+    n_settled = np.count_nonzero(model._piece_settled)
     model.partial_fit(X, np.full(len(X), label))
-    assert any(est is before for est in model.experts_) != refitted
-    _fitted_and_pending(model)
+    assert model.touched_experts_.tolist() == [k]
+    # Not refitted: the rows are added with the other sites held fixed, unsettled.
+    assert np.count_nonzero(model._piece_settled) == n_settled
+    p_after = model.experts_[k].predict_proba(X)[:, 1]
+    assert np.all(p_after < p_before) if label == 0 else np.all(p_after > p_before)
+    _settled_and_absorbed(model)
 
 
 def test_one_class_expert_is_recounted_at_once():
     from skoccmap.mixture import _ConstantExpert
 
-    # A one-class expert is a count: a new row of its class changes its frequency, and
-    # waiting (here refit_fraction would let 1 new row in 5 wait) would leave it stale.
+    # A one-class expert is a count: it is refitted (recounted), never added to.
     model = _model(refit_fraction=10.0)
     count = _ConstantExpert(None, 0, 5)
-    due = model._due(
-        np.array([0]), [np.arange(6)], np.zeros((6, 4)), np.zeros(6), [count], [np.arange(5)]
-    )
-    np.testing.assert_array_equal(due, [0])
+    due = model._due(np.array([0]), [np.arange(6)], [count], np.array([0]), np.ones(6, bool))
+    np.testing.assert_array_equal(due, [True])
 
 
 def test_updated_index_equals_a_rebuilt_one(office):
