@@ -1348,7 +1348,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         experts = old_experts
         piece_settled = np.concatenate([self._piece_settled, np.zeros(pieces.shape[0], bool)])
         if not relearn:
-            due = self._due(touched, rows, old_experts, origin, piece_settled)
+            due = self._due(touched, rows, old_experts, old_rows, origin, piece_settled)
             experts = self._refit_experts(
                 touched, rows, piece_y, old_experts, old_rows, origin, all_pieces, due
             )
@@ -1386,7 +1386,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             f"({time.perf_counter() - start:.1f} s)",
         )
 
-    def _due(self, touched, rows, old_experts, origin, settled):
+    def _due(self, touched, rows, old_experts, old_rows, origin, settled):
         """Which ``touched`` experts :meth:`partial_fit` refits (see ``refit_fraction``).
 
         An expert whose rows have EP sites from the expert it comes from (itself, or the
@@ -1399,6 +1399,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             source = old_experts[origin[k]]
             if getattr(source, "n_classes_", 0) != 2 or not hasattr(source, "site_nu_"):
                 continue
+            appended = origin[k] == k and np.array_equal(rows[k][: old_rows[k].size], old_rows[k])
+            if not appended and not _takes_kernel_matrix(self._expert_base):
+                continue  # split, and the expert learns its kernel: a full fit anyway
             n_settled = np.count_nonzero(settled[rows[k]])
             due[i] = rows[k].size - n_settled >= self.refit_fraction * max(n_settled, 1)
         return due

@@ -381,7 +381,9 @@ def test_one_class_expert_is_recounted_at_once():
     # A one-class expert is a count: it is refitted (recounted), never added to.
     model = _model(refit_fraction=10.0)
     count = _ConstantExpert(None, 0, 5)
-    due = model._due(np.array([0]), [np.arange(6)], [count], np.array([0]), np.ones(6, bool))
+    due = model._due(
+        np.array([0]), [np.arange(6)], [count], [np.arange(5)], np.array([0]), np.ones(6, bool)
+    )
     np.testing.assert_array_equal(due, [True])
 
 
@@ -481,3 +483,26 @@ def test_cli_refit_fraction_reaches_the_online_model(paper_log, tmp_path, fracti
     train = _cmd_map.load_scans(args)
     model = _cmd_map._replay(args, train, None)
     assert model.refit_fraction == fraction
+
+
+def test_experts_with_their_own_hyperparameters_take_rows_with_them(office):
+    # Each expert learns its kernel: rows are added under the kernel it learned (the very
+    # object), and an expert refitted learns again.
+    data, _ = office
+    expert = EPGaussianProcessClassifier(
+        ConstantKernel(100.0, (1.0, 1e4)) * IntegralKernel(1.0, (0.1, 10.0)), max_iter=400
+    )
+    model = MixtureGPOccupancyMap(
+        expert=expert, share_hyperparameters=False, max_expert_size=150, random_state=0
+    )
+    model.partial_fit(*_batch(data, 0, 14), classes=[0, 1])
+    old = list(model.experts_)
+    kernels = {id(e.kernel_) for e in old if hasattr(e, "site_nu_")}
+    model.partial_fit(*_batch(data, 14, 15))
+    counts = _settled_and_absorbed(model)
+    touched = model.touched_experts_
+    kept = [k for k in touched if id(getattr(model.experts_[k], "kernel_", None)) in kernels]
+    assert kept and len(kept) < len(touched)
+    # Those that kept their kernel took rows without settling them; the others settled all.
+    assert all(counts[k, 1] > 0 for k in kept)
+    assert all(counts[k, 1] == 0 for k in touched if k not in kept)
