@@ -1487,9 +1487,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 hold=None if due[j] else found,
             )
 
-        results = Parallel(n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0))(
-            task(j, k) for j, k in enumerate(touched)
-        )
+        # Appending rows costs about a prediction, less than shipping the expert and its
+        # kernel matrix to a worker and back: this process appends while the workers
+        # refit the experts that are due.
+        tasks = [task(j, k) for j, k in enumerate(touched)]
+        here = [i for i, t in enumerate(tasks) if t[0] is _append_rows]
+        away = [i for i, t in enumerate(tasks) if t[0] is not _append_rows]
+        fits = Parallel(
+            n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0), return_as="generator"
+        )(tasks[i] for i in away)
+        results = [None] * len(tasks)
+        for i in here:
+            func, args, kwargs = tasks[i]
+            results[i] = func(*args, **kwargs)
+        for i, result in zip(away, fits, strict=True):
+            results[i] = result
         _warn_once_each([w for _, w, _ in results], len(touched))
         experts = list(old_experts)
         for k, (est, _, _) in zip(touched, results, strict=True):
