@@ -564,6 +564,14 @@ def ep_log_marginal_likelihood_gradient(K_gradient, posterior):
     return 0.5 * (M.ravel() @ K_gradient.reshape(n * n, -1))
 
 
+def _whitened_cross(posterior, K_cross):
+    """``V = L^-1 S^1/2 K_cross^T`` (Cholesky form): ``K_cross`` through ``B``'s factor, so
+    that the posterior's covariance at new points is ``K_new - V^T V``."""
+    return solve_triangular(
+        posterior.L, posterior.sqrt_tau[:, None] * K_cross.T, lower=True, check_finite=False
+    )
+
+
 def ep_latent_predictive(K_star, k_star_diag, posterior):
     """Latent predictive mean and variance at test points (R&W Algorithm 3.6 lines 4-6).
 
@@ -595,9 +603,7 @@ def ep_latent_predictive(K_star, k_star_diag, posterior):
     """
     mean = K_star @ posterior.alpha
     if posterior.lu is None:
-        V = solve_triangular(
-            posterior.L, posterior.sqrt_tau[:, None] * K_star.T, lower=True, check_finite=False
-        )
+        V = _whitened_cross(posterior, K_star)
         var = k_star_diag - np.einsum("ij,ij->j", V, V)
     else:
         RK = lu_solve(posterior.lu, posterior.tau[:, None] * K_star.T, trans=1, check_finite=False)
@@ -644,9 +650,7 @@ def ep_latent_joint_predictive(K_cross, K_new, posterior):
     """
     mean = K_cross @ posterior.alpha
     if posterior.lu is None:
-        V = solve_triangular(
-            posterior.L, posterior.sqrt_tau[:, None] * K_cross.T, lower=True, check_finite=False
-        )
+        V = _whitened_cross(posterior, K_cross)
         cov = K_new - V.T @ V
     else:
         RK = lu_solve(
@@ -713,10 +717,10 @@ def ep_append_sites(posterior, K_cross, K_new, y, **options):
         return None, -np.inf
     n = posterior.alpha.shape[0]
     s = posterior.sqrt_tau
-    V = solve_triangular(posterior.L, s[:, None] * K_cross.T, lower=True, check_finite=False)
-    mean = K_cross @ posterior.alpha
+    V = _whitened_cross(posterior, K_cross)
+    mean, cov = K_cross @ posterior.alpha, K_new - V.T @ V
     try:
-        new = expectation_propagation(K_new - V.T @ V, y, mean=mean, **options)
+        new = expectation_propagation(cov, y, mean=mean, **options)
     except np.linalg.LinAlgError:
         return None, -np.inf
     if not new.converged or new.posterior.L is None:
@@ -736,7 +740,7 @@ def ep_append_sites(posterior, K_cross, K_new, y, **options):
     log_det_B = posterior.log_det_B + new.posterior.log_det_B
     joint = EPPosterior(None, None, alpha, log_det_B, np.sqrt(tau), L, None, tau)
     log_evidence = ep_log_marginal_likelihood(
-        K_new - V.T @ V, y, new.site_precision, new.site_nu, mean=mean, posterior=new.posterior
+        cov, y, new.site_precision, new.site_nu, mean=mean, posterior=new.posterior
     )
     result = EPResult(new.site_precision, site_nu, joint, new.n_iter, True, new.residual)
     return result, log_evidence

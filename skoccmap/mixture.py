@@ -455,6 +455,12 @@ def _append_rows(old, expert, X, y, n_old, sites=None, previous=None, keep_kerne
     return _fit_expert(expert, X, y, sites, previous, keep_kernel, hold=hold)
 
 
+def _appended(k, rows, old_rows, origin):
+    """Whether expert ``k``'s rows are its old rows with new ones after them (not split,
+    not new)."""
+    return origin[k] == k and np.array_equal(rows[k][: old_rows[k].size], old_rows[k])
+
+
 def _warn_once_each(expert_warnings, n_experts):
     """Re-raise the experts' warnings in the caller: each kind once, with how many experts.
 
@@ -1399,9 +1405,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             source = old_experts[origin[k]]
             if getattr(source, "n_classes_", 0) != 2 or not hasattr(source, "site_nu_"):
                 continue
-            appended = origin[k] == k and np.array_equal(rows[k][: old_rows[k].size], old_rows[k])
-            if not appended and not _takes_kernel_matrix(self._expert_base):
-                continue  # split, and the expert learns its kernel: a full fit anyway
+            split = not _appended(k, rows, old_rows, origin)
+            if split and not _takes_kernel_matrix(self._expert_base):
+                continue  # the expert learns its kernel: a split one is fitted anyway
             n_settled = np.count_nonzero(settled[rows[k]])
             due[i] = rows[k].size - n_settled >= self.refit_fraction * max(n_settled, 1)
         return due
@@ -1454,19 +1460,19 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             where = np.searchsorted(source, rows[k]).clip(0, max(source.size - 1, 0))
             return lower, np.where(source[where] == rows[k], where, -1)
 
-        def appends(k):
-            # Rows only appended to an old binary EP expert (not split, not new).
-            old, n_old = old_experts[k], old_rows[k].size
-            return (
-                origin[k] == k
-                and hasattr(old, "_absorbed")
-                and getattr(old, "n_classes_", 0) == 2
-                and np.array_equal(rows[k][:n_old], old_rows[k])
-            )
+        # Experts not due whose rows were only appended to an old binary EP expert take
+        # them on its factor; the others are fitted, holding the sites they have.
+        appends = [
+            not due[j]
+            and hasattr(old_experts[k], "_absorbed")
+            and getattr(old_experts[k], "n_classes_", 0) == 2
+            and _appended(k, rows, old_rows, origin)
+            for j, k in enumerate(touched)
+        ]
 
         def task(j, k):
             start, found = sites(k)
-            if not due[j] and appends(k):
+            if appends[j]:
                 return delayed(_append_rows)(
                     old_experts[k],
                     prepared(j),
@@ -1491,8 +1497,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # kernel matrix to a worker and back: this process appends while the workers
         # refit the experts that are due.
         tasks = [task(j, k) for j, k in enumerate(touched)]
-        here = [i for i, t in enumerate(tasks) if t[0] is _append_rows]
-        away = [i for i, t in enumerate(tasks) if t[0] is not _append_rows]
+        here = [i for i, local in enumerate(appends) if local]
+        away = [i for i, local in enumerate(appends) if not local]
         fits = Parallel(
             n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0), return_as="generator"
         )(tasks[i] for i in away)

@@ -565,12 +565,17 @@ def _holding(clf, X, y, tau, nu, n_held):
     return clf._fit_warm_start(X, y, tau, nu, hold=np.arange(len(X)) < n_held)
 
 
+def _whole_fit():
+    """Data, kernel and the fit of EP on all of them to a tight fixed point."""
+    X, y = _data(n=60, seed=3)
+    kernel = C(3.0) * RBF(0.8)
+    return X, y, kernel, EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+
+
 def test_held_sites_at_the_fixed_point_leave_the_others_there():
     # With the held rows' sites at the fixed point of EP on all rows, EP on the other
     # rows' sites alone must land on that fixed point's sites for them: the same posterior.
-    X, y = _data(n=60, seed=3)
-    kernel = C(3.0) * RBF(0.8)
-    whole = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    X, y, kernel, whole = _whole_fit()
     held = _holding(
         EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
         X, y, whole.site_precision_, whole.site_nu_, 45,
@@ -613,9 +618,7 @@ def test_hold_is_ignored_where_the_kernel_is_learned():
 
 
 def test_absorbed_rows_land_on_the_fixed_point_of_the_whole_fit():
-    X, y = _data(n=60, seed=3)
-    kernel = C(3.0) * RBF(0.8)
-    whole = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    X, y, kernel, whole = _whole_fit()
     # The first 45 rows' fit, its sites moved to the whole fit's fixed point.
     old = _holding(
         EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
