@@ -10,6 +10,7 @@ import sys
 import threading
 import time
 import warnings
+from functools import partial
 from numbers import Integral, Real
 
 import numpy as np
@@ -1471,9 +1472,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ]
 
         def task(j, k):
+            # A call with its arguments bound; wrapped by ``delayed`` only for the workers.
             start, found = sites(k)
             if appends[j]:
-                return delayed(_append_rows)(
+                return partial(
+                    _append_rows,
                     old_experts[k],
                     prepared(j),
                     pieces[rows[k]],
@@ -1483,7 +1486,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                     previous=previous(k),
                     keep_kernel=keep,
                 )
-            return delayed(_fit_expert)(
+            return partial(
+                _fit_expert,
                 prepared(j),
                 pieces[rows[k]],
                 piece_y[rows[k]],
@@ -1501,11 +1505,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         away = [i for i, local in enumerate(appends) if not local]
         fits = Parallel(
             n_jobs=self.n_jobs, verbose=max(self.verbose - 1, 0), return_as="generator"
-        )(tasks[i] for i in away)
+        )(delayed(tasks[i])() for i in away)
         results = [None] * len(tasks)
         for i in here:
-            func, args, kwargs = tasks[i]
-            results[i] = func(*args, **kwargs)
+            results[i] = tasks[i]()
         for i, result in zip(away, fits, strict=True):
             results[i] = result
         _warn_once_each([w for _, w, _ in results], len(touched))

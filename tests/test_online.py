@@ -4,9 +4,11 @@ Small simulated data and fixed expert hyperparameters keep every fit to about a 
 """
 
 import re
+import warnings
 
 import numpy as np
 import pytest
+from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process.kernels import ConstantKernel
 from sklearn.metrics import roc_auc_score
 
@@ -349,6 +351,21 @@ def test_refit_fraction_refits_after_a_share_of_added_rows(office, fraction):
     assert (absorbed_seen > 0) == (fraction > 0)
     model.refit_hyperparameters()
     assert not _settled_and_absorbed(model)[:, 1].any()
+
+
+def test_updates_warn_nothing_but_convergence(office):
+    # Rows appended in this process and refits in workers alike: no stray warning
+    # (such as joblib's about a delayed call run outside Parallel) reaches the user.
+    data, _ = office
+    model = _model(n_jobs=2)
+    absorbed = 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for first in range(0, 18, 3):
+            model.partial_fit(*_batch(data, first, first + 3), classes=[0, 1])
+            absorbed += _settled_and_absorbed(model)[:, 1].sum()
+    assert absorbed > 0
+    assert [str(w.message) for w in caught if w.category is not ConvergenceWarning] == []
 
 
 @pytest.mark.parametrize("label", [0, 1])
