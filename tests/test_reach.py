@@ -5,7 +5,7 @@ import pytest
 from sklearn.gaussian_process.kernels import RBF, DotProduct
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
-from skoccmap._reach import ExpertReach, kernel_reach
+from skoccmap._reach import ExpertReach, _unique_rows, kernel_reach
 from skoccmap.kernels import IntegralKernel
 
 
@@ -187,3 +187,13 @@ def test_block_table_is_the_stencils_around_every_cell(dim):
              enumerate(index._stencils)]
         )  # fmt: skip
         np.testing.assert_array_equal(index._blocks[k], np.unique(_codes(blocks)))
+
+
+@pytest.mark.parametrize("span", [5, 2**40])
+def test_unique_rows_matches_numpy(span):
+    # Coded by one integer per row, or numpy's row-wise unique where codes would overflow.
+    rng = np.random.RandomState(0)
+    keys = rng.randint(-3, 4, size=(500, 3)).astype(np.int64)
+    keys[:, 1] *= span
+    np.testing.assert_array_equal(_unique_rows(keys), np.unique(keys, axis=0))
+    assert _unique_rows(keys[:0]).shape == (0, 3)
