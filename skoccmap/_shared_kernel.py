@@ -21,7 +21,7 @@ from sklearn.utils.parallel import Parallel, delayed
 
 from .classifier import _minimize_in_bounds
 
-__all__ = ["learn_shared_kernel", "warn_at_bounds", "window_pieces"]
+__all__ = ["learn_shared_kernel", "warn_at_bounds", "warn_beyond_extent", "window_pieces"]
 
 # A learned log-hyperparameter within this distance of a bound counts as at the bound.
 _AT_BOUND_ATOL = 1e-3
@@ -145,3 +145,30 @@ def warn_at_bounds(kernel, where):
             ConvergenceWarning,
             stacklevel=3,
         )
+
+
+def warn_beyond_extent(kernel, extent, where):
+    """ConvergenceWarning for every learned length scale of ``kernel`` beyond ``extent``.
+
+    A length scale longer than the data's extent makes every location look alike: the map
+    is nearly one value everywhere, and every expert reaches every query. Within its
+    bounds (scikit-learn's default upper bound is 1e5) such a value raises no bound
+    warning; it is the failure of learning on pieces too sparse for the map's structure,
+    such as wide ``hyperparameter_window`` windows on a sparse log.
+    """
+    params = kernel.get_params()
+    for name, value in params.items():
+        if not name.endswith("length_scale"):
+            continue
+        if isinstance(params.get(name + "_bounds"), str):  # "fixed": not learned
+            continue
+        longest = float(np.max(value))
+        if longest > extent:
+            warnings.warn(
+                f"The {where} hyperparameter {name} was learned at {longest:.3g}, beyond "
+                f"the extent of the training data ({extent:.3g}): the map is nearly "
+                "constant. Learn it on smaller pieces (hyperparameter_window=None or a "
+                "smaller window), narrow its bounds in the kernel, or fix it.",
+                ConvergenceWarning,
+                stacklevel=3,
+            )

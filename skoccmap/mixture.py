@@ -25,7 +25,12 @@ from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._reach import ExpertReach, kernel_reach
-from ._shared_kernel import learn_shared_kernel, warn_at_bounds, window_pieces
+from ._shared_kernel import (
+    learn_shared_kernel,
+    warn_at_bounds,
+    warn_beyond_extent,
+    window_pieces,
+)
 from .classifier import _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .observations import HIT, NO_RETURN, RETURN, split_segments
@@ -86,6 +91,12 @@ def _check_known_labels(y, classes):
 def _midpoints(X):
     d = X.shape[1] // 2
     return 0.5 * (X[:, :d] + X[:, d:])
+
+
+def _extent(X):
+    """Diagonal of the bounding box of the segment rows' ends."""
+    d = X.shape[1] // 2
+    return float(np.linalg.norm(np.ptp(np.vstack([X[:, :d], X[:, d:]]), axis=0)))
 
 
 def _log(verbose, message):
@@ -622,7 +633,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         32 experts drawn at random (product-of-experts training of distributed GPs,
         Deisenroth & Ng 2015), each on its own spatially compact piece of the map: the data
         the kernel is used on. A hyperparameter that ends at a bound raises a
-        ``ConvergenceWarning``. The expert must have ``kernel`` and ``optimizer``
+        ``ConvergenceWarning``, as does a length scale learned beyond the extent of the
+        training data (the map would be nearly constant). The expert must have ``kernel`` and ``optimizer``
         parameters. ``False`` lets every expert learn its own (the paper's model): on the
         tuning data (``benchmarks/bench_tuning.py``) ACES held-out AUC drops from 0.951 to
         0.859, 1.4 % of the office's far free cells are marked occupied (0.05 % shared),
@@ -1591,8 +1603,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if kernels is None:
             return np.inf
         dim = pieces.shape[1] // 2
-        ends = np.vstack([pieces[:, :dim], pieces[:, dim:]])
-        extent = float(np.linalg.norm(np.ptp(ends, axis=0)))
+        extent = _extent(pieces)
         reaches = [kernel_reach(k, dim, self.reach_tolerance, extent) for k in kernels.values()]
         return max(reaches, default=np.inf)
 
@@ -1779,6 +1790,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         )
         if params["optimizer"] is not None:
             warn_at_bounds(self.shared_kernel_, "shared kernel")
+            warn_beyond_extent(self.shared_kernel_, _extent(X), "shared kernel")
         return clone(expert).set_params(kernel=self.shared_kernel_, optimizer=None)
 
     def _fit_gpc_gate(self, X, labels, rng):

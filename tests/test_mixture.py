@@ -701,6 +701,30 @@ def test_shared_hyperparameter_at_its_bound_warns(paper):
     np.testing.assert_allclose(model.shared_kernel_.k1.constant_value, 2.0, rtol=1e-2)
 
 
+@pytest.mark.parametrize("length_scale, warns", [(1e4, True), (1.0, False)])
+def test_shared_length_scale_beyond_the_data_warns(paper, length_scale, warns):
+    from sklearn.exceptions import ConvergenceWarning
+
+    # Far within its bounds, a length scale longer than the map makes it nearly constant.
+    def optimizer(obj_func, initial_theta, bounds):
+        theta = np.log([length_scale])
+        return theta, obj_func(theta, eval_gradient=False)
+
+    expert = GaussianProcessClassifier(
+        C(1.0, "fixed") * RBF(1.0, (1e-2, 1e5)), optimizer=optimizer
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = _mixture(expert=expert).fit(paper.X, paper.y)
+    assert model.shared_kernel_.k2.length_scale == pytest.approx(length_scale)
+    beyond = [
+        w
+        for w in caught
+        if w.category is ConvergenceWarning and "beyond the extent" in str(w.message)
+    ]
+    assert len(beyond) == int(warns)
+
+
 def test_beam_pieces_shrink_towards_hits_and_grow_away_from_the_sensor():
     X = np.array(
         [
