@@ -634,12 +634,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         Deisenroth & Ng 2015), each on its own spatially compact piece of the map: the data
         the kernel is used on. A hyperparameter that ends at a bound raises a
         ``ConvergenceWarning``, as does a length scale learned beyond the extent of the
-        training data (the map would be nearly constant). The expert must have ``kernel`` and ``optimizer``
-        parameters. ``False`` lets every expert learn its own (the paper's model): on the
-        tuning data (``benchmarks/bench_tuning.py``) ACES held-out AUC drops from 0.951 to
-        0.859, 1.4 % of the office's far free cells are marked occupied (0.05 % shared),
-        the paper's world finds 0.49 of its walls (0.90 shared), and ``reach_`` grows from
-        3.8 m to 307 m on ACES.
+        training data (the map would be nearly constant). The expert must have ``kernel``
+        and ``optimizer`` parameters. ``False`` lets every expert learn its own (the
+        paper's model): on the tuning data (``benchmarks/bench_tuning.py``) ACES held-out
+        AUC drops from 0.951 to 0.859, 1.4 % of the office's far free cells are marked
+        occupied (0.05 % shared), the paper's world finds 0.49 of its walls (0.90
+        shared), and ``reach_`` grows from 3.8 m to 307 m on ACES.
     hyperparameter_window : float or None, default=None
         Where the shared hyperparameters are learned (``share_hyperparameters=True``).
         ``None``: on the data of up to 32 experts drawn at random. A radius in metres: on
