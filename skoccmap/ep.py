@@ -611,6 +611,23 @@ def ep_latent_predictive(K_star, k_star_diag, posterior):
     return mean, var
 
 
+def _check_new_points(K_cross, K_new, posterior):
+    """Clear errors for cross- and new-point covariances that do not fit ``posterior``."""
+    n = posterior.alpha.shape[0]
+    K_cross, K_new = np.asarray(K_cross, dtype=np.float64), np.asarray(K_new, dtype=np.float64)
+    if K_cross.ndim != 2 or K_cross.shape[1] != n:
+        raise ValueError(
+            f"K_cross must have shape (n_new, {n}) for a posterior at {n} points, "
+            f"got {K_cross.shape}."
+        )
+    m = K_cross.shape[0]
+    if K_new.shape != (m, m):
+        raise ValueError(f"K_new must have shape ({m}, {m}) to match K_cross, got {K_new.shape}.")
+    if not (np.all(np.isfinite(K_cross)) and np.all(np.isfinite(K_new))):
+        raise ValueError("K_cross or K_new contains NaN or infinite values.")
+    return K_cross, K_new
+
+
 def ep_latent_joint_predictive(K_cross, K_new, posterior):
     """Joint latent predictive distribution ``N(mean, cov)`` at new points.
 
@@ -648,6 +665,7 @@ def ep_latent_joint_predictive(K_cross, K_new, posterior):
     >>> bool(np.allclose(mean, m)), bool(np.allclose(np.diag(cov), v))
     (True, True)
     """
+    K_cross, K_new = _check_new_points(K_cross, K_new, posterior)
     mean = K_cross @ posterior.alpha
     if posterior.lu is None:
         V = _whitened_cross(posterior, K_cross)
@@ -713,6 +731,7 @@ def ep_append_sites(posterior, K_cross, K_new, y, **options):
     >>> bool(np.all(np.abs(mean - whole.posterior.mean) < 0.1))
     True
     """
+    K_cross, K_new = _check_new_points(K_cross, K_new, posterior)
     if posterior.L is None:
         return None, -np.inf
     n = posterior.alpha.shape[0]

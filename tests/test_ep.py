@@ -201,6 +201,26 @@ def test_append_needs_the_cholesky_form():
     assert ep_append_sites(lu_form, K[8:, :8], K[8:, 8:], y[8:])[0] is None
 
 
+@pytest.mark.parametrize("func", [ep_latent_joint_predictive, ep_append_sites])
+def test_new_point_covariances_of_the_wrong_shape_are_refused(func):
+    kernel, X, y = _problem(n=10)
+    K = kernel(X)
+    posterior = expectation_propagation(K[:8, :8], y[:8]).posterior
+    with_nan = K[8:, :8].copy()
+    with_nan[0, 0] = np.nan
+    bad = [
+        (K[8:, :7], K[8:, 8:], r"K_cross must have shape \(n_new, 8\)"),
+        (K[8:, :8], K[7:, 7:], r"K_new must have shape \(2, 2\)"),
+        (with_nan, K[8:, 8:], "NaN or infinite"),
+    ]
+    for K_cross, K_new, message in bad:
+        with pytest.raises(ValueError, match=message):
+            if func is ep_latent_joint_predictive:
+                func(K_cross, K_new, posterior)
+            else:
+                func(posterior, K_cross, K_new, y[8:])
+
+
 def test_improper_sites_raise_linalg_error():
     K = np.eye(3)
     with pytest.raises(np.linalg.LinAlgError, match="proper Gaussian"):
