@@ -26,6 +26,13 @@ _BLOCK = 1.0 / 4.0
 _MAX_DIM = 3
 # Sample points, or (cell, block) pairs, handled at once while the index is built.
 _BATCH = 1 << 21
+# The grid of cells is never finer than this many samples per segment on average, nor than
+# this fraction of the data's extent: a reach far below the segments' length (a kernel with
+# a length scale of micrometres, say) would otherwise sample millions of points per segment
+# and list millions of blocks per cell. A coarser grid only adds candidates (within_reach
+# still measures the reach), so the index stays exact up to its cells' size.
+_MAX_SAMPLES_PER_SEGMENT = 64
+_MIN_SCALE_FRACTION = 2.0**-16
 # Bits per axis of a block code (3 axes in a non-negative int64): blocks within 2**20
 # blocks of the origin (about 2.6e5 reaches) are indexed.
 _CODE_BITS = 21
@@ -124,6 +131,21 @@ def _segment_samples(segments, spacing):
     return start[row] + t[:, None] * delta[row], row
 
 
+def _grid_scale(segments, reach):
+    """Reach that sizes the index's grid: ``reach``, or a longer one where ``reach`` would
+    sample more than ``_MAX_SAMPLES_PER_SEGMENT`` points per segment on average, or cut the
+    extent of the data into more than ``1 / _MIN_SCALE_FRACTION`` reaches."""
+    dim = segments.shape[1] // 2
+    delta = segments[:, dim:] - segments[:, :dim]
+    mean_length = float(np.mean(np.sqrt(np.einsum("ij,ij->i", delta, delta))))
+    ends = np.vstack([segments[:, :dim], segments[:, dim:]])
+    extent = float(np.linalg.norm(ends.max(axis=0) - ends.min(axis=0)))
+    by_samples = mean_length / (_CELL * _MAX_SAMPLES_PER_SEGMENT)
+    scale = max(reach, by_samples, _MIN_SCALE_FRACTION * extent)
+    # All data at one point, with a zero reach: any grid will do.
+    return scale if scale > 0.0 else 1.0
+
+
 class ExpertReach:
     """Spatial index of the experts' training segments.
 
@@ -135,7 +157,11 @@ class ExpertReach:
     candidates of a point query are a table look-up. Every expert with data within
     ``reach`` of a query is a candidate for it; experts up to ``reach + slack`` away may
     be too (``slack``, the block's diagonal plus the cell's diagonal and sample spacing, is
-    about half the reach in 2-D). Candidates depend only on the query and the index, not on
+    about half the reach in 2-D). Cells and blocks are proportional to ``scale``, the
+    reach unless that would sample more than 64 points per segment on average or cut the
+    data's extent into more than 2**16 reaches; then the coarser grid makes ``slack``
+    larger than the reach, never misses an expert within it, and keeps the index's size
+    bounded. Candidates depend only on the query and the index, not on
     which other queries are asked with it. Query segments of non-zero length are answered
     by a KD-tree over the cells, within their half-length more.
 
@@ -166,6 +192,7 @@ class ExpertReach:
         if origin is None:
             origin = np.minimum(segments[:, :dim].min(axis=0), segments[:, dim:].min(axis=0))
         self.origin = np.asarray(origin, dtype=np.float64)
+        self.scale = _grid_scale(segments, self.reach)
         self._set_geometry()
         everyone = np.arange(self.n_experts)
         self._cells = self._cells_of(segments, np.asarray(expert), everyone)
@@ -174,10 +201,10 @@ class ExpertReach:
         self._assemble()
 
     def _set_geometry(self):
-        """Cell and block sizes, slack and block stencils, all proportional to the reach."""
+        """Cell and block sizes, slack and block stencils, all proportional to ``scale``."""
         dim = self.dim
-        self.cell = _CELL * self.reach
-        self.block = _BLOCK * self.reach
+        self.cell = _CELL * self.scale
+        self.block = _BLOCK * self.scale
         self._grown = 0.5 * self.cell * (np.sqrt(dim) + 1.0)
         self.slack = self.block * np.sqrt(dim) + 2.0 * self._grown
         # Blocks whose box lies within reach (of a cell grown by its half-diagonal and half
@@ -258,11 +285,7 @@ class ExpertReach:
             lo = cell_block.min(axis=0) - span
             shape = tuple(cell_block.max(axis=0) - lo + span + 1)
             if np.prod(shape, dtype=np.float64) > len(cells) * entries:
-                blocks = [
-                    (cell_block[sub_code == code, None, :] + stencil[None]).reshape(-1, self.dim)
-                    for code, stencil in enumerate(self._stencils)
-                ]
-                out.append(np.unique(_codes(np.concatenate(blocks))))
+                out.append(self._listed_blocks(cell_block, sub_code))
                 continue
             covered = np.zeros(shape, dtype=bool)
             for code, footprint in enumerate(self._footprints):
@@ -275,6 +298,18 @@ class ExpertReach:
             # np.argwhere runs in C order, the order of the codes.
             out.append(_codes(np.argwhere(covered) + lo))
         return out
+
+    def _listed_blocks(self, cell_block, sub_code):
+        """Sorted unique codes of every cell's block plus its stencil, about ``_BATCH``
+        (cell, block) pairs at a time."""
+        codes = []
+        for code, stencil in enumerate(self._stencils):
+            mine = cell_block[sub_code == code]
+            step = max(_BATCH // len(stencil), 1)
+            for first in range(0, len(mine), step):
+                part = (mine[first : first + step, None, :] + stencil[None]).reshape(-1, self.dim)
+                codes.append(np.unique(_codes(part)))
+        return np.unique(np.concatenate(codes)) if codes else np.empty(0, dtype=np.int64)
 
     def _tree_of(self, cells):
         return cKDTree(self.origin + (cells + 0.5) * self.cell) if len(cells) else None
@@ -309,6 +344,8 @@ class ExpertReach:
         Equal to ``ExpertReach(segments, expert, n_experts, reach, origin=self.origin)``:
         cells are on the grid of this index's origin, and the block table is keyed by
         absolute block coordinates, so an expert's entries do not depend on the others.
+        The grid keeps this index's ``scale`` (a rebuild would differ only where the
+        reach is too short to set the grid, see the class docstring).
 
         Parameters
         ----------
@@ -328,7 +365,7 @@ class ExpertReach:
         if not np.isfinite(self.reach):
             return ExpertReach(segments, expert, n_experts, self.reach)
         new = object.__new__(ExpertReach)
-        new.dim, new.reach, new.origin = self.dim, self.reach, self.origin
+        new.dim, new.reach, new.origin, new.scale = self.dim, self.reach, self.origin, self.scale
         new.n_experts = int(n_experts)
         new._set_geometry()
         touched = np.unique(np.asarray(touched, dtype=np.intp))

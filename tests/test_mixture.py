@@ -761,3 +761,25 @@ def test_fixed_shared_kernel_at_a_bound_does_not_warn(paper):
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConvergenceWarning)
         _mixture(expert=expert).fit(paper.X, paper.y)
+
+
+def test_a_length_scale_far_below_the_beams_fits_in_bounded_memory():
+    # A fixed length scale of 0.1 mm on metre-long 3-D beam pieces: a reach of 0.3 mm. The
+    # spatial index once sampled the pieces every reach / 8 and listed every cell's
+    # stencil at once (tens of GiB); its grid is now bounded by the pieces' length.
+    from skoccmap.classifier import EPGaussianProcessClassifier
+    from skoccmap.datasets import make_room3d_scans
+
+    data = make_room3d_scans(random_state=0, n_azimuths=12, n_elevations=4)
+    kernel = C(1e3, "fixed") * IntegralKernel(1e-4, "fixed")
+    model = MixtureGPOccupancyMap(
+        expert=EPGaussianProcessClassifier(kernel=kernel), random_state=0
+    ).fit(data.X, data.y)
+    assert model.reach_ < 1e-3 < model._reach_index.scale
+    assert len(model._reach_index.cell_expert) <= 70 * len(model._pieces)
+    # At its own hits each expert is sure of them; a metre away only the prior is left.
+    hits = data.X[data.y == 1][:20]
+    assert np.all(model.predict_proba(hits)[:, 1] > 0.7)
+    away = hits.copy()
+    away[:, [0, 3]] += 1.0
+    np.testing.assert_allclose(model.predict_proba(away)[:, 1], 0.5)

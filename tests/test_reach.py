@@ -197,3 +197,39 @@ def test_unique_rows_matches_numpy(span):
     keys[:, 1] *= span
     np.testing.assert_array_equal(_unique_rows(keys), np.unique(keys, axis=0))
     assert _unique_rows(keys[:0]).shape == (0, 3)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_reach_far_below_the_segments_keeps_the_index_small_and_exact(dim):
+    # A kernel of micrometre length scale on metre-long segments: a grid of reach / 8 would
+    # sample millions of points per segment (tens of GiB in 3-D). The grid is coarser
+    # instead, and still holds every expert within reach.
+    segments, expert, n_experts = _random_experts(dim, seed=7)
+    reach = 1e-5
+    index = ExpertReach(segments, expert, n_experts, reach=reach)
+    assert index.reach == reach and index.scale > 1e3 * reach
+    assert len(index.cell_expert) <= 70 * len(segments)
+    rng = np.random.default_rng(1)
+    # Queries on the segments (within reach of their expert) and off them.
+    row = rng.integers(0, len(segments), size=100)
+    t = rng.uniform(size=(100, 1))
+    on = segments[row, :dim] + t * (segments[row, dim:] - segments[row, :dim])
+    points = np.vstack([on, rng.uniform(0, 20, size=(100, dim))])
+    queries = np.hstack([points, points])
+    query, cand = index.candidates(queries)
+    dist = np.full((200, n_experts), np.inf)
+    np.minimum.at(dist.T, expert, _segment_distance(points, segments).T)
+    got = np.zeros((200, n_experts), dtype=bool)
+    got[query, cand] = True
+    assert np.all(got[dist <= reach])
+    keep = index.within_reach(queries, query, cand)
+    assert np.all(keep[dist[query, cand] <= reach])
+    # Exact up to the cells' size: a kept cell centre within reach + grown of the query,
+    # its data within grown of the centre.
+    assert np.all(dist[query[keep], cand[keep]] <= reach + 2 * index._grown)
+
+
+def test_the_grid_follows_the_reach_where_the_reach_is_long_enough():
+    segments, expert, n_experts = _random_experts(2, seed=8)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    assert index.scale == 1.5 and index.cell == pytest.approx(1.5 / 8)
