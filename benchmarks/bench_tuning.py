@@ -36,7 +36,10 @@ The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``
 ``None``), ``beam_end_length``, ``share_hyperparameters``, ``hyperparameter_window`` (with
 the learned length scale; ``--datasets aces_all`` adds ACES trained on every scan, for the
 length scale's stability against the density of the scans), and the default expert's signal
-variance (``ConstantKernel`` fixed at 1e2 / 1e3 / 1e4, or learned). ``combiner`` and
+variance (``ConstantKernel`` fixed at 1e2 / 1e3 / 1e4, or learned), and the default
+expert's kernel with one length scale or two (``kernel``: a second integral kernel with its
+own learned signal variance; ``--datasets paper_dense`` adds the paper's world at B4's dense
+setting, where the phantoms are). ``combiner`` and
 ``gating_threshold`` are read at predict time: one fit per dataset serves all their values
 (``set_params`` on the fitted map). Every other value is a fit of its own; a fit shared by
 several sweeps (the defaults) is done once.
@@ -97,6 +100,8 @@ DATASETS = ("aces", "office", "paper")
 EXTRA_DATASETS_ALL = ("aces_all",)
 # The 3-D room at both sparsities of B4 (with --datasets; not in the default run).
 EXTRA_DATASETS_ROOM = ("room3d", "room3d_dense")
+# The paper's world at B4's dense setting (45 beams x 52 poses), where the phantoms are.
+EXTRA_DATASETS_DENSE = ("paper_dense",)
 DATASET_TITLES = {
     "aces": f"ACES, blocks protocol, every {ACES_EVERY}th scan",
     "aces_all": "ACES, blocks protocol, every scan",
@@ -104,6 +109,7 @@ DATASET_TITLES = {
     "paper": WORLD_TITLES["paper"],
     "room3d": WORLD_TITLES["room3d"] + ", sparse",
     "room3d_dense": WORLD_TITLES["room3d"] + ", dense",
+    "paper_dense": WORLD_TITLES["paper"] + ", dense",
 }
 
 
@@ -122,6 +128,16 @@ def _expert(constant):
 
 
 LEARNED_SIGNAL_BOUNDS = (1e-2, 1e5)
+
+
+def _two_scale_expert():
+    """The default kernel plus a second integral kernel with its own (learned) signal
+    variance and length scale, started long: a detail and a trend scale."""
+    kernel = ConstantKernel(1e3, "fixed") * IntegralKernel(0.5) + ConstantKernel(
+        1e2, (1.0, 1e5)
+    ) * IntegralKernel(2.0)
+    return EPGaussianProcessClassifier(kernel=kernel)
+
 
 # Fits: key -> (constructor parameters, description). "default" is the estimator's defaults.
 FITS = {
@@ -149,6 +165,11 @@ FITS = {
     "signal_learned": (
         {"expert": _expert(LEARNED_SIGNAL_BOUNDS)},
         f"ConstantKernel(1e3, {LEARNED_SIGNAL_BOUNDS}) * IntegralKernel()",
+    ),
+    "two_scales": (
+        {"expert": _two_scale_expert()},
+        "ConstantKernel(1e3, fixed) * IntegralKernel(0.5) + ConstantKernel(1e2, (1, 1e5)) "
+        "* IntegralKernel(2.0)",
     ),
 }
 
@@ -274,6 +295,15 @@ SWEEPS = [
             ),
         ],
         extra=("signal", "thickness"),
+    ),
+    Sweep(
+        "kernel",
+        "the default expert's kernel: one length scale, or two (summed integral kernels)",
+        [
+            Entry("one length scale", "default", default=True),
+            Entry("two length scales", "two_scales"),
+        ],
+        extra=("kernel", "reach", "predict", "consulted", "thickness"),
     ),
 ]
 SWEEP_NAMES = tuple(s.name for s in SWEEPS)
@@ -421,6 +451,8 @@ def run(args, result, save):
             data = load_aces(SEED, every=1, name=name)
         elif name == "aces":
             data = load_aces(SEED)
+        elif name == "paper_dense":
+            data = load_sim("paper", SEED, "dense")
         elif name.startswith("room3d"):
             data = load_sim("room3d", SEED, "dense" if name.endswith("dense") else "sparse")
         else:
@@ -457,6 +489,7 @@ def run(args, result, save):
                 row.update(fit_s=fit_s, **model_facts(model))
                 row["reach"] = float(getattr(model, "reach_", np.nan))
                 row["signal_variance"] = learned_signal_variance(model)
+                row["kernel"] = repr(getattr(model, "shared_kernel_", None))
                 if caught:
                     row["warnings"] = caught
                 fitted["model"] = model
@@ -536,9 +569,13 @@ EXTRA_COLUMNS = {
     "length_scale": ("length scale m", _value("length_scale", ".3f")),
     "thickness": ("thickness m", _value("wall_thickness", ".2f")),
     "signal": ("signal variance", _value("signal_variance", ".3g")),
+    "kernel": ("learned kernel", lambda row: str(row.get("kernel", ""))),
 }
 # Extras that only make sense where they are measured.
-EXTRA_DATASETS = {"thickness": ("office", "paper", *EXTRA_DATASETS_ROOM)}
+EXTRA_DATASETS = {
+    "thickness": ("office", "paper", *EXTRA_DATASETS_ROOM, *EXTRA_DATASETS_DENSE),
+    "kernel": (*DATASETS, *EXTRA_DATASETS_ALL, *EXTRA_DATASETS_ROOM, *EXTRA_DATASETS_DENSE),
+}
 
 
 def tables(sweeps, rows, args):
@@ -554,6 +591,7 @@ def tables(sweeps, rows, args):
                 "paper": "paper",
                 "room3d": "room",
                 "room3d_dense": "dense room",
+                "paper_dense": "dense paper",
             }[name]
             columns = DATASET_COLUMNS["aces" if name.startswith("aces") else "sim"]
             header += [f"{short} {title}" for title, _ in columns]
@@ -622,10 +660,11 @@ def parse_args(argv=None):
     parser.add_argument(
         "--datasets",
         nargs="+",
-        choices=DATASETS + EXTRA_DATASETS_ALL + EXTRA_DATASETS_ROOM,
+        choices=DATASETS + EXTRA_DATASETS_ALL + EXTRA_DATASETS_ROOM + EXTRA_DATASETS_DENSE,
         default=list(DATASETS),
         help="tuning datasets (default: " + " ".join(DATASETS) + "; aces_all trains on every "
-        "ACES scan; room3d and room3d_dense are the 3-D room of B4)",
+        "ACES scan; room3d and room3d_dense are the 3-D room of B4; paper_dense is the "
+        "paper's world at B4's dense setting)",
     )
     parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
     parser.add_argument(
