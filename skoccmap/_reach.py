@@ -131,6 +131,12 @@ def _segment_samples(segments, spacing):
     return start[row] + t[:, None] * delta[row], row
 
 
+def _extent(segments):
+    """Diagonal of the bounding box of the segment rows' ends."""
+    d = segments.shape[1] // 2
+    return float(np.linalg.norm(np.ptp(np.vstack([segments[:, :d], segments[:, d:]]), axis=0)))
+
+
 def _grid_scale(segments, reach):
     """Reach that sizes the index's grid: ``reach``, or a longer one where ``reach`` would
     sample more than ``_MAX_SAMPLES_PER_SEGMENT`` points per segment on average, or cut the
@@ -138,10 +144,8 @@ def _grid_scale(segments, reach):
     dim = segments.shape[1] // 2
     delta = segments[:, dim:] - segments[:, :dim]
     mean_length = float(np.mean(np.sqrt(np.einsum("ij,ij->i", delta, delta))))
-    ends = np.vstack([segments[:, :dim], segments[:, dim:]])
-    extent = float(np.linalg.norm(ends.max(axis=0) - ends.min(axis=0)))
     by_samples = mean_length / (_CELL * _MAX_SAMPLES_PER_SEGMENT)
-    scale = max(reach, by_samples, _MIN_SCALE_FRACTION * extent)
+    scale = max(reach, by_samples, _MIN_SCALE_FRACTION * _extent(segments))
     # All data at one point, with a zero reach: any grid will do.
     return scale if scale > 0.0 else 1.0
 

@@ -24,7 +24,7 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ._reach import ExpertReach, kernel_reach
+from ._reach import ExpertReach, _extent, kernel_reach
 from ._shared_kernel import (
     learn_shared_kernel,
     warn_at_bounds,
@@ -91,12 +91,6 @@ def _check_known_labels(y, classes):
 def _midpoints(X):
     d = X.shape[1] // 2
     return 0.5 * (X[:, :d] + X[:, d:])
-
-
-def _extent(X):
-    """Diagonal of the bounding box of the segment rows' ends."""
-    d = X.shape[1] // 2
-    return float(np.linalg.norm(np.ptp(np.vstack([X[:, :d], X[:, d:]]), axis=0)))
 
 
 def _log(verbose, message):
