@@ -33,7 +33,8 @@ The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``
 **Sweeps** (one parameter at a time, all others at their defaults): ``combiner``,
 ``gating_threshold`` and ``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
 ``max_beam_length`` (with ``beam_end_length`` 0.35, and the whole-beam model with both
-``None``), ``beam_end_length``, ``share_hyperparameters``, ``hyperparameter_window`` (with
+``None``), ``beam_end_length``, ``piece_assignment``, ``nearest_hit_radius``,
+``share_hyperparameters``, ``hyperparameter_window`` (with
 the learned length scale; ``--datasets aces_all`` adds ACES trained on every scan, for the
 length scale's stability against the density of the scans), and the default expert's signal
 variance (``ConstantKernel`` fixed at 1e2 / 1e3 / 1e4, or learned), and the default
@@ -156,6 +157,9 @@ FITS = {
     "end_none": ({"beam_end_length": None}, "beam_end_length=None"),
     "end_0.5": ({"beam_end_length": 0.5}, "beam_end_length=0.5"),
     "end_0.25": ({"beam_end_length": 0.25}, "beam_end_length=0.25"),
+    "pieces_beam": ({"piece_assignment": "beam"}, 'piece_assignment="beam"'),
+    "radius_1": ({"nearest_hit_radius": 1.0}, "nearest_hit_radius=1"),
+    "radius_4": ({"nearest_hit_radius": 4.0}, "nearest_hit_radius=4"),
     "no_share": ({"share_hyperparameters": False}, "share_hyperparameters=False"),
     "window_1.5": ({"hyperparameter_window": 1.5}, "hyperparameter_window=1.5"),
     "window_3": ({"hyperparameter_window": 3.0}, "hyperparameter_window=3"),
@@ -264,6 +268,26 @@ SWEEPS = [
             Entry("0.25", "end_0.25"),
         ],
         extra=("thickness",),
+    ),
+    Sweep(
+        "piece_assignment",
+        "`piece_assignment` (which expert a beam piece joins)",
+        [
+            Entry("nearest_hit", "default", default=True),
+            Entry("beam", "pieces_beam"),
+        ],
+        quick=("nearest_hit", "beam"),
+        extra=("length_scale", "predict", "consulted", "thickness"),
+    ),
+    Sweep(
+        "nearest_hit_radius",
+        '`nearest_hit_radius` (`piece_assignment="nearest_hit"`)',
+        [
+            Entry("1", "radius_1"),
+            Entry("2", "default", default=True),
+            Entry("4", "radius_4"),
+        ],
+        extra=("length_scale", "consulted"),
     ),
     Sweep(
         "share_hyperparameters",

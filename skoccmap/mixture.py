@@ -104,10 +104,11 @@ def _log(verbose, message):
 
 
 def _observation_kinds(X, occupied, return_radius):
-    """HIT / RETURN / NO_RETURN code per row and the nearest hit of every return beam.
+    """HIT / RETURN / NO_RETURN code per row and the hit nearest to every beam's end.
 
     A beam is a return beam when a hit lies within ``return_radius`` of its end (the
-    observation model stops return beams a small margin short of their hit).
+    observation model stops return beams a small margin short of their hit). A hit's
+    nearest hit is itself.
     """
     d = X.shape[1] // 2
     kinds = np.full(X.shape[0], NO_RETURN, dtype=np.intp)
@@ -115,11 +116,11 @@ def _observation_kinds(X, occupied, return_radius):
     nearest_hit = np.full(X.shape[0], -1, dtype=np.intp)
     beams = np.flatnonzero(~occupied)
     hit_rows = np.flatnonzero(occupied)
+    nearest_hit[hit_rows] = hit_rows
     if beams.size and hit_rows.size:
         dist, idx = cKDTree(X[hit_rows, :d]).query(X[beams, d:])
-        is_return = dist <= return_radius
-        kinds[beams[is_return]] = RETURN
-        nearest_hit[beams[is_return]] = hit_rows[idx[is_return]]
+        kinds[beams[dist <= return_radius]] = RETURN
+        nearest_hit[beams] = hit_rows[idx]
     return kinds, nearest_hit
 
 
@@ -302,6 +303,27 @@ def _bisect(points, max_size, weights=None):
         stack.append(idx[order[half:]])
         stack.append(idx[order[:half]])
     return pieces
+
+
+def _piece_gates(expert_cluster, n_clusters, piece_mids, piece_expert, clusters=None, gates=None):
+    """Gate of the experts of each cluster (None for a cluster of one expert).
+
+    Only ``clusters`` (all by default) are (re)made; the others keep their entry of
+    ``gates``.
+    """
+    gates = (
+        [None] * n_clusters if gates is None else list(gates) + [None] * (n_clusters - len(gates))
+    )
+    groups = None
+    for c in range(n_clusters) if clusters is None else clusters:
+        ks = np.flatnonzero(expert_cluster == c)
+        if ks.size < 2:
+            gates[c] = None
+            continue
+        if groups is None:
+            groups = _groups(piece_expert, expert_cluster.size)
+        gates[c] = _PieceGate([piece_mids[groups[k]] for k in ks])
+    return gates
 
 
 class _PieceGate:
@@ -577,11 +599,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     max_expert_size : int or None, default=400
         Clusters with more observations are split until every piece has at most this
         many: the cluster's hits are cut at the median along their principal axis, each
-        hit weighted by the beams that follow it, and every beam stays with its hit (so
-        a piece holds walls with the free space seen in front of them; a hit that alone
-        carries more beams stays whole). Pieces are gated by Gaussians fitted to their
-        midpoints within the cluster's gate. This bounds the cost of each expert, so fit
-        time grows about linearly with the number of observations. ``None`` disables
+        hit weighted by the beam pieces that follow it (see ``piece_assignment``), and
+        every piece stays with its hit (so an expert holds walls with the free space in
+        front of them; a hit that alone carries more pieces stays whole). Experts are
+        gated by Gaussians fitted to their pieces' midpoints within the cluster's gate.
+        This bounds the cost of each expert, so fit time grows about linearly with the
+        number of observations. ``None`` disables
         splitting (the paper's model; cubic cost in the cluster size). Sizes count the
         rows experts are fitted on (beam pieces). On the tuning data
         (``benchmarks/bench_tuning.py``) 200 / 400 / 800 give ACES held-out AUC 0.944 /
@@ -590,11 +613,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         of 400 for no better ranking.
     max_beam_length : float or None, default=1.0
         Beams longer than this (metres) are cut into pieces no longer than it after the
-        assignment; every piece stays with its beam's expert. Under the integral kernel a
-        whole beam observes only the *average* of the latent function along it, which
-        leaves the function free to stay high next to the wall the beam ended at: walls
-        drawn thick and truly free cells marked occupied. ``None`` sets no bound; with
-        ``beam_end_length=None`` too, beams stay whole (the paper's model). Chosen on
+        assignment; ``piece_assignment`` says which expert each piece joins. Under the
+        integral kernel a whole beam observes only the *average* of the latent function
+        along it, which leaves the function free to stay high next to the wall the beam
+        ended at: walls drawn thick and truly free cells marked occupied. ``None`` sets no
+        bound; with ``beam_end_length=None`` and ``piece_assignment="beam"`` too, beams
+        stay whole and with their hits (the paper's model). Chosen with
+        ``piece_assignment="beam"`` on
         tuning data (``benchmarks/bench_tuning.py``: the office and the paper's world with
         noise seed 100, and the ACES log; ``benchmarks/bench_quality.py`` reports other
         seeds and Intel). Whole beams mark 16.0 % of the office's far free cells occupied
@@ -621,6 +646,35 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``None`` cuts beams into equal pieces only. No-return beams are cut the other
         way: pieces double in length away from the sensor, from ``max_beam_length``, so
         that a beam leaving the map for the sensor's maximum range costs a few rows.
+    piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
+        Which expert a free piece (of a beam cut by ``max_beam_length`` and
+        ``beam_end_length``) joins. ``"beam"``: its beam's, i.e. its hit's (the paper's
+        rule; a no-return beam's is that of its most similar return beam), so an expert's
+        free space runs back along its beams to every pose that saw its walls, and the
+        experts overlap wherever the robot drove. ``"nearest_hit"``: the expert of the hit
+        nearest to the piece's midpoint, when that hit lies within ``nearest_hit_radius``
+        (otherwise its beam's hit; a no-return beam's is then the hit nearest to its
+        end, and the paper's no-return rule is not run). An expert then holds its walls
+        with the free space around them: fewer experts reach a query, and those that do
+        hold all the evidence near it. Hits always join their own cluster's expert. On
+        the tuning data (``benchmarks/bench_tuning.py``, seed 100) ``"nearest_hit"`` /
+        ``"beam"`` find 92.1 / 90.0 % of the paper's world's walls (office 98.2 / 98.3 %,
+        sparse 3-D room 93.5 / 93.3 %), mark 0.30 / 1.68 % phantoms on the dense paper's
+        world (free found 96.4 / 95.5 %, ECE 0.036 / 0.045; office ECE 0.042 / 0.037), and
+        consult 4.1 / 10.6 experts per ACES query at 112 / 227 us per point. ACES held-out
+        AUC is 0.913 / 0.951: the compact experts learn a shorter length scale (0.54 m
+        against 1.25 m), which extrapolates less into the corridors the training scans
+        barely saw; it follows the draw of the 32 experts that learn it, and the AUC with
+        it (0.944 with ``nearest_hit_radius=1``, length scale 0.72 m).
+    nearest_hit_radius : float, default=2.0
+        With ``piece_assignment="nearest_hit"``: a free piece further than this (metres)
+        from every hit stays with its beam's hit. Without the bound, a hit at the edge
+        of open space gathers all of it, and an expert is never split below one hit, so
+        in a large hall one expert would grow without bound. On the tuning data
+        (``benchmarks/bench_tuning.py``, seed 100) 1 / 2 / 4 m find 90.7 / 92.1 / 94.2 %
+        of the paper's world's walls and give ACES held-out AUC 0.944 / 0.913 / 0.924 with
+        7.4 / 4.1 / 3.5 experts per query; on the dense paper's world 4 m (as unbounded
+        there) finds 92.6 % of the free cells at ECE 0.056, 2 m 96.4 % at 0.036.
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
         kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to
@@ -767,7 +821,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``HIT``, ``RETURN`` or ``NO_RETURN`` code (:mod:`skoccmap.observations`) per row;
         with ``layout="points"`` free points are marked ``RETURN`` (they follow that rule).
     cluster_labels_ : ndarray of shape (n_samples,)
-        Expert index (0 .. ``n_experts_ - 1``) of every training row.
+        Expert index (0 .. ``n_experts_ - 1``) of every training row's anchor hit: a
+        hit's own expert; a beam's pieces join the experts ``piece_assignment`` says
+        (with ``"beam"`` all of them this one).
     expert_cluster_ : ndarray of shape (n_experts,)
         Merged cluster (0 .. ``n_clusters_ - 1``) each expert's piece belongs to.
     cluster_ids_ : ndarray
@@ -855,6 +911,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "max_expert_size": [Interval(Integral, 2, None, closed="left"), None],
         "max_beam_length": [Interval(Real, 0, None, closed="neither"), None],
         "beam_end_length": [Interval(Real, 0, None, closed="neither"), None],
+        "piece_assignment": [StrOptions({"nearest_hit", "beam"})],
+        "nearest_hit_radius": [Interval(Real, 0, None, closed="left")],
         "share_hyperparameters": ["boolean"],
         "hyperparameter_window": [Interval(Real, 0, None, closed="neither"), None],
         "hyperparameter_growth": [Interval(Real, 1, None, closed="neither"), None],
@@ -881,6 +939,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         max_expert_size=400,
         max_beam_length=1.0,
         beam_end_length=0.35,
+        piece_assignment="nearest_hit",
+        nearest_hit_radius=2.0,
         share_hyperparameters=True,
         hyperparameter_window=None,
         hyperparameter_growth=2.0,
@@ -903,6 +963,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.max_expert_size = max_expert_size
         self.max_beam_length = max_beam_length
         self.beam_end_length = beam_end_length
+        self.piece_assignment = piece_assignment
+        self.nearest_hit_radius = nearest_hit_radius
         self.share_hyperparameters = share_hyperparameters
         self.hyperparameter_window = hyperparameter_window
         self.hyperparameter_growth = hyperparameter_growth
@@ -966,17 +1028,20 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             f"clustering done: {self.cluster_ids_.size} cluster(s), "
             f"{self.n_clusters_} after merging small ones ({time.perf_counter() - start:.1f} s)",
         )
-        # Beams are cut after the assignment: every piece stays with its beam's expert,
-        # and experts are sized by the rows they are fitted on (pieces).
+        # Beams are cut after the assignment, and experts are sized by the rows they are
+        # fitted on (pieces).
         pieces, source = _beam_pieces(
             X, self.observation_kind_, self.max_beam_length, self.beam_end_length
         )
-        n_pieces = np.bincount(source, minlength=X.shape[0])
-        labels = self._split_clusters(X, labels, anchor, n_pieces)
-        self.cluster_labels_ = labels
+        d = X.shape[1] // 2
+        hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
+        piece_hit = self._piece_hits(pieces, y_enc[source], row_hit[source], hits)
+        hit_expert = self._split_clusters(hits, labels[occupied], _midpoints(pieces), piece_hit)
+        piece_expert = hit_expert[piece_hit]
+        self.cluster_labels_ = hit_expert[row_hit]
         self.n_experts_ = int(self.expert_cluster_.size)
         self._kernel_cache = {}
-        self.experts_ = self._fit_experts(pieces, y_enc[source], labels[source], expert, rng)
+        self.experts_ = self._fit_experts(pieces, y_enc[source], piece_expert, expert, rng)
         _log(
             self.verbose,
             f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
@@ -984,10 +1049,37 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         kernels = self._kernels()
         self.reach_ = self._reach(pieces, kernels)
         self._reach_kernels = None if kernels is None else frozenset(kernels)
-        self._reach_index = ExpertReach(pieces, labels[source], self.n_experts_, self.reach_)
-        self.gating_ = self._fit_gpc_gate(X, labels, rng) if self.gating == "gpc" else None
-        self._keep_training_state(X, y_enc, anchor, pieces, source, rng)
+        self._reach_index = ExpertReach(pieces, piece_expert, self.n_experts_, self.reach_)
+        self.gating_ = (
+            self._fit_gpc_gate(pieces, piece_expert, rng) if self.gating == "gpc" else None
+        )
+        self._rng = rng
+        self._hits, self._hit_expert, self._row_hit = hits, hit_expert, row_hit
+        self._pieces, self._piece_y = pieces, y_enc[source]
+        self._piece_expert, self._piece_hit = piece_expert, piece_hit
+        self._piece_settled = np.ones(pieces.shape[0], dtype=bool)
+        self._learned_rows = pieces.shape[0]
+        self.touched_experts_ = np.arange(self.n_experts_)
         return self
+
+    def _piece_hits(self, pieces, piece_y, anchor_hit, hits):
+        """The hit (index into ``hits``) each piece follows, and so its expert.
+
+        ``anchor_hit`` is the anchor hit of each piece's row, which ``"beam"`` keeps.
+        ``"nearest_hit"``: a free piece within ``nearest_hit_radius`` of a hit follows the
+        hit nearest to its midpoint, so that an expert holds the free space around its
+        hits rather than whole beams across the map; one further out keeps its row's
+        anchor, so that no hit gathers the open space around it (an expert is never
+        split below one hit).
+        """
+        if self.piece_assignment == "beam" or hits.shape[0] == 0:
+            return anchor_hit
+        free = np.flatnonzero(piece_y != 1)
+        piece_hit = anchor_hit.copy()
+        dist, nearest = cKDTree(hits).query(_midpoints(pieces[free]))
+        near = dist <= self.nearest_hit_radius
+        piece_hit[free[near]] = nearest[near]
+        return piece_hit
 
     # -- online mapping --------------------------------------------------------------
 
@@ -1155,24 +1247,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             return False
         return n_rows >= self.hyperparameter_growth * self._learned_rows
 
-    def _keep_training_state(self, X, y_enc, anchor, pieces, source, rng):
-        """What :meth:`partial_fit` needs of the training data: pieces, hits, anchors."""
-        d = X.shape[1] // 2
-        occupied = y_enc == 1
-        hit_pos = np.cumsum(occupied) - 1
-        self._rng = rng
-        self._hits = X[occupied, :d].copy()
-        self._hit_expert = self.cluster_labels_[occupied].copy()
-        self._row_mids = _midpoints(X)
-        self._row_hit = hit_pos[anchor]
-        self._pieces = pieces
-        self._piece_y = y_enc[source]
-        self._piece_expert = self.cluster_labels_[source]
-        self._piece_hit = self._row_hit[source]
-        self._piece_settled = np.ones(pieces.shape[0], dtype=bool)
-        self._learned_rows = pieces.shape[0]
-        self.touched_experts_ = np.arange(self.n_experts_)
-
     def _new_hit_clusters(self, hits):
         """Clusterer label of each new hit (the clusterer learns them when it can)."""
         if hasattr(self.clusterer_, "partial_fit"):
@@ -1206,7 +1280,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 kinds[beams[is_ret]] = RETURN
                 anchor[beams[is_ret]] = near[idx[is_ret]]
         is_nr = kinds == NO_RETURN
-        if np.any(is_nr):
+        if np.any(is_nr) and self.piece_assignment == "nearest_hit":
+            anchor[is_nr] = cKDTree(all_hits).query(X[is_nr, d:])[1]
+        elif np.any(is_nr):
             is_ret = kinds == RETURN
             if np.any(is_ret):
                 anchor[is_nr] = _assign_no_return(
@@ -1282,16 +1358,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             pick = 0 if gate is None else np.argmax(gate.predict_proba(new_hits[mine]), axis=1)
             hit_expert[mine] = self._first_expert[c] + pick
         all_hit_expert = np.concatenate([self._hit_expert, hit_expert])
-        row_expert = all_hit_expert[anchor]
 
-        # 3. Pieces of the new rows, appended to the training state.
+        # 3. Pieces of the new rows, appended to the training state. Old pieces keep
+        # their hit even where a new hit lies nearer.
         pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
+        new_piece_hit = self._piece_hits(pieces, y_enc[source], anchor[source], all_hits)
         all_pieces = np.vstack([self._pieces, pieces])
         piece_y = np.concatenate([self._piece_y, y_enc[source]])
-        piece_hit = np.concatenate([self._piece_hit, anchor[source]])
-        piece_expert = np.concatenate([self._piece_expert, row_expert[source]])
+        piece_hit = np.concatenate([self._piece_hit, new_piece_hit])
+        piece_expert = np.concatenate([self._piece_expert, all_hit_expert[new_piece_hit]])
         row_hit = np.concatenate([self._row_hit, anchor])
-        touched = set(np.unique(row_expert[source]).tolist())
+        touched = set(np.unique(all_hit_expert[new_piece_hit]).tolist())
 
         # 4. Experts grown past max_expert_size: bisect their hits (weighted by pieces).
         n_experts = len(expert_cluster)
@@ -1342,17 +1419,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 origin[k] = renumber[self._piece_expert[first_piece]]
 
         # 6. Gates of the touched clusters.
-        piece_gates = list(self._piece_gates) + [None] * (n_clusters - n_old_clusters)
-        row_groups = None
-        for c in np.unique(expert_cluster[touched]):
-            ks = np.flatnonzero(expert_cluster == c)
-            if ks.size == 1:
-                piece_gates[c] = None
-                continue
-            if row_groups is None:
-                row_mids = np.vstack([self._row_mids, _midpoints(X)])
-                row_groups = _groups(row_expert, n_experts)
-            piece_gates[c] = _PieceGate([row_mids[row_groups[k]] for k in ks])
+        piece_gates = _piece_gates(
+            expert_cluster,
+            n_clusters,
+            _midpoints(all_pieces),
+            piece_expert,
+            clusters=np.unique(expert_cluster[touched]),
+            gates=self._piece_gates,
+        )
 
         # 7. Refit the touched experts that are due, and add the new rows to the others
         # (in parallel, warm-started); or refit every expert with re-learned
@@ -1378,7 +1452,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.observation_kind_ = np.concatenate([self.observation_kind_, kinds])
         self.cluster_labels_ = row_expert
         self._hits, self._hit_expert = all_hits, all_hit_expert
-        self._row_mids = np.vstack([self._row_mids, _midpoints(X)])
         self._row_hit = row_hit
         self._pieces, self._piece_y = all_pieces, piece_y
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
@@ -1391,8 +1464,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             previous[renumber[:n_old_experts]] = np.arange(n_old_experts)
             self._update_index(touched, previous)
         if self.gating == "gpc":
-            mids = self._row_mids
-            self.gating_ = self._fit_gpc_gate(np.hstack([mids, mids]), row_expert, rng)
+            self.gating_ = self._fit_gpc_gate(all_pieces, piece_expert, rng)
         _log(
             self.verbose,
             f"partial_fit: {touched.size} of {n_experts} expert(s) updated "
@@ -1638,19 +1710,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.cluster_ids_, hit_labels = np.unique(np.asarray(raw), return_inverse=True)
 
         # Every row follows an anchor hit: a hit itself, a return beam its hit, a no-return
-        # beam the hit of its most similar return beam. Clusters and their pieces are
-        # sets of hits, so a piece keeps its hits' beams (its free space).
+        # beam the hit of its most similar return beam (with piece_assignment="beam"; the
+        # hit nearest to its end otherwise, as its pieces find their own hits). Clusters
+        # and their pieces are sets of hits.
         hit_rows = np.flatnonzero(occupied)
-        anchor = np.full(X.shape[0], -1, dtype=np.intp)
-        anchor[hit_rows] = hit_rows
         # Free points follow the return-beam rule without a distance limit.
         radius = np.inf if self.layout == "points" else self.return_radius
-        kinds, nearest_hit = _observation_kinds(X, occupied, radius)
+        kinds, anchor = _observation_kinds(X, occupied, radius)
         self.observation_kind_ = kinds
         is_ret = kinds == RETURN
-        anchor[is_ret] = nearest_hit[is_ret]
         is_nr = kinds == NO_RETURN
-        if np.any(is_nr):
+        if self.piece_assignment == "beam" and np.any(is_nr):
             if np.any(is_ret):
                 anchor[is_nr] = _assign_no_return(
                     X[is_nr],
@@ -1670,47 +1740,39 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.n_clusters_ = int(self.cluster_merge_.max() + 1)
         return self.cluster_merge_[labels], anchor
 
-    def _split_clusters(self, X, labels, anchor, row_weight):
-        """Split clusters above ``max_expert_size``; returns expert labels per row.
+    def _split_clusters(self, hits, hit_cluster, piece_mids, piece_hit):
+        """Split clusters above ``max_expert_size``; returns the expert of each hit.
 
         The split is of the cluster's hits, each weighted by the training rows (beam
-        pieces) anchored to it, and every row joins the piece of its anchor hit: cutting
-        the rows themselves would part walls from the beams that saw them and leave
-        one-class pieces.
+        pieces) anchored to it (``piece_hit``), and every piece joins the expert of its
+        anchor hit: cutting the pieces themselves would part walls from the free space in
+        front of them and leave one-class experts. Each split cluster's experts are gated
+        by Gaussians fitted to their pieces' midpoints.
         """
-        mids = _midpoints(X)
-        dim = X.shape[1] // 2
-        rows_per_hit = np.bincount(anchor, weights=row_weight, minlength=X.shape[0])
-        expert_labels = np.empty_like(labels)
-        expert_cluster, piece_gates = [], []
-        piece_of_hit = np.empty(X.shape[0], dtype=np.intp)
-        for c, rows in enumerate(_groups(labels, self.n_clusters_)):
+        pieces_per_hit = np.bincount(piece_hit, minlength=hits.shape[0])
+        hit_expert = np.empty(hits.shape[0], dtype=np.intp)
+        expert_cluster = []
+        for c, mine in enumerate(_groups(hit_cluster, self.n_clusters_)):
             first = len(expert_cluster)
-            size = row_weight[rows].sum()
-            if self.max_expert_size is None or size <= self.max_expert_size:
-                pieces = [np.arange(rows.size)]
+            if self.max_expert_size is None or pieces_per_hit[mine].sum() <= self.max_expert_size:
+                parts = [np.arange(mine.size)]
             else:
-                hits = rows[anchor[rows] == rows]
-                hit_pieces = _bisect(X[hits, :dim], self.max_expert_size, rows_per_hit[hits])
-                for j, piece in enumerate(hit_pieces):
-                    piece_of_hit[hits[piece]] = j
-                pieces = _groups(piece_of_hit[anchor[rows]], len(hit_pieces))
-            for j, piece in enumerate(pieces):
-                expert_labels[rows[piece]] = first + j
+                parts = _bisect(hits[mine], self.max_expert_size, pieces_per_hit[mine])
+            for j, part in enumerate(parts):
+                hit_expert[mine[part]] = first + j
                 expert_cluster.append(c)
-            piece_gates.append(
-                _PieceGate([mids[rows[p]] for p in pieces]) if len(pieces) > 1 else None
-            )
         self.expert_cluster_ = np.asarray(expert_cluster, dtype=np.intp)
-        self._piece_gates = piece_gates
+        self._piece_gates = _piece_gates(
+            self.expert_cluster_, self.n_clusters_, piece_mids, hit_expert[piece_hit]
+        )
         self._first_expert = np.searchsorted(self.expert_cluster_, np.arange(self.n_clusters_))
-        if any(g is not None for g in piece_gates):
+        if self.expert_cluster_.size > self.n_clusters_:
             _log(
                 self.verbose,
                 f"split big clusters into {len(expert_cluster)} pieces of at "
                 f"most {self.max_expert_size} observations",
             )
-        return expert_labels
+        return hit_expert
 
     def _fit_experts(self, X, y, labels, expert, rng):
         n_experts = self.expert_cluster_.size

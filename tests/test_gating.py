@@ -23,12 +23,17 @@ from skoccmap.observations import HIT, RETURN, as_segments
 def fitted():
     data = make_paper_scans(random_state=0)
     # Fixed expert hyperparameters keep the fit to a few seconds; max_expert_size=150 cuts the
-    # paper's world into about two dozen experts.
+    # paper's world into about two dozen experts; beams stay with their hits, as in the paper.
     expert = EPGaussianProcessClassifier(
         ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None
     )
     model = MixtureGPOccupancyMap(
-        expert=expert, gating="gpc", combiner="moe", max_expert_size=150, random_state=0
+        expert=expert,
+        gating="gpc",
+        combiner="moe",
+        max_expert_size=150,
+        piece_assignment="beam",
+        random_state=0,
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)

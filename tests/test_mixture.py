@@ -675,8 +675,23 @@ def test_similarity_length_scale(kernel, expected):
     np.testing.assert_allclose(np.atleast_1d(_similarity_length_scale(kernel, 2)), expected)
 
 
+def _expert_pieces(model, pieces):
+    """Expert of every piece, read from the experts' own training rows."""
+    labels = np.full(pieces.shape[0], -1)
+    index = {}
+    for i, row in enumerate(pieces):
+        index.setdefault(row.tobytes(), []).append(i)
+    for k, expert in enumerate(model.experts_):
+        if isinstance(expert, _ConstantExpert):
+            continue
+        # Equal pieces (repeated hits) are told apart by order only.
+        labels[[index[row.tobytes()].pop() for row in expert.base_estimator_.X_train_]] = k
+    return labels
+
+
 def test_beams_are_cut_into_pieces_that_stay_with_their_beam(paper):
-    model = _mixture(max_beam_length=1.0, beam_end_length=0.25).fit(paper.X, paper.y)
+    model = _mixture(max_beam_length=1.0, beam_end_length=0.25, piece_assignment="beam")
+    model.fit(paper.X, paper.y)
     pieces, source = _beam_pieces(paper.X, paper.kind, 1.0, 0.25)
     labels = model.cluster_labels_[source]
     assert pieces.shape[0] > paper.X.shape[0]
@@ -686,8 +701,36 @@ def test_beams_are_cut_into_pieces_that_stay_with_their_beam(paper):
         X_train = expert.base_estimator_.X_train_
         # The expert holds exactly the pieces of its rows.
         np.testing.assert_array_equal(X_train, pieces[labels == k])
-    # A beam's hit and all of its pieces share an expert: the expert of the hit's anchor.
-    assert np.all(model.cluster_labels_[source] == labels)
+
+
+def test_pieces_join_the_expert_of_the_hit_nearest_to_them(paper):
+    model = _mixture(max_beam_length=1.0, beam_end_length=0.25).fit(paper.X, paper.y)
+    assert model.piece_assignment == "nearest_hit"
+    pieces, source = _beam_pieces(paper.X, paper.kind, 1.0, 0.25)
+    labels = _expert_pieces(model, pieces)
+    assert np.all(labels >= 0)
+    hits = paper.X[paper.y == 1, :2]
+    hit_labels = model.cluster_labels_[paper.y == 1]
+    # Each free piece's nearest hit, by brute force, within 2 m (nearest_hit_radius); a
+    # piece further out stays with its row's anchor, and hits keep their own expert.
+    mids = 0.5 * (pieces[:, :2] + pieces[:, 2:])
+    dist2 = ((mids[:, None, :] - hits[None]) ** 2).sum(axis=-1)
+    nearest, near = np.argmin(dist2, axis=1), dist2.min(axis=1) <= 2.0**2
+    is_hit = paper.y[source] == 1
+    assert np.any(~near) and np.mean(near[~is_hit]) > 0.5
+    expected = np.where(near, hit_labels[nearest], model.cluster_labels_[source])
+    np.testing.assert_array_equal(labels[~is_hit], expected[~is_hit])
+    np.testing.assert_array_equal(labels[is_hit], model.cluster_labels_[source[is_hit]])
+    # The beams' pieces spread over several experts, and each expert's pieces lie closer
+    # together than under the beam rule.
+    assert np.any([np.unique(labels[source == r]).size > 1 for r in np.unique(source)])
+    beam = _mixture(max_beam_length=1.0, beam_end_length=0.25, piece_assignment="beam")
+    beam_labels = beam.fit(paper.X, paper.y).cluster_labels_[source]
+
+    def spread(lab):
+        return np.mean([mids[lab == k].std(axis=0).sum() for k in np.unique(lab)])
+
+    assert spread(labels) < spread(beam_labels)
 
 
 def test_shared_hyperparameter_at_its_bound_warns(paper):

@@ -82,6 +82,35 @@ def test_update_refits_only_touched_experts(office, online):
     assert after.cluster_labels_.size == before["n_rows"] + _batch(data, 10, 15)[0].shape[0]
 
 
+def test_new_pieces_join_the_expert_of_the_hit_nearest_to_them(office, online):
+    from skoccmap.mixture import _beam_pieces
+
+    data, _ = office
+    _, _, after = online
+    X, y = _batch(data, 10, 15)
+    kinds = after.observation_kind_[-X.shape[0] :]
+    pieces, source = _beam_pieces(X, kinds, after.max_beam_length, after.beam_end_length)
+    free = y[source] == 0
+    # Among the hits of both batches, by brute force; the hit's expert after the update.
+    X_all, y_all = _batch(data, 0, 15)
+    hits = X_all[y_all == 1, :2]
+    mids = 0.5 * (pieces[free, :2] + pieces[free, 2:])
+    dist2 = ((mids[:, None, :] - hits[None]) ** 2).sum(axis=-1)
+    # Within nearest_hit_radius (2 m) of a hit: that hit's; else the row's anchor's.
+    near = dist2.min(axis=1) <= 2.0**2
+    assert np.mean(near) > 0.8
+    row_expert = after.cluster_labels_[-X.shape[0] :][source[free]]
+    expected = np.where(
+        near, after.cluster_labels_[y_all == 1][np.argmin(dist2, axis=1)], row_expert
+    )
+    # Each expert holds its new free pieces.
+    rows_of = [
+        {row.tobytes() for row in getattr(expert, "X_train_", np.empty((0, 4)))}
+        for expert in after.experts_
+    ]
+    assert all(row.tobytes() in rows_of[k] for row, k in zip(pieces[free], expected, strict=True))
+
+
 def test_experts_stay_bounded_and_rows_follow_experts(online):
     _, _, after = online
     sizes = np.array([e.X_train_.shape[0] for e in after.experts_ if hasattr(e, "X_train_")])
@@ -512,10 +541,12 @@ def test_experts_with_their_own_hyperparameters_take_rows_with_them(office):
     model = MixtureGPOccupancyMap(
         expert=expert, share_hyperparameters=False, max_expert_size=150, random_state=0
     )
-    model.partial_fit(*_batch(data, 0, 14), classes=[0, 1])
+    # Scan 12 touches 16 experts, 5 of which only take rows (with scan 14 every touched
+    # expert is split or new).
+    model.partial_fit(*_batch(data, 0, 12), classes=[0, 1])
     old = list(model.experts_)
     kernels = {id(e.kernel_) for e in old if hasattr(e, "site_nu_")}
-    model.partial_fit(*_batch(data, 14, 15))
+    model.partial_fit(*_batch(data, 12, 13))
     counts = _settled_and_absorbed(model)
     touched = model.touched_experts_
     kept = [k for k in touched if id(getattr(model.experts_[k], "kernel_", None)) in kernels]
