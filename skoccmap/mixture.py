@@ -305,6 +305,29 @@ def _bisect(points, max_size, weights=None):
     return pieces
 
 
+def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
+    """Expert of each hit, and cluster of each expert: clusters split to ``max_size``.
+
+    A cluster whose hits carry more than ``max_size`` pieces (``piece_hit``: the hit each
+    piece follows) is bisected (:func:`_bisect`), each hit weighted by its pieces, and
+    every piece then joins the expert of its hit: cutting the pieces themselves would part
+    walls from the free space in front of them and leave one-class experts.
+    """
+    pieces_per_hit = np.bincount(piece_hit, minlength=hits.shape[0])
+    hit_expert = np.empty(hits.shape[0], dtype=np.intp)
+    expert_cluster = []
+    for c, mine in enumerate(_groups(hit_cluster, n_clusters)):
+        first = len(expert_cluster)
+        if max_size is None or pieces_per_hit[mine].sum() <= max_size:
+            parts = [np.arange(mine.size)]
+        else:
+            parts = _bisect(hits[mine], max_size, pieces_per_hit[mine])
+        for j, part in enumerate(parts):
+            hit_expert[mine[part]] = first + j
+            expert_cluster.append(c)
+    return hit_expert, np.asarray(expert_cluster, dtype=np.intp)
+
+
 def _piece_gates(expert_cluster, n_clusters, piece_mids, piece_expert, clusters=None, gates=None):
     """Gate of the experts of each cluster (None for a cluster of one expert).
 
@@ -656,31 +679,32 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         (otherwise its beam's hit; a no-return beam's is then the hit nearest to its
         end, and the paper's no-return rule is not run). An expert then holds its walls
         with the free space around them: fewer experts reach a query, and those that do
-        hold all the evidence near it. Hits always join their own cluster's expert. On
-        the tuning data (``benchmarks/bench_tuning.py``, seed 100) ``"nearest_hit"`` /
-        ``"beam"`` find 92.1 / 90.0 % of the paper's world's walls (office 98.2 / 98.3 %,
-        sparse 3-D room 93.5 / 93.3 %), mark 0.30 / 1.68 % phantoms on the dense paper's
-        world (free found 96.4 / 95.5 %, ECE 0.036 / 0.045; office ECE 0.042 / 0.037), and
-        consult 4.1 / 10.6 experts per ACES query at 112 / 227 us per point. ACES held-out
-        AUC is 0.913 / 0.951: the compact experts learn a shorter length scale (0.54 m
-        against 1.25 m), which extrapolates less into the corridors the training scans
-        barely saw; it follows the draw of the 32 experts that learn it, and the AUC with
-        it (0.944 with ``nearest_hit_radius=1``, length scale 0.72 m).
+        hold all the evidence near it. Hits always join their own cluster's expert. The
+        shared hyperparameters are learned on the experts of the paper's rule either way
+        (see ``share_hyperparameters``). On the tuning data (``benchmarks/bench_tuning.py``,
+        seed 100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.966 / 0.951 with
+        4.9 / 10.6 experts per query (181 / 272 us per point); on the dense paper's world
+        0.40 / 1.68 % phantoms, 96.9 / 95.5 % free found, 96.8 / 95.4 % walls found and ECE
+        0.034 / 0.045; the sparse paper's world finds 90.0 % of its walls with both, the
+        office 98.0 / 98.3 % (ECE 0.038 / 0.037), the sparse 3-D room 93.5 / 93.3 %.
     nearest_hit_radius : float, default=2.0
         With ``piece_assignment="nearest_hit"``: a free piece further than this (metres)
         from every hit stays with its beam's hit. Without the bound, a hit at the edge
         of open space gathers all of it, and an expert is never split below one hit, so
         in a large hall one expert would grow without bound. On the tuning data
-        (``benchmarks/bench_tuning.py``, seed 100) 1 / 2 / 4 m find 90.7 / 92.1 / 94.2 %
-        of the paper's world's walls and give ACES held-out AUC 0.944 / 0.913 / 0.924 with
-        7.4 / 4.1 / 3.5 experts per query; on the dense paper's world 4 m (as unbounded
-        there) finds 92.6 % of the free cells at ECE 0.056, 2 m 96.4 % at 0.036.
+        (``benchmarks/bench_tuning.py``, seed 100) 1 / 2 / 4 m give ACES held-out AUC
+        0.964 / 0.966 / 0.967 with 8.3 / 4.9 / 4.1 experts per query, and on the dense
+        paper's world find 96.8 / 96.9 / 94.1 % of the free cells at ECE 0.035 / 0.034 /
+        0.046 (4 m is as unbounded there): 2 m is the largest radius that keeps that
+        world's free found above 95 %.
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
         kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to
         32 experts drawn at random (product-of-experts training of distributed GPs,
-        Deisenroth & Ng 2015), each on its own spatially compact piece of the map: the data
-        the kernel is used on. A hyperparameter that ends at a bound raises a
+        Deisenroth & Ng 2015), each on its own piece of the map. These are the experts of
+        the paper's rule (``piece_assignment="beam"``: a cluster's walls with the whole
+        beams that saw them), also when the fitted experts hold the pieces nearest to
+        their hits (``"nearest_hit"``; see there). A hyperparameter that ends at a bound raises a
         ``ConvergenceWarning``, as does a length scale learned beyond the extent of the
         training data (the map would be nearly constant). The expert must have ``kernel``
         and ``optimizer`` parameters. ``False`` lets every expert learn its own (the
@@ -690,7 +714,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         shared), and ``reach_`` grows from 3.8 m to 307 m on ACES.
     hyperparameter_window : float or None, default=None
         Where the shared hyperparameters are learned (``share_hyperparameters=True``).
-        ``None``: on the data of up to 32 experts drawn at random. A radius in metres: on
+        ``None``: on the data of up to 32 experts (of the paper's rule) drawn at random.
+        A radius in metres: on
         up to 32 windows of that radius, each centred on a random hit and holding at most
         ``max_expert_size`` rows drawn at random from the rows whose midpoint lies within
         it. A window covers the same area with the same number of rows however dense the
@@ -1041,6 +1066,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.cluster_labels_ = hit_expert[row_hit]
         self.n_experts_ = int(self.expert_cluster_.size)
         self._kernel_cache = {}
+        self._rng = rng
+        self._hits, self._hit_expert, self._row_hit = hits, hit_expert, row_hit
+        self._pieces, self._piece_y = pieces, y_enc[source]
+        self._piece_expert, self._piece_hit = piece_expert, piece_hit
+        self._piece_beam_hit = row_hit[source]
         self.experts_ = self._fit_experts(pieces, y_enc[source], piece_expert, expert, rng)
         _log(
             self.verbose,
@@ -1053,10 +1083,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.gating_ = (
             self._fit_gpc_gate(pieces, piece_expert, rng) if self.gating == "gpc" else None
         )
-        self._rng = rng
-        self._hits, self._hit_expert, self._row_hit = hits, hit_expert, row_hit
-        self._pieces, self._piece_y = pieces, y_enc[source]
-        self._piece_expert, self._piece_hit = piece_expert, piece_hit
         self._piece_settled = np.ones(pieces.shape[0], dtype=bool)
         self._learned_rows = pieces.shape[0]
         self.touched_experts_ = np.arange(self.n_experts_)
@@ -1366,6 +1392,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         all_pieces = np.vstack([self._pieces, pieces])
         piece_y = np.concatenate([self._piece_y, y_enc[source]])
         piece_hit = np.concatenate([self._piece_hit, new_piece_hit])
+        piece_beam_hit = np.concatenate([self._piece_beam_hit, anchor[source]])
         piece_expert = np.concatenate([self._piece_expert, all_hit_expert[new_piece_hit]])
         row_hit = np.concatenate([self._row_hit, anchor])
         touched = set(np.unique(all_hit_expert[new_piece_hit]).tolist())
@@ -1455,6 +1482,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._row_hit = row_hit
         self._pieces, self._piece_y = all_pieces, piece_y
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
+        self._piece_beam_hit = piece_beam_hit
         self._piece_settled = piece_settled
         if relearn:
             self._relearn_shared(rows, old_experts, old_rows, origin)
@@ -1741,27 +1769,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         return self.cluster_merge_[labels], anchor
 
     def _split_clusters(self, hits, hit_cluster, piece_mids, piece_hit):
-        """Split clusters above ``max_expert_size``; returns the expert of each hit.
+        """Split clusters above ``max_expert_size`` (:func:`_split_hits`); gate the parts.
 
-        The split is of the cluster's hits, each weighted by the training rows (beam
-        pieces) anchored to it (``piece_hit``), and every piece joins the expert of its
-        anchor hit: cutting the pieces themselves would part walls from the free space in
-        front of them and leave one-class experts. Each split cluster's experts are gated
-        by Gaussians fitted to their pieces' midpoints.
+        Returns the expert of each hit. Each split cluster's experts are gated by
+        Gaussians fitted to their pieces' midpoints.
         """
-        pieces_per_hit = np.bincount(piece_hit, minlength=hits.shape[0])
-        hit_expert = np.empty(hits.shape[0], dtype=np.intp)
-        expert_cluster = []
-        for c, mine in enumerate(_groups(hit_cluster, self.n_clusters_)):
-            first = len(expert_cluster)
-            if self.max_expert_size is None or pieces_per_hit[mine].sum() <= self.max_expert_size:
-                parts = [np.arange(mine.size)]
-            else:
-                parts = _bisect(hits[mine], self.max_expert_size, pieces_per_hit[mine])
-            for j, part in enumerate(parts):
-                hit_expert[mine[part]] = first + j
-                expert_cluster.append(c)
-        self.expert_cluster_ = np.asarray(expert_cluster, dtype=np.intp)
+        hit_expert, self.expert_cluster_ = _split_hits(
+            hits, hit_cluster, self.n_clusters_, piece_hit, self.max_expert_size
+        )
         self._piece_gates = _piece_gates(
             self.expert_cluster_, self.n_clusters_, piece_mids, hit_expert[piece_hit]
         )
@@ -1769,10 +1784,32 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if self.expert_cluster_.size > self.n_clusters_:
             _log(
                 self.verbose,
-                f"split big clusters into {len(expert_cluster)} pieces of at "
+                f"split big clusters into {self.expert_cluster_.size} pieces of at "
                 f"most {self.max_expert_size} observations",
             )
         return hit_expert
+
+    def _hyperparameter_groups(self, expert_rows):
+        """Groups of pieces whose summed evidence learns the shared hyperparameters.
+
+        The experts' own (``expert_rows``) with ``piece_assignment="beam"``. With
+        ``"nearest_hit"``, the experts the paper's rule would make (every piece with its
+        beam's hit, clusters split alike): an expert of local pieces holds walls with the
+        free space just around them, and its evidence prefers a length scale that
+        extrapolates less than the map's beams support (on the tuning log, ACES, the
+        same local experts rank held-out points 0.965 with the beam groups' 1.25 m and
+        0.913 with their own 0.54 m).
+        """
+        if self.piece_assignment == "beam":
+            return expert_rows
+        hit_group, group_cluster = _split_hits(
+            self._hits,
+            self.expert_cluster_[self._hit_expert],
+            self.n_clusters_,
+            self._piece_beam_hit,
+            self.max_expert_size,
+        )
+        return _groups(hit_group[self._piece_beam_hit], group_cluster.size)
 
     def _fit_experts(self, X, y, labels, expert, rng):
         n_experts = self.expert_cluster_.size
@@ -1820,10 +1857,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 f"parameters; {type(expert).__name__} lacks them."
             )
         if self.hyperparameter_window is None:
-            # Experts' own (compact) pieces, a random subset of them: each term is one
-            # expert's fit, so a few dozen fix a handful of hyperparameters at a bounded
-            # cost however large the map.
-            two_class = [r for r in rows if 0 < y[r].sum() < r.size]
+            # Experts' pieces (as the paper's rule groups them), a random subset of them:
+            # each term is one expert's fit, so a few dozen fix a handful of
+            # hyperparameters at a bounded cost however large the map.
+            groups = self._hyperparameter_groups(rows)
+            two_class = [r for r in groups if 0 < y[r].sum() < r.size]
             chosen = rng.choice(len(two_class), min(len(two_class), _SHARED_PIECES), replace=False)
             windows = [two_class[k] for k in np.sort(chosen)]
         else:
