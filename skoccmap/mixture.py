@@ -1096,14 +1096,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         hit nearest to its midpoint, so that an expert holds the free space around its
         hits rather than whole beams across the map; one further out keeps its row's
         anchor, so that no hit gathers the open space around it (an expert is never
-        split below one hit).
+        split below one hit); so does one beyond the ``max_expert_size // 2`` pieces
+        nearest to its hit.
         """
         if self.piece_assignment == "beam" or hits.shape[0] == 0:
             return anchor_hit
         free = np.flatnonzero(piece_y != 1)
         piece_hit = anchor_hit.copy()
         dist, nearest = cKDTree(hits).query(_midpoints(pieces[free]))
-        near = dist <= self.nearest_hit_radius
+        near = np.flatnonzero(dist <= self.nearest_hit_radius)
+        if self.max_expert_size is not None:
+            # A hit takes at most half an expert of pieces, its nearest ones: with dense
+            # scans thousands lie around one hit, and an expert is never split below one.
+            order = near[np.lexsort((dist[near], nearest[near]))]
+            first = np.searchsorted(nearest[order], nearest[order], side="left")
+            near = order[np.arange(order.size) - first < max(self.max_expert_size // 2, 1)]
         piece_hit[free[near]] = nearest[near]
         return piece_hit
 

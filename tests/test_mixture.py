@@ -737,6 +737,24 @@ def test_pieces_join_the_expert_of_the_hit_nearest_to_them(paper):
     assert spread(labels) < spread(beam_labels)
 
 
+def test_a_hit_takes_at_most_half_an_expert_of_nearest_pieces(paper):
+    model = _mixture(max_expert_size=40).fit(paper.X, paper.y)
+    pieces, source = _beam_pieces(paper.X, model.observation_kind_, 1.0, 0.35)
+    free = paper.y[source] == 0
+    hits = paper.X[paper.y == 1, :2]
+    mids = 0.5 * (pieces[free, :2] + pieces[free, 2:])
+    dist2 = ((mids[:, None, :] - hits[None]) ** 2).sum(axis=-1)
+    nearest = np.where(dist2.min(axis=1) <= 4.0, np.argmin(dist2, axis=1), -1)
+    # Without the bound some hit would take more than 20 pieces by nearness ...
+    assert np.bincount(nearest[nearest >= 0]).max() > 20
+    # ... with it, no hit takes more than 20 pieces beyond those of its own beams.
+    moved = model._piece_hit[free] != model._piece_beam_hit[free]
+    assert np.bincount(model._piece_hit[free][moved]).max() <= 20
+    # A moved piece went to a nearest hit (equal hits are told apart by index only).
+    chosen = dist2[np.flatnonzero(moved), model._piece_hit[free][moved]]
+    np.testing.assert_allclose(chosen, dist2.min(axis=1)[moved], rtol=1e-12)
+
+
 def test_nearest_hit_experts_learn_their_kernel_on_whole_beams(paper):
     # The shared kernel is learned on the experts the paper's rule would make: every piece of
     # a beam in one group, groups of at most max_expert_size pieces, every piece in one.
