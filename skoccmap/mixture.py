@@ -676,8 +676,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         free space runs back along its beams to every pose that saw its walls, and the
         experts overlap wherever the robot drove. ``"nearest_hit"``: the expert of the hit
         nearest to the piece's midpoint, when that hit lies within ``nearest_hit_radius``
-        (otherwise its beam's hit; a no-return beam's is then the hit nearest to its
-        end, and the paper's no-return rule is not run). An expert then holds its walls
+        and has not taken ``max_expert_size // 2`` nearer pieces already (otherwise
+        its beam's, as under ``"beam"``). An expert then holds its walls
         with the free space around them: fewer experts reach a query, and those that do
         hold all the evidence near it. Hits always join their own cluster's expert. The
         shared hyperparameters are learned on the experts of the paper's rule either way
@@ -1313,9 +1313,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 kinds[beams[is_ret]] = RETURN
                 anchor[beams[is_ret]] = near[idx[is_ret]]
         is_nr = kinds == NO_RETURN
-        if np.any(is_nr) and self.piece_assignment == "nearest_hit":
-            anchor[is_nr] = cKDTree(all_hits).query(X[is_nr, d:])[1]
-        elif np.any(is_nr):
+        if np.any(is_nr):
             is_ret = kinds == RETURN
             if np.any(is_ret):
                 anchor[is_nr] = _assign_no_return(
@@ -1745,9 +1743,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.cluster_ids_, hit_labels = np.unique(np.asarray(raw), return_inverse=True)
 
         # Every row follows an anchor hit: a hit itself, a return beam its hit, a no-return
-        # beam the hit of its most similar return beam (with piece_assignment="beam"; the
-        # hit nearest to its end otherwise, as its pieces find their own hits). Clusters
-        # and their pieces are sets of hits.
+        # beam the hit of its most similar return beam (its pieces may then join other
+        # hits, see piece_assignment). Clusters and their pieces are sets of hits.
         hit_rows = np.flatnonzero(occupied)
         # Free points follow the return-beam rule without a distance limit.
         radius = np.inf if self.layout == "points" else self.return_radius
@@ -1755,7 +1752,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.observation_kind_ = kinds
         is_ret = kinds == RETURN
         is_nr = kinds == NO_RETURN
-        if self.piece_assignment == "beam" and np.any(is_nr):
+        if np.any(is_nr):
             if np.any(is_ret):
                 anchor[is_nr] = _assign_no_return(
                     X[is_nr],

@@ -264,7 +264,9 @@ def test_split_pieces_keep_each_hit_with_its_beams(paper):
     # Pieces are cut through the hits; beams follow their hit, so no piece is left with
     # one class (a wall without the beams that saw it, or free space without its wall).
     X, kind = paper.X, paper.kind
-    model = _mixture(clusterer=KMeans(2, n_init=3, random_state=0), max_expert_size=60)
+    model = _mixture(
+        clusterer=KMeans(2, n_init=3, random_state=0), max_expert_size=60, piece_assignment="beam"
+    )
     model.fit(X, paper.y)
     labels = model.cluster_labels_
     assert model.n_experts_ >= int(np.ceil(X.shape[0] / 60))
@@ -277,6 +279,10 @@ def test_split_pieces_keep_each_hit_with_its_beams(paper):
     for k in range(model.n_experts_):
         assert 0 < paper.y[labels == k].mean() < 1, k
     assert not any(isinstance(e, _ConstantExpert) for e in model.experts_)
+    # Nearest-hit pieces split alike: every expert still holds both classes.
+    nearest = _mixture(clusterer=KMeans(2, n_init=3, random_state=0), max_expert_size=60)
+    nearest.fit(X, paper.y)
+    assert not any(isinstance(e, _ConstantExpert) for e in nearest.experts_)
 
 
 def test_weighted_bisection_bounds_piece_weight():
@@ -343,7 +349,10 @@ def test_share_hyperparameters_learns_once():
     data = make_paper_scans(random_state=0)
     # The signal variance fixed: on separable data the evidence keeps growing with it.
     expert = GaussianProcessClassifier(C(4.0, "fixed") * RBF(1.0))
-    model = _mixture(expert=expert, share_hyperparameters=True).fit(data.X, data.y)
+    # The experts of the paper's rule, on which the kernel is learned (with nearest-hit
+    # pieces too: test_nearest_hit_experts_learn_their_kernel_on_whole_beams).
+    model = _mixture(expert=expert, share_hyperparameters=True, piece_assignment="beam")
+    model.fit(data.X, data.y)
     learned = model.shared_kernel_
     assert learned != expert.kernel  # it did learn
     fitted = [e for e in model.experts_ if not isinstance(e, _ConstantExpert)]
