@@ -682,21 +682,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         hold all the evidence near it. Hits always join their own cluster's expert. The
         shared hyperparameters are learned on the experts of the paper's rule either way
         (see ``share_hyperparameters``). On the tuning data (``benchmarks/bench_tuning.py``,
-        seed 100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.966 / 0.951 with
-        4.9 / 10.6 experts per query (181 / 272 us per point); on the dense paper's world
-        0.40 / 1.68 % phantoms, 96.9 / 95.5 % free found, 96.8 / 95.4 % walls found and ECE
-        0.034 / 0.045; the sparse paper's world finds 90.0 % of its walls with both, the
-        office 98.0 / 98.3 % (ECE 0.038 / 0.037), the sparse 3-D room 93.5 / 93.3 %.
+        seed 100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.959 / 0.951 with
+        6.4 / 10.6 experts per query (220 / 321 us per point); on the dense paper's world
+        0.42 / 1.68 % phantoms, 97.8 / 95.5 % free found, 96.8 / 95.4 % walls found and ECE
+        0.030 / 0.045; the sparse paper's world finds 90.3 / 90.0 % of its walls, the office
+        98.0 / 98.3 % (ECE 0.038 / 0.037), the sparse 3-D room 93.5 / 93.3 %.
     nearest_hit_radius : float, default=2.0
         With ``piece_assignment="nearest_hit"``: a free piece further than this (metres)
         from every hit stays with its beam's hit. Without the bound, a hit at the edge
         of open space gathers all of it, and an expert is never split below one hit, so
         in a large hall one expert would grow without bound. On the tuning data
         (``benchmarks/bench_tuning.py``, seed 100) 1 / 2 / 4 m give ACES held-out AUC
-        0.964 / 0.966 / 0.967 with 8.3 / 4.9 / 4.1 experts per query, and on the dense
-        paper's world find 96.8 / 96.9 / 94.1 % of the free cells at ECE 0.035 / 0.034 /
-        0.046 (4 m is as unbounded there): 2 m is the largest radius that keeps that
-        world's free found above 95 %.
+        0.962 / 0.959 / 0.963 with 8.6 / 6.4 / 6.7 experts per query, and on the dense
+        paper's world find 96.7 / 96.8 / 95.3 % of the walls with 0.49 / 0.42 / 0.47 %
+        phantoms: the AUCs are within one fit's spread over random states, and 2 m
+        consults the fewest experts.
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
         kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to
@@ -1800,9 +1800,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``"nearest_hit"``, the experts the paper's rule would make (every piece with its
         beam's hit, clusters split alike): an expert of local pieces holds walls with the
         free space just around them, and its evidence prefers a length scale that
-        extrapolates less than the map's beams support (on the tuning log, ACES, the
-        same local experts rank held-out points 0.965 with the beam groups' 1.25 m and
-        0.913 with their own 0.54 m).
+        extrapolates less than the map's beams support (on the tuning log, ACES, learned on
+        the local experts it was 0.54 m and held-out AUC 0.913, against 1.05 m and 0.959;
+        ``benchmarks/bench_tuning.py``, seed 100).
         """
         if self.piece_assignment == "beam":
             return expert_rows
