@@ -328,11 +328,11 @@ def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
     return hit_expert, np.asarray(expert_cluster, dtype=np.intp)
 
 
-def _piece_gates(expert_cluster, n_clusters, piece_mids, piece_expert, clusters=None, gates=None):
+def _piece_gates(expert_cluster, n_clusters, pieces, piece_expert, clusters=None, gates=None):
     """Gate of the experts of each cluster (None for a cluster of one expert).
 
-    Only ``clusters`` (all by default) are (re)made; the others keep their entry of
-    ``gates``.
+    Each gate is fitted to the midpoints of its experts' ``pieces``. Only ``clusters`` (all
+    by default) are (re)made; the others keep their entry of ``gates``.
     """
     gates = (
         [None] * n_clusters if gates is None else list(gates) + [None] * (n_clusters - len(gates))
@@ -345,7 +345,7 @@ def _piece_gates(expert_cluster, n_clusters, piece_mids, piece_expert, clusters=
             continue
         if groups is None:
             groups = _groups(piece_expert, expert_cluster.size)
-        gates[c] = _PieceGate([piece_mids[groups[k]] for k in ks])
+        gates[c] = _PieceGate([_midpoints(pieces[groups[k]]) for k in ks])
     return gates
 
 
@@ -620,39 +620,37 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         near-empty cluster learns nothing, and its broad predictive density would otherwise
         win the gate far from all hits. 1 disables merging.
     max_expert_size : int or None, default=400
-        Clusters with more observations are split until every piece has at most this
-        many: the cluster's hits are cut at the median along their principal axis, each
-        hit weighted by the beam pieces that follow it (see ``piece_assignment``), and
-        every piece stays with its hit (so an expert holds walls with the free space in
-        front of them; a hit that alone carries more pieces stays whole). Experts are
-        gated by Gaussians fitted to their pieces' midpoints within the cluster's gate.
-        This bounds the cost of each expert, so fit time grows about linearly with the
-        number of observations. ``None`` disables
-        splitting (the paper's model; cubic cost in the cluster size). Sizes count the
-        rows experts are fitted on (beam pieces). On the tuning data
-        (``benchmarks/bench_tuning.py``) 200 / 400 / 800 give ACES held-out AUC 0.944 /
-        0.951 / 0.947 with 312 / 157 / 79 experts (fit 9 / 17 / 49 s on one shared core)
-        and office walls found 0.976 / 0.983 / 0.985: 800 costs about three times the fit
-        of 400 for no better ranking.
+        Clusters with more observations are split until every piece has at most this many:
+        the cluster's hits are cut at the median along their principal axis, each hit
+        weighted by the beam pieces that follow it (see ``piece_assignment``), and every
+        piece stays with its hit (so an expert holds walls with the free space in front of
+        them; a hit that alone carries more pieces stays whole). Experts are gated by
+        Gaussians fitted to their pieces' midpoints within the cluster's gate. This bounds
+        the cost of each expert, so fit time grows about linearly with the number of
+        observations. ``None`` disables splitting (the paper's model; cubic cost in the
+        cluster size). Sizes count the rows experts are fitted on (beam pieces). On the
+        tuning data (``benchmarks/bench_tuning.py``) 200 / 400 / 800 give ACES held-out AUC
+        0.944 / 0.951 / 0.947 with 312 / 157 / 79 experts (fit 9 / 17 / 49 s on one shared
+        core) and office walls found 0.976 / 0.983 / 0.985: 800 costs about three times the
+        fit of 400 for no better ranking.
     max_beam_length : float or None, default=1.0
         Beams longer than this (metres) are cut into pieces no longer than it after the
         assignment; ``piece_assignment`` says which expert each piece joins. Under the
         integral kernel a whole beam observes only the *average* of the latent function
         along it, which leaves the function free to stay high next to the wall the beam
         ended at: walls drawn thick and truly free cells marked occupied. ``None`` sets no
-        bound; with ``beam_end_length=None`` and ``piece_assignment="beam"`` too, beams
-        stay whole and with their hits (the paper's model). Chosen with
-        ``piece_assignment="beam"`` on
-        tuning data (``benchmarks/bench_tuning.py``: the office and the paper's world with
-        noise seed 100, and the ACES log; ``benchmarks/bench_quality.py`` reports other
-        seeds and Intel). Whole beams mark 16.0 % of the office's far free cells occupied
-        and draw its walls 0.5 m thick (0.2 m with the defaults; ECE 0.35). With 0.35 m end
-        pieces (``beam_end_length``) the office's phantoms are nearly gone without any
-        bound (0.11 %), and no bound / 2 m / 1 m / 0.5 m give office ECE 0.061 / 0.050 /
-        0.038 / 0.032 and ACES held-out AUC 0.918 / 0.911 / 0.951 / 0.948 (whole beams
-        0.901); 0.5 m pieces find fewer walls (office 0.974 against 0.983, paper's world
-        0.886 against 0.900) and need 1.5 times the experts of 1 m on ACES (231 against
-        157).
+        bound; with ``beam_end_length=None`` and ``piece_assignment="beam"`` too, beams stay
+        whole and with their hits (the paper's model). Chosen with
+        ``piece_assignment="beam"`` on tuning data (``benchmarks/bench_tuning.py``: the
+        office and the paper's world with noise seed 100, and the ACES log;
+        ``benchmarks/bench_quality.py`` reports other seeds and Intel). Whole beams mark
+        16.0 % of the office's far free cells occupied and draw its walls 0.5 m thick (0.2 m
+        with the defaults; ECE 0.35). With 0.35 m end pieces (``beam_end_length``) the
+        office's phantoms are nearly gone without any bound (0.11 %), and no bound / 2 m / 1
+        m / 0.5 m give office ECE 0.061 / 0.050 / 0.038 / 0.032 and ACES held-out AUC 0.918
+        / 0.911 / 0.951 / 0.948 (whole beams 0.901); 0.5 m pieces find fewer walls (office
+        0.974 against 0.983, paper's world 0.886 against 0.900) and need 1.5 times the
+        experts of 1 m on ACES (231 against 157).
     beam_end_length : float or None, default=0.35
         Beams with a return are cut into pieces that halve in length towards their hit,
         down to this length (metres), before the ``max_beam_length`` pieces: the
@@ -676,17 +674,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         free space runs back along its beams to every pose that saw its walls, and the
         experts overlap wherever the robot drove. ``"nearest_hit"``: the expert of the hit
         nearest to the piece's midpoint, when that hit lies within ``nearest_hit_radius``
-        and has not taken ``max_expert_size // 2`` nearer pieces already (otherwise
-        its beam's, as under ``"beam"``). An expert then holds its walls
-        with the free space around them: fewer experts reach a query, and those that do
-        hold all the evidence near it. Hits always join their own cluster's expert. The
-        shared hyperparameters are learned on the experts of the paper's rule either way
-        (see ``share_hyperparameters``). On the tuning data (``benchmarks/bench_tuning.py``,
-        seed 100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.959 / 0.951 with
-        6.4 / 10.6 experts per query (220 / 321 us per point); on the dense paper's world
-        0.42 / 1.68 % phantoms, 97.8 / 95.5 % free found, 96.8 / 95.4 % walls found and ECE
-        0.030 / 0.045; the sparse paper's world finds 90.3 / 90.0 % of its walls, the office
-        98.0 / 98.3 % (ECE 0.038 / 0.037), the sparse 3-D room 93.5 / 93.3 %.
+        and has not taken ``max_expert_size // 2`` nearer pieces already (otherwise its
+        beam's, as under ``"beam"``). An expert then holds its walls with the free space
+        around them: fewer experts reach a query, and those that do hold all the evidence
+        near it. Hits always join their own cluster's expert. The shared hyperparameters are
+        learned on the experts of the paper's rule either way (see
+        ``share_hyperparameters``). On the tuning data (``benchmarks/bench_tuning.py``, seed
+        100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.959 / 0.951 with 6.4 /
+        10.6 experts per query (220 / 321 us per point); on the dense paper's world 0.42 /
+        1.68 % phantoms, 97.8 / 95.5 % free found, 96.8 / 95.4 % walls found and ECE 0.030 /
+        0.045; the sparse paper's world finds 90.3 / 90.0 % of its walls, the office 98.0 /
+        98.3 % (ECE 0.038 / 0.037), the sparse 3-D room 93.5 / 93.3 %.
     nearest_hit_radius : float, default=2.0
         With ``piece_assignment="nearest_hit"``: a free piece further than this (metres)
         from every hit stays with its beam's hit. Without the bound, a hit at the edge
@@ -699,37 +697,36 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         consults the fewest experts.
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
-        kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to
-        32 experts drawn at random (product-of-experts training of distributed GPs,
-        Deisenroth & Ng 2015), each on its own piece of the map. These are the experts of
-        the paper's rule (``piece_assignment="beam"``: a cluster's walls with the whole
-        beams that saw them), also when the fitted experts hold the pieces nearest to
-        their hits (``"nearest_hit"``; see there). A hyperparameter that ends at a bound raises a
+        kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to 32
+        experts drawn at random (product-of-experts training of distributed GPs, Deisenroth
+        & Ng 2015), each on its own piece of the map. These are the experts of the paper's
+        rule (``piece_assignment="beam"``: a cluster's walls with the whole beams that saw
+        them), also when the fitted experts hold the pieces nearest to their hits
+        (``"nearest_hit"``; see there). A hyperparameter that ends at a bound raises a
         ``ConvergenceWarning``, as does a length scale learned beyond the extent of the
         training data (the map would be nearly constant). The expert must have ``kernel``
-        and ``optimizer`` parameters. ``False`` lets every expert learn its own (the
-        paper's model): on the tuning data (``benchmarks/bench_tuning.py``) ACES held-out
-        AUC drops from 0.951 to 0.859, 1.4 % of the office's far free cells are marked
-        occupied (0.05 % shared), the paper's world finds 0.49 of its walls (0.90
-        shared), and ``reach_`` grows from 3.8 m to 307 m on ACES.
+        and ``optimizer`` parameters. ``False`` lets every expert learn its own (the paper's
+        model): on the tuning data (``benchmarks/bench_tuning.py``) ACES held-out AUC drops
+        from 0.951 to 0.859, 1.4 % of the office's far free cells are marked occupied (0.05
+        % shared), the paper's world finds 0.49 of its walls (0.90 shared), and ``reach_``
+        grows from 3.8 m to 307 m on ACES.
     hyperparameter_window : float or None, default=None
         Where the shared hyperparameters are learned (``share_hyperparameters=True``).
-        ``None``: on the data of up to 32 experts (of the paper's rule) drawn at random.
-        A radius in metres: on
-        up to 32 windows of that radius, each centred on a random hit and holding at most
-        ``max_expert_size`` rows drawn at random from the rows whose midpoint lies within
-        it. A window covers the same area with the same number of rows however dense the
-        scans, while an expert's data cover a smaller area as scans accumulate, so the
-        length scale learned on windows does not follow the density of the scans. On the
-        tuning data (``benchmarks/bench_tuning.py``, ACES) ``None`` / 1.5 / 3 / 6 learn
-        1.25 / 0.54 / 0.72 / 0.60 m with every 10th training scan and 1.15 / 0.48 / 0.59 /
-        0.65 m with every scan (changes of 9 / 12 / 22 / 9 %; the draw of pieces moves
-        each by tens of percent), for held-out AUC 0.951 / 0.915 / 0.932 / 0.921 (every
-        10th) and 0.970 / 0.970 / 0.972 / 0.972 (every scan); the office finds 98.3 / 99.5
-        / 98.9 / 99.1 % of its walls (ECE 0.038 / 0.056 / 0.041 / 0.043) and the paper's
-        world 90.0 / 96.8 / 93.5 / 90.5 %. The windows' shorter length scale extrapolates
-        less into space the training scans barely saw, which costs held-out AUC on sparse
-        scans: ``None`` stays the default.
+        ``None``: on the data of up to 32 experts (of the paper's rule) drawn at random. A
+        radius in metres: on up to 32 windows of that radius, each centred on a random hit
+        and holding at most ``max_expert_size`` rows drawn at random from the rows whose
+        midpoint lies within it. A window covers the same area with the same number of rows
+        however dense the scans, while an expert's data cover a smaller area as scans
+        accumulate, so the length scale learned on windows does not follow the density of
+        the scans. On the tuning data (``benchmarks/bench_tuning.py``, ACES) ``None`` / 1.5
+        / 3 / 6 learn 1.25 / 0.54 / 0.72 / 0.60 m with every 10th training scan and 1.15 /
+        0.48 / 0.59 / 0.65 m with every scan (changes of 9 / 12 / 22 / 9 %; the draw of
+        pieces moves each by tens of percent), for held-out AUC 0.951 / 0.915 / 0.932 /
+        0.921 (every 10th) and 0.970 / 0.970 / 0.972 / 0.972 (every scan); the office finds
+        98.3 / 99.5 / 98.9 / 99.1 % of its walls (ECE 0.038 / 0.056 / 0.041 / 0.043) and the
+        paper's world 90.0 / 96.8 / 93.5 / 90.5 %. The windows' shorter length scale
+        extrapolates less into space the training scans barely saw, which costs held-out AUC
+        on sparse scans: ``None`` stays the default.
     hyperparameter_growth : float or None, default=2.0
         :meth:`partial_fit` re-learns the shared hyperparameters, and refits every expert
         with them (as :meth:`refit_hyperparameters` does), whenever the training rows
@@ -1061,7 +1058,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         d = X.shape[1] // 2
         hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
         piece_hit = self._piece_hits(pieces, y_enc[source], row_hit[source], hits)
-        hit_expert = self._split_clusters(hits, labels[occupied], _midpoints(pieces), piece_hit)
+        hit_expert = self._split_clusters(hits, labels[occupied], pieces, piece_hit)
         piece_expert = hit_expert[piece_hit]
         self.cluster_labels_ = hit_expert[row_hit]
         self.n_experts_ = int(self.expert_cluster_.size)
@@ -1071,7 +1068,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._pieces, self._piece_y = pieces, y_enc[source]
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
         self._piece_beam_hit = row_hit[source]
-        self.experts_ = self._fit_experts(pieces, y_enc[source], piece_expert, expert, rng)
+        self.experts_ = self._fit_experts(pieces, self._piece_y, piece_expert, expert, rng)
         _log(
             self.verbose,
             f"{self.n_experts_} expert(s) fitted ({time.perf_counter() - start:.1f} s)",
@@ -1454,7 +1451,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         piece_gates = _piece_gates(
             expert_cluster,
             n_clusters,
-            _midpoints(all_pieces),
+            all_pieces,
             piece_expert,
             clusters=np.unique(expert_cluster[touched]),
             gates=self._piece_gates,
@@ -1772,7 +1769,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.n_clusters_ = int(self.cluster_merge_.max() + 1)
         return self.cluster_merge_[labels], anchor
 
-    def _split_clusters(self, hits, hit_cluster, piece_mids, piece_hit):
+    def _split_clusters(self, hits, hit_cluster, pieces, piece_hit):
         """Split clusters above ``max_expert_size`` (:func:`_split_hits`); gate the parts.
 
         Returns the expert of each hit. Each split cluster's experts are gated by
@@ -1782,7 +1779,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             hits, hit_cluster, self.n_clusters_, piece_hit, self.max_expert_size
         )
         self._piece_gates = _piece_gates(
-            self.expert_cluster_, self.n_clusters_, piece_mids, hit_expert[piece_hit]
+            self.expert_cluster_, self.n_clusters_, pieces, hit_expert[piece_hit]
         )
         self._first_expert = np.searchsorted(self.expert_cluster_, np.arange(self.n_clusters_))
         if self.expert_cluster_.size > self.n_clusters_:
