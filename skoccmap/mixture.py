@@ -103,6 +103,11 @@ def _log(verbose, message):
 # ---------------------------------------------------------------------------------------
 
 
+# Hits a free piece may join under piece_assignment="nearest_hit", nearest first: with
+# dense scans the nearest ones fill up (see _nearest_with_room).
+_NEAREST_HITS = 32
+
+
 def _observation_kinds(X, occupied, return_radius):
     """HIT / RETURN / NO_RETURN code per row and the hit nearest to every beam's end.
 
@@ -303,6 +308,37 @@ def _bisect(points, max_size, weights=None):
         stack.append(idx[order[half:]])
         stack.append(idx[order[:half]])
     return pieces
+
+
+def _nearest_with_room(tree, points, radius, cap, rounds):
+    """Index of each point's nearest hit (of ``tree``) that still has room, or -1.
+
+    In round j every point still without a hit asks its j-th nearest hit within
+    ``radius``, and a hit takes the nearest of its askers up to ``cap`` points in all; a
+    point whose ``rounds`` nearest hits within the radius are all full gets -1. Only the
+    j-th neighbours of the points still asking are looked up in round j, so memory stays
+    linear in the points.
+    """
+    n_hits = tree.n
+    chosen = np.full(len(points), -1, dtype=np.intp)
+    load = np.zeros(n_hits, dtype=np.float64)
+    asking = np.arange(len(points))
+    for j in range(1, min(rounds, n_hits) + 1):
+        if asking.size == 0:
+            break
+        dist, hit = tree.query(points[asking], k=[j], distance_upper_bound=radius)
+        dist, hit = dist[:, 0], hit[:, 0]
+        inside = np.isfinite(dist)
+        # A point with no j-th hit within the radius has none further either.
+        asking, dist, hit = asking[inside], dist[inside], hit[inside]
+        order = np.lexsort((dist, hit))
+        asking, hit = asking[order], hit[order]
+        rank = np.arange(hit.size) - np.searchsorted(hit, hit, side="left")
+        take = rank < cap - load[hit]
+        chosen[asking[take]] = hit[take]
+        load += np.bincount(hit[take], minlength=n_hits)
+        asking = np.sort(asking[~take])
+    return chosen
 
 
 def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
@@ -672,17 +708,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``beam_end_length``) joins. ``"beam"``: its beam's, i.e. its hit's (the paper's
         rule; a no-return beam's is that of its most similar return beam), so an expert's
         free space runs back along its beams to every pose that saw its walls, and the
-        experts overlap wherever the robot drove. ``"nearest_hit"``: the expert of the hit
-        nearest to the piece's midpoint, when that hit lies within ``nearest_hit_radius``
-        and has not taken ``max_expert_size // 2`` nearer pieces already (otherwise its
-        beam's, as under ``"beam"``). An expert then holds its walls with the free space
-        around them: fewer experts reach a query, and those that do hold all the evidence
-        near it. Hits always join their own cluster's expert. The shared hyperparameters are
-        learned on the experts of the paper's rule either way (see
+        experts overlap wherever the robot drove. ``"nearest_hit"``: the expert of the
+        nearest hit to the piece's midpoint within ``nearest_hit_radius`` that has room. A
+        hit takes at most ``max_expert_size // 2`` pieces, the nearest that ask it; a piece
+        whose nearest hit is full asks the next nearest, up to its 32 nearest, and keeps
+        its beam's expert (as under ``"beam"``) when all are full or none lies within the
+        radius. An expert then holds its walls with the free space around them: fewer
+        experts reach a query, and those that do hold all the evidence near it. (Sending
+        the pieces of a full hit back to their beams instead left experts tens of metres
+        long on dense logs, where most hits are full.) Hits always join their own
+        cluster's expert. The shared hyperparameters are learned on the experts of the
+        paper's rule either way (see
         ``share_hyperparameters``). On the tuning data (``benchmarks/bench_tuning.py``, seed
-        100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.959 / 0.951 with 6.4 /
-        10.6 experts per query (220 / 321 us per point); on the dense paper's world 0.42 /
-        1.68 % phantoms, 97.8 / 95.5 % free found, 96.8 / 95.4 % walls found and ECE 0.030 /
+        100) ``"nearest_hit"`` / ``"beam"`` give ACES held-out AUC 0.962 / 0.951 with 5.2 /
+        10.6 experts per query (219 / 354 us per point); on the dense paper's world 0.44 /
+        1.68 % phantoms, 97.8 / 95.5 % free found, 95.9 / 95.4 % walls found and ECE 0.030 /
         0.045; the sparse paper's world finds 90.3 / 90.0 % of its walls, the office 98.0 /
         98.3 % (ECE 0.038 / 0.037), the sparse 3-D room 93.5 / 93.3 %.
     nearest_hit_radius : float, default=2.0
@@ -694,7 +734,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         0.962 / 0.959 / 0.963 with 8.6 / 6.4 / 6.7 experts per query, and on the dense
         paper's world find 96.7 / 96.8 / 95.3 % of the walls with 0.49 / 0.42 / 0.47 %
         phantoms: the AUCs are within one fit's spread over random states, and 2 m
-        consults the fewest experts.
+        consults the fewest experts (measured while the pieces of a full hit went back
+        to their beams).
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
         kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to 32
@@ -1090,25 +1131,24 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         ``anchor_hit`` is the anchor hit of each piece's row, which ``"beam"`` keeps.
         ``"nearest_hit"``: a free piece within ``nearest_hit_radius`` of a hit follows the
-        hit nearest to its midpoint, so that an expert holds the free space around its
-        hits rather than whole beams across the map; one further out keeps its row's
-        anchor, so that no hit gathers the open space around it (an expert is never
-        split below one hit); so does one beyond the ``max_expert_size // 2`` pieces
-        nearest to its hit.
+        hit nearest to its midpoint that has room, so that an expert holds the free space
+        around its hits rather than whole beams across the map; one further out keeps its
+        row's anchor, so that no hit gathers the open space around it (an expert is never
+        split below one hit). A hit has room for ``max_expert_size // 2`` pieces (see
+        :func:`_nearest_with_room`).
         """
         if self.piece_assignment == "beam" or hits.shape[0] == 0:
             return anchor_hit
         free = np.flatnonzero(piece_y != 1)
         piece_hit = anchor_hit.copy()
-        dist, nearest = cKDTree(hits).query(_midpoints(pieces[free]))
-        near = np.flatnonzero(dist <= self.nearest_hit_radius)
-        if self.max_expert_size is not None:
-            # A hit takes at most half an expert of pieces, its nearest ones: with dense
-            # scans thousands lie around one hit, and an expert is never split below one.
-            order = near[np.lexsort((dist[near], nearest[near]))]
-            first = np.searchsorted(nearest[order], nearest[order], side="left")
-            near = order[np.arange(order.size) - first < max(self.max_expert_size // 2, 1)]
-        piece_hit[free[near]] = nearest[near]
+        # A hit takes at most half an expert of pieces: with dense scans thousands lie
+        # around one hit, and an expert is never split below one.
+        cap = np.inf if self.max_expert_size is None else max(self.max_expert_size // 2, 1)
+        chosen = _nearest_with_room(
+            cKDTree(hits), _midpoints(pieces[free]), self.nearest_hit_radius, cap, _NEAREST_HITS
+        )
+        taken = chosen >= 0
+        piece_hit[free[taken]] = chosen[taken]
         return piece_hit
 
     # -- online mapping --------------------------------------------------------------

@@ -757,11 +757,41 @@ def test_a_hit_takes_at_most_half_an_expert_of_nearest_pieces(paper):
     # Without the bound some hit would take more than 20 pieces by nearness ...
     assert np.bincount(nearest[nearest >= 0]).max() > 20
     # ... with it, no hit takes more than 20 pieces beyond those of its own beams.
-    moved = model._piece_hit[free] != model._piece_beam_hit[free]
-    assert np.bincount(model._piece_hit[free][moved]).max() <= 20
-    # A moved piece went to a nearest hit (equal hits are told apart by index only).
-    chosen = dist2[np.flatnonzero(moved), model._piece_hit[free][moved]]
-    np.testing.assert_allclose(chosen, dist2.min(axis=1)[moved], rtol=1e-12)
+    chosen = model._piece_hit[free]
+    moved = chosen != model._piece_beam_hit[free]
+    load = np.bincount(chosen[moved], minlength=len(hits))
+    assert load.max() <= 20
+    # A moved piece went to the nearest hit with room: every nearer hit is full. (Pieces
+    # within 2 m of their own beam's hit may hold it by nearness or by their beam: counted.)
+    rows = np.flatnonzero(moved)
+    held = np.bincount(chosen[dist2[np.arange(chosen.size), chosen] <= 4.0], minlength=len(hits))
+    nearer = dist2[rows] < dist2[rows, chosen[moved]][:, None]
+    assert np.all(~nearer | (held[None, :] >= 20))
+    # Pieces overflow to further hits (not back to their beams) where the nearest is full.
+    assert np.any(chosen[moved] != np.argmin(dist2[rows], axis=1))
+
+
+def test_nearest_with_room_matches_a_greedy_assignment():
+    from scipy.spatial import cKDTree
+
+    from skoccmap.mixture import _nearest_with_room
+
+    rng = np.random.default_rng(0)
+    points, hits = rng.random((300, 2)), rng.random((12, 2))
+    chosen = _nearest_with_room(cKDTree(hits), points, 0.5, cap=15, rounds=4)
+    # Brute force of the rounds: the j-th choices of the unplaced points, nearest first.
+    dist = np.sqrt(((points[:, None] - hits[None]) ** 2).sum(axis=-1))
+    order = np.argsort(dist, axis=1)
+    expected, load = np.full(len(points), -1), np.zeros(len(hits), dtype=int)
+    for j in range(4):
+        asking = [i for i in range(len(points)) if expected[i] < 0 and dist[i, order[i, j]] <= 0.5]
+        for i in sorted(asking, key=lambda i: (order[i, j], dist[i, order[i, j]])):
+            if load[order[i, j]] < 15:
+                expected[i] = order[i, j]
+                load[order[i, j]] += 1
+    np.testing.assert_array_equal(chosen, expected)
+    assert np.bincount(chosen[chosen >= 0]).max() == 15 and np.any(chosen < 0)
+    assert np.any(chosen != order[:, 0])
 
 
 def test_nearest_hit_experts_learn_their_kernel_on_whole_beams(paper):
