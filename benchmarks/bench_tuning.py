@@ -40,7 +40,8 @@ length scale's stability against the density of the scans), and the default expe
 variance (``ConstantKernel`` fixed at 1e2 / 1e3 / 1e4, or learned), and the default
 expert's kernel with one length scale or two (``kernel``: a second integral kernel with its
 own learned signal variance; ``--datasets paper_dense`` adds the paper's world at B4's dense
-setting, where the phantoms are). ``combiner`` and
+setting, where the phantoms are; ``office_dense`` the office at B4's dense setting).
+``combiner`` and
 ``gating_threshold`` are read at predict time: one fit per dataset serves all their values
 (``set_params`` on the fitted map). Every other value is a fit of its own; a fit shared by
 several sweeps (the defaults) is done once.
@@ -102,7 +103,7 @@ EXTRA_DATASETS_ALL = ("aces_all",)
 # The 3-D room at both sparsities of B4 (with --datasets; not in the default run).
 EXTRA_DATASETS_ROOM = ("room3d", "room3d_dense")
 # The paper's world at B4's dense setting (45 beams x 52 poses), where the phantoms are.
-EXTRA_DATASETS_DENSE = ("paper_dense",)
+EXTRA_DATASETS_DENSE = ("paper_dense", "office_dense")
 DATASET_TITLES = {
     "aces": f"ACES, blocks protocol, every {ACES_EVERY}th scan",
     "aces_all": "ACES, blocks protocol, every scan",
@@ -111,6 +112,7 @@ DATASET_TITLES = {
     "room3d": WORLD_TITLES["room3d"] + ", sparse",
     "room3d_dense": WORLD_TITLES["room3d"] + ", dense",
     "paper_dense": WORLD_TITLES["paper"] + ", dense",
+    "office_dense": WORLD_TITLES["office"] + ", dense",
 }
 
 
@@ -475,8 +477,8 @@ def run(args, result, save):
             data = load_aces(SEED, every=1, name=name)
         elif name == "aces":
             data = load_aces(SEED)
-        elif name == "paper_dense":
-            data = load_sim("paper", SEED, "dense")
+        elif name in ("paper_dense", "office_dense"):
+            data = load_sim(name.split("_")[0], SEED, "dense")
         elif name.startswith("room3d"):
             data = load_sim("room3d", SEED, "dense" if name.endswith("dense") else "sparse")
         else:
@@ -616,6 +618,7 @@ def tables(sweeps, rows, args):
                 "room3d": "room",
                 "room3d_dense": "dense room",
                 "paper_dense": "dense paper",
+                "office_dense": "dense office",
             }[name]
             columns = DATASET_COLUMNS["aces" if name.startswith("aces") else "sim"]
             header += [f"{short} {title}" for title, _ in columns]
@@ -687,8 +690,8 @@ def parse_args(argv=None):
         choices=DATASETS + EXTRA_DATASETS_ALL + EXTRA_DATASETS_ROOM + EXTRA_DATASETS_DENSE,
         default=list(DATASETS),
         help="tuning datasets (default: " + " ".join(DATASETS) + "; aces_all trains on every "
-        "ACES scan; room3d and room3d_dense are the 3-D room of B4; paper_dense is the "
-        "paper's world at B4's dense setting)",
+        "ACES scan; room3d and room3d_dense are the 3-D room of B4; paper_dense and "
+        "office_dense are the paper's world and the office at B4's dense setting)",
     )
     parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
     parser.add_argument(
