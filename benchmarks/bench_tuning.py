@@ -31,7 +31,8 @@ labelled as report-log measurements).
 The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``.
 
 **Sweeps** (one parameter at a time, all others at their defaults): ``combiner``,
-``gating_threshold`` and ``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
+``gating`` (with the threshold that suits each gate), ``gating_threshold`` and
+``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
 ``max_beam_length`` (with ``beam_end_length`` 0.35, and the whole-beam model with both
 ``None``), ``beam_end_length``, ``piece_assignment``, ``nearest_hit_radius``,
 ``share_hyperparameters``, ``hyperparameter_window`` (with
@@ -41,10 +42,9 @@ variance (``ConstantKernel`` fixed at 1e2 / 1e3 / 1e4, or learned), and the defa
 expert's kernel with one length scale or two (``kernel``: a second integral kernel with its
 own learned signal variance; ``--datasets paper_dense`` adds the paper's world at B4's dense
 setting, where the phantoms are; ``office_dense`` the office at B4's dense setting).
-``combiner`` and
-``gating_threshold`` are read at predict time: one fit per dataset serves all their values
-(``set_params`` on the fitted map). Every other value is a fit of its own; a fit shared by
-several sweeps (the defaults) is done once.
+``combiner``, ``gating`` and ``gating_threshold`` are read at predict time: one fit per
+dataset serves all their values (``set_params`` on the fitted map). Every other value is a
+fit of its own; a fit shared by several sweeps (the defaults) is done once.
 
 Fit and predict times are informative only: the machine the numbers were taken on is shared,
 and its seconds drift by tens of percent between runs. A configuration that fails is
@@ -217,14 +217,33 @@ SWEEPS = [
         quick=("moe", "poe", "gpoe", "bcm", "rbcm"),
     ),
     Sweep(
+        "gating",
+        "`gating` with its `gating_threshold` (predict time, one fit)",
+        [
+            Entry("coverage, auto (5e-2)", "default", default=True),
+            Entry("clusterer, 1e-3", "default", {"gating": "clusterer", "gating_threshold": 1e-3}),
+            Entry("clusterer, 1e-2", "default", {"gating": "clusterer", "gating_threshold": 1e-2}),
+            Entry("clusterer, 0", "default", {"gating": "clusterer", "gating_threshold": 0.0}),
+        ],
+        quick=("coverage, auto (5e-2)", "clusterer, 1e-3"),
+        extra=("predict", "consulted"),
+    ),
+    Sweep(
         "gating_threshold",
         "`gating_threshold` (predict time, one fit)",
         _predict_entries(
             "gating_threshold",
-            [("1e-1", 1e-1), ("1e-2", 1e-2), ("1e-3", 1e-3), ("1e-4", 1e-4), ("0", 0.0)],
-            1e-3,
+            [
+                ("3e-1", 3e-1),
+                ("2e-1", 2e-1),
+                ("1e-1", 1e-1),
+                ("auto (5e-2)", "auto"),
+                ("1e-2", 1e-2),
+                ("0", 0.0),
+            ],
+            "auto",
         ),
-        quick=("1e-1", "1e-3", "0"),
+        quick=("1e-1", "auto (5e-2)", "0"),
         extra=("predict", "consulted"),
     ),
     Sweep(
@@ -678,7 +697,8 @@ def parse_args(argv=None):
     parser.add_argument(
         "--quick",
         action="store_true",
-        help="fewer configurations: combiner, gating_threshold 1e-1/1e-3/0, reach_tolerance "
+        help="fewer configurations: combiner, gating (coverage / clusterer), gating_threshold "
+        "1e-1/auto/0, reach_tolerance "
         "1e-1/1e-2, whole beams against the defaults",
     )
     parser.add_argument(

@@ -24,6 +24,8 @@ _BLOCK = 1.0 / 4.0
 # The block table's stencils grow as 5**D: beyond 3-D (not a map) every expert is a
 # candidate everywhere.
 _MAX_DIM = 3
+# ExpertReach.coverage ignores cells further than this many widths (weight < exp(-4.5)).
+_COVERAGE_CUT = 3.0
 # Sample points, or (cell, block) pairs, handled at once while the index is built.
 _BATCH = 1 << 21
 # The grid of cells is never finer than this many samples per segment on average, nor than
@@ -412,6 +414,43 @@ class ExpertReach:
             dist = tree.query(mids[q], distance_upper_bound=radius[q].max())[0]
             keep[pairs] = dist <= radius[q]
         return keep
+
+    def coverage(self, queries, query_index, expert_index, width):
+        """How much of the space near each pair's query the pair's expert has data in.
+
+        The expert's cells (of side ``cell``) near the query, each weighted by
+        ``exp(-d**2 / (2 width**2))`` of its centre's distance ``d`` to the query (less
+        half the query segment's length, measured from its midpoint), up to three widths
+        or the reach: a kernel density of the area the expert's training segments cover,
+        smooth in the query. It counts
+        where the data are, not how many rows lie there: repeated beams through a cell add
+        nothing, as they add little to a GP's posterior. Zero for every pair when the
+        reach is infinite (no cells are indexed).
+        """
+        cover = np.zeros(query_index.size)
+        if not np.isfinite(self.reach) or query_index.size == 0:
+            return cover
+        dim = self.dim
+        mids = 0.5 * (queries[:, :dim] + queries[:, dim:])
+        delta = queries[:, dim:] - queries[:, :dim]
+        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", delta, delta))
+        cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
+        order = np.argsort(expert_index, kind="stable")
+        bounds = np.searchsorted(expert_index[order], np.arange(self.n_experts + 1))
+        for k in np.flatnonzero(np.diff(bounds)):
+            tree = self._expert_trees[k]
+            if tree is None:
+                continue
+            pairs = order[bounds[k] : bounds[k + 1]]
+            q = query_index[pairs]
+            near = cKDTree(mids[q]).sparse_distance_matrix(
+                tree, cut + half[q].max(), output_type="ndarray"
+            )
+            d = near["v"] - half[q][near["i"]]
+            inside = d <= cut
+            weight = np.exp(-0.5 * (np.maximum(d[inside], 0.0) / width) ** 2)
+            cover[pairs] = np.bincount(near["i"][inside], weights=weight, minlength=q.size)
+        return cover
 
     def _block_codes(self, mids):
         """Table code of the block of each point (-1 too far from the origin to code)."""

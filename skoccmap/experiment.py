@@ -125,9 +125,11 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                     kernel=single_kernel, optimizer=None, random_state=random_state
                 )
         else:
-            # The paper's model: whole beams with their hits, both hyperparameters learned.
+            # The paper's model: whole beams with their hits, both hyperparameters learned,
+            # gated by the clusters of hits.
             models[method] = MixtureGPOccupancyMap(
                 expert=EPGaussianProcessClassifier(kernel=_signal_and_integral_kernel()),
+                gating="clusterer",
                 combiner=method,
                 max_beam_length=None,
                 beam_end_length=None,

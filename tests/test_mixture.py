@@ -300,6 +300,60 @@ def test_weighted_bisection_bounds_piece_weight():
     assert sorted(np.concatenate(heavy).tolist()) == [0, 1, 2]
 
 
+def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, grid):
+    _, Q = grid
+    model = _mixture(max_expert_size=100).fit(paper.X, paper.y)
+    assert model.gating == "coverage" and model._gating_threshold() == 0.05
+    # The width is where the kernel falls to exp(-1/8) of its peak (half a length scale
+    # for the squared exponential between points; this RBF over segment rows sees a point
+    # at distance r at sqrt(2) r).
+    kernel = model.experts_[0].kernel_
+    at = as_segments([[0.0, 0.0], [model.coverage_width_, 0.0]])
+    ratio = kernel(at[:1], at[1:])[0, 0] / kernel(at[:1])[0, 0]
+    assert ratio == pytest.approx(np.exp(-1 / 8), abs=0.01)
+    # The observed cells and a ring of points beyond them, some of them further than the
+    # coverage counts (three widths) from all data.
+    lo, hi = Q[:, :2].min(axis=0) - 2.5, Q[:, :2].max(axis=0) + 2.5
+    ring = np.vstack([[[x, lo[1]], [x, hi[1]]] for x in np.linspace(lo[0], hi[0], 40)])
+    Q = np.vstack([Q[::10], as_segments(ring)])
+    index = model._reach_index
+    query, expert = index.candidates(Q)
+    cover = index.coverage(Q, query, expert, model.coverage_width_)
+    total = np.bincount(query, weights=cover, minlength=len(Q))
+    weights = model._coverage_gates(Q, query, expert)
+    covered = total[query] > 0
+    assert covered.mean() > 0.9 and not covered.all()
+    np.testing.assert_allclose(weights[covered], cover[covered] / total[query][covered])
+    np.testing.assert_array_equal(weights[~covered], 1.0)
+    # Consulted: the shares of at least 0.05 and the largest, among those within reach.
+    q, e, w = model._consulted(Q)
+    pairs = set(zip(q.tolist(), e.tolist(), strict=True))
+    best = np.zeros(len(Q))
+    np.maximum.at(best, query, weights)
+    kept = (weights >= 0.05) | (weights == best[query])
+    near = index.within_reach(Q, query, expert)
+    expected = set(zip(query[kept & near].tolist(), expert[kept & near].tolist(), strict=True))
+    assert pairs == expected
+
+
+def test_coverage_gate_consults_the_experts_whose_data_are_at_the_query(paper):
+    # At the midpoints of training beams (pieces follow their nearest hit), the consulted
+    # experts hold at least half of the coverage near the query at 98 % of the queries
+    # (measured); the clusterer's gate, whose densities describe the hits only, at 83 %.
+    model = _mixture(max_expert_size=100).fit(paper.X, paper.y)
+    free = paper.y == 0
+    Q = as_segments(0.5 * (paper.X[free, :2] + paper.X[free, 2:])[::7])
+    query, expert = model._reach_index.candidates(Q)
+    cover = model._reach_index.coverage(Q, query, expert, model.coverage_width_)
+    total = np.bincount(query, weights=cover, minlength=len(Q))
+    q, e, _ = model._consulted(Q)
+    held = np.isin(query * model.n_experts_ + expert, q * model.n_experts_ + e)
+    share = np.bincount(query[held], weights=cover[held], minlength=len(Q))
+    covered = total > 0
+    assert covered.all()
+    assert np.mean(share[covered] >= 0.5 * total[covered]) >= 0.95
+
+
 def test_gating_threshold_skips_experts(paper, grid):
     _, Q = grid
     model = _mixture(combiner="moe", gating_threshold=0.05).fit(paper.X, paper.y)
@@ -433,7 +487,7 @@ def test_chunked_prediction_equals_one_chunk(paper, grid):
     np.testing.assert_allclose(whole, chunked, rtol=1e-12, atol=1e-15)
 
 
-@pytest.mark.parametrize("gating", ["clusterer", "gpc"])
+@pytest.mark.parametrize("gating", ["coverage", "clusterer", "gpc"])
 def test_every_combiner_gives_a_valid_map(paper, grid, gating):
     occupied, Q = grid
     model = _mixture(gating=gating).fit(paper.X, paper.y)

@@ -233,3 +233,41 @@ def test_the_grid_follows_the_reach_where_the_reach_is_long_enough():
     segments, expert, n_experts = _random_experts(2, seed=8)
     index = ExpertReach(segments, expert, n_experts, reach=1.5)
     assert index.scale == 1.5 and index.cell == pytest.approx(1.5 / 8)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim):
+    segments, expert, n_experts = _random_experts(dim, seed=20 + dim)
+    index = ExpertReach(segments, expert, n_experts, reach=2.0)
+    rng = np.random.default_rng(30 + dim)
+    points = rng.uniform(-2, 22, size=(200, dim))
+    ends = points + np.where(np.arange(200)[:, None] < 170, 0.0, rng.normal(size=(200, dim)))
+    queries = np.hstack([points, ends])
+    query, cand = index.candidates(queries)
+    width = 0.4
+    shuffle = rng.permutation(query.size)
+    got = np.empty(query.size)
+    got[shuffle] = index.coverage(queries, query[shuffle], cand[shuffle], width)
+    # Cell centres of each expert, their distance to the query's midpoint less half its
+    # length, weighted up to three widths (within the reach here).
+    mids, half = 0.5 * (points + ends), 0.5 * np.linalg.norm(ends - points, axis=1)
+    expected = np.empty(query.size)
+    for j, (i, k) in enumerate(zip(query, cand, strict=True)):
+        centres = index.origin + (index._cells[k] + 0.5) * index.cell
+        d = np.linalg.norm(centres - mids[i], axis=1)
+        d = np.maximum(d[d <= 3 * width + half[i]] - half[i], 0.0)
+        expected[j] = np.sum(np.exp(-0.5 * (d / width) ** 2))
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-300)
+    assert np.any(got > 0) and np.any(got == 0)
+
+
+def test_coverage_grows_with_the_data_near_the_query():
+    # Two experts: one segment through the query, one segment two widths away.
+    segments = np.array([[-5.0, 0.0, 5.0, 0.0], [-5.0, 0.8, 5.0, 0.8]])
+    index = ExpertReach(segments, np.array([0, 1]), 2, reach=2.0)
+    cover = index.coverage(np.zeros((2, 4)), np.array([0, 0]), np.array([0, 1]), 0.4)
+    assert cover[0] > 3 * cover[1] > 0
+    # An infinite reach indexes no cells: no coverage.
+    index = ExpertReach(segments, np.array([0, 1]), 2, reach=np.inf)
+    cover = index.coverage(np.zeros((1, 4)), np.array([0]), np.array([1]), 0.4)
+    np.testing.assert_array_equal(cover, [0.0])
