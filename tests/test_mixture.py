@@ -302,8 +302,8 @@ def test_weighted_bisection_bounds_piece_weight():
 
 def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, grid):
     _, Q = grid
-    model = _mixture(max_expert_size=100).fit(paper.X, paper.y)
-    assert model.gating == "coverage" and model._gating_threshold() == 0.05
+    model = _mixture(gating="coverage", max_expert_size=100).fit(paper.X, paper.y)
+    assert model._gating_threshold() == 0.05
     # The width is where the kernel falls to exp(-1/8) of its peak (half a length scale
     # for the squared exponential between points; this RBF over segment rows sees a point
     # at distance r at sqrt(2) r).
@@ -340,7 +340,7 @@ def test_coverage_gate_consults_the_experts_whose_data_are_at_the_query(paper):
     # At the midpoints of training beams (pieces follow their nearest hit), the consulted
     # experts hold at least half of the coverage near the query at 98 % of the queries
     # (measured); the clusterer's gate, whose densities describe the hits only, at 83 %.
-    model = _mixture(max_expert_size=100).fit(paper.X, paper.y)
+    model = _mixture(gating="coverage", max_expert_size=100).fit(paper.X, paper.y)
     free = paper.y == 0
     Q = as_segments(0.5 * (paper.X[free, :2] + paper.X[free, 2:])[::7])
     query, expert = model._reach_index.candidates(Q)
