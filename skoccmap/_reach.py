@@ -398,14 +398,9 @@ class ExpertReach:
         keep = np.ones(query_index.size, dtype=bool)
         if not np.isfinite(self.reach) or query_index.size == 0:
             return keep
-        dim = self.dim
-        mids = 0.5 * (queries[:, :dim] + queries[:, dim:])
-        delta = queries[:, dim:] - queries[:, :dim]
-        radius = self.reach + self._grown + 0.5 * np.sqrt(np.einsum("ij,ij->i", delta, delta))
-        order = np.argsort(expert_index, kind="stable")
-        bounds = np.searchsorted(expert_index[order], np.arange(self.n_experts + 1))
-        for k in np.flatnonzero(np.diff(bounds)):
-            pairs = order[bounds[k] : bounds[k + 1]]
+        mids, half = self._mids_and_half_lengths(queries)
+        radius = self.reach + self._grown + half
+        for k, pairs in self._pairs_by_expert(expert_index):
             tree = self._expert_trees[k]
             if tree is None:
                 keep[pairs] = False
@@ -415,6 +410,19 @@ class ExpertReach:
             keep[pairs] = dist <= radius[q]
         return keep
 
+    def _mids_and_half_lengths(self, queries):
+        dim = self.dim
+        delta = queries[:, dim:] - queries[:, :dim]
+        mids = 0.5 * (queries[:, :dim] + queries[:, dim:])
+        return mids, 0.5 * np.sqrt(np.einsum("ij,ij->i", delta, delta))
+
+    def _pairs_by_expert(self, expert_index):
+        """``(expert, pair indices)`` for every expert that has pairs, in expert order."""
+        order = np.argsort(expert_index, kind="stable")
+        bounds = np.searchsorted(expert_index[order], np.arange(self.n_experts + 1))
+        for k in np.flatnonzero(np.diff(bounds)):
+            yield k, order[bounds[k] : bounds[k + 1]]
+
     def coverage(self, queries, query_index, expert_index, width):
         """How much of the space near each pair's query the pair's expert has data in.
 
@@ -422,26 +430,19 @@ class ExpertReach:
         ``exp(-d**2 / (2 width**2))`` of its centre's distance ``d`` to the query (less
         half the query segment's length, measured from its midpoint), up to three widths
         or the reach: a kernel density of the area the expert's training segments cover,
-        smooth in the query. It counts
-        where the data are, not how many rows lie there: repeated beams through a cell add
-        nothing, as they add little to a GP's posterior. Zero for every pair when the
-        reach is infinite (no cells are indexed).
+        smooth in the query. It counts where the data are, not how many rows lie there:
+        repeated beams through a cell add nothing, as they add little to a GP's posterior.
+        Zero for every pair when the reach is infinite (no cells are indexed).
         """
         cover = np.zeros(query_index.size)
         if not np.isfinite(self.reach) or query_index.size == 0:
             return cover
-        dim = self.dim
-        mids = 0.5 * (queries[:, :dim] + queries[:, dim:])
-        delta = queries[:, dim:] - queries[:, :dim]
-        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", delta, delta))
+        mids, half = self._mids_and_half_lengths(queries)
         cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
-        order = np.argsort(expert_index, kind="stable")
-        bounds = np.searchsorted(expert_index[order], np.arange(self.n_experts + 1))
-        for k in np.flatnonzero(np.diff(bounds)):
+        for k, pairs in self._pairs_by_expert(expert_index):
             tree = self._expert_trees[k]
             if tree is None:
                 continue
-            pairs = order[bounds[k] : bounds[k + 1]]
             q = query_index[pairs]
             near = cKDTree(mids[q]).sparse_distance_matrix(
                 tree, cut + half[q].max(), output_type="ndarray"

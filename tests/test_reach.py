@@ -61,14 +61,19 @@ def _random_experts(dim, seed, n_rows=400, n_experts=25):
     return segments, rng.integers(0, n_experts, size=n_rows), n_experts
 
 
+def _point_and_segment_queries(rng, n, n_segments, dim):
+    """Starts and ends of ``n`` queries over the experts' area: points, the last
+    ``n_segments`` of them segments."""
+    points = rng.uniform(-2, 22, size=(n, dim))
+    step = np.where(np.arange(n)[:, None] < n - n_segments, 0.0, rng.normal(size=(n, dim)))
+    return points, points + step
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_candidates_hold_every_expert_within_reach_and_none_beyond_the_slack(dim):
     segments, expert, n_experts = _random_experts(dim, seed=dim)
     index = ExpertReach(segments, expert, n_experts, reach=2.0)
-    rng = np.random.default_rng(10 + dim)
-    points = rng.uniform(-2, 22, size=(300, dim))
-    # Point queries and a few query segments.
-    ends = points + np.where(np.arange(300)[:, None] < 250, 0.0, rng.normal(size=(300, dim)))
+    points, ends = _point_and_segment_queries(np.random.default_rng(10 + dim), 300, 50, dim)
     queries = np.hstack([points, ends])
     query, cand = index.candidates(queries)
     got = np.zeros((300, n_experts), dtype=bool)
@@ -240,8 +245,7 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim):
     segments, expert, n_experts = _random_experts(dim, seed=20 + dim)
     index = ExpertReach(segments, expert, n_experts, reach=2.0)
     rng = np.random.default_rng(30 + dim)
-    points = rng.uniform(-2, 22, size=(200, dim))
-    ends = points + np.where(np.arange(200)[:, None] < 170, 0.0, rng.normal(size=(200, dim)))
+    points, ends = _point_and_segment_queries(rng, 200, 30, dim)
     queries = np.hstack([points, ends])
     query, cand = index.candidates(queries)
     width = 0.4
