@@ -107,8 +107,9 @@ def _log(verbose, message):
 # to this fraction of its peak: half a length scale for the squared exponential.
 _COVERAGE_TOLERANCE = float(np.exp(-1.0 / 8.0))
 
-# gating_threshold="auto", by gate (see the parameter's docstring for the measurements).
-_AUTO_GATING_THRESHOLD = {"coverage": 5e-2, "clusterer": 1e-3, "gpc": 1e-3}
+# gating_threshold="auto", by gate (see the parameter's docstring for the measurements):
+# relative to the best-covered expert's share for the coverage gate, absolute otherwise.
+_AUTO_GATING_THRESHOLD = {"coverage": 0.5, "clusterer": 1e-3, "gpc": 1e-3}
 
 # Hits a free piece may join under piece_assignment="nearest_hit", nearest first: with
 # dense scans the nearest ones fill up (see _nearest_with_room).
@@ -282,13 +283,18 @@ def _groups(labels, n_groups):
     return np.split(order, np.searchsorted(labels[order], np.arange(1, n_groups)))
 
 
-def _best(query, weights):
-    """Pairs holding their query's largest weight (pairs sorted by query)."""
+def _query_max(query, weights):
+    """Each pair's largest weight among its query's pairs (pairs sorted by query)."""
     if query.size == 0:
-        return np.zeros(0, dtype=bool)
+        return np.zeros(0)
     starts = np.flatnonzero(np.r_[True, query[1:] != query[:-1]])
     largest = np.maximum.reduceat(weights, starts)
-    return weights == np.repeat(largest, np.diff(np.r_[starts, query.size]))
+    return np.repeat(largest, np.diff(np.r_[starts, query.size]))
+
+
+def _best(query, weights):
+    """Pairs holding their query's largest weight (pairs sorted by query)."""
+    return weights == _query_max(query, weights)
 
 
 def _bisect(points, max_size, weights=None):
@@ -633,7 +639,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         found on the paper's world 0.83 / 0.90 / 0.95: 1e4 finds more of the sparse walls
         at 0.007 less ACES AUC and three times the office's phantoms (0.15 % against
         0.05 %); 1e3 is the middle, and leaves no learned value pinned at a bound.
-    gating : {"clusterer", "coverage", "gpc"}, default="clusterer"
+    gating : {"coverage", "clusterer", "gpc"}, default="coverage"
         The weight ``p(expert | x)`` of each expert within reach of a query: it chooses
         the experts consulted (see ``gating_threshold``), and weighs them under
         ``combiner="moe"`` (the product rules weigh by confidence). ``"coverage"``: the
@@ -652,20 +658,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         corridor wall's expert) lie where its cluster's density, thin along its wall, is
         below the threshold, and queries there were sent to experts with no data near
         them (grey fans behind the doors of the dense office). On the tuning data
-        (``benchmarks/bench_tuning.py``, seed 100) ``"coverage"`` / ``"clusterer"``
-        (threshold 1e-3) give ACES held-out AUC 0.964 / 0.962 with 4.1 / 5.2 experts per
-        query; on the dense office 99.9 / 92.5 % of the far free cells found at ECE 0.027
-        / 0.051 (6.1 / 6.3 experts per query), on the dense paper's world 98.9 / 97.8 % at
-        ECE 0.025 / 0.030; the sparse office and paper's world score the same to 0.1 %.
-        The clusterer's gate with no threshold (every expert within reach: 18.8 experts
-        per ACES query, 43.3 on the dense paper's world) reaches the coverage gate's free
-        space: the data were there, the gate skipped them. But on the full Intel log
-        (B3, all 819 training scans, ``benchmarks/run.py --only B3``) the coverage gate
-        consulted 2.2 experts per query and scored held-out AUC 0.893 against the
-        clusterer's 0.989: where dozens of experts overlap, each holds under 5 % of the
-        coverage and only the largest is kept. It stays an option until its threshold is
-        relative to the best expert's share and measured again; the clusterer's gate is
-        the default.
+        (``benchmarks/bench_tuning.py --only gating``, seed 100) ``"coverage"`` (the
+        default threshold) / ``"clusterer"`` (threshold 1e-3) give ACES held-out AUC
+        0.963 / 0.962 with 2.3 / 5.2 experts per query trained on every 10th scan, 0.978
+        / 0.977 with 13.8 / 11.8 trained on every scan; the dense office finds 100.0 /
+        92.5 % of its far free cells at ECE 0.025 / 0.051 (6.0 / 6.3 experts per query),
+        the dense paper's world 99.0 / 97.8 % at ECE 0.024 / 0.030; the sparse office and
+        paper's world score the same (ECE 0.041 / 0.038 on the office). The clusterer's
+        gate with no threshold (every expert within reach: 18.8 experts per query on
+        ACES, 206 on ACES with every scan) scores as the coverage gate: the data were
+        there, the gate skipped them.
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="rbcm"
         Merging rule, see :mod:`skoccmap.combine`. The robust BCM is the default by
         measurement on tuning data (``benchmarks/bench_tuning.py``: ACES, blocks protocol,
@@ -851,16 +853,22 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     gating_threshold : float or "auto", default="auto"
         Of the experts within reach of a query (see ``reach_tolerance``), those whose
         gating weight there is below this are skipped (the one with the largest weight
-        is always kept). 0 consults every expert within reach. ``"auto"``: 0.05 with
-        ``gating="coverage"`` (an expert with under 5 % of the data near the query is
-        skipped), 1e-3 with the other gates. With the coverage gate, on the tuning data
-        0.3 / 0.2 / 0.05 / 0.01 / 0 give ACES held-out AUC 0.956 / 0.959 / 0.964 / 0.963 /
-        0.963 with 1.3 / 1.7 / 4.1 / 6.5 / 18.8 experts per query (31 / 36 / 68 / 97 / 222
-        us per point), and on the dense paper's world 97.3 / 97.5 / 98.9 / 98.9 / 98.9 %
-        of the free cells found with 94.2 / 94.5 / 95.9 / 95.9 / 95.9 % of the walls:
-        below 0.05 the maps stay the same and the cost grows; above it walls and free
-        space are lost. The clusterer's gate was measured at 1e-3 / 1e-2 / 0 (see
-        ``gating``; ACES 0.962 / 0.962 / 0.963).
+        is always kept); with ``gating="coverage"`` the threshold is relative to the
+        largest weight at the query (0.5 skips the experts with less than half the data
+        near the query of the best-covered one), with the other gates absolute. 0
+        consults every expert within reach. ``"auto"``: 0.5 with ``gating="coverage"``,
+        1e-3 with the other gates. With the coverage gate, on the tuning data
+        (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 / 0.02 give
+        ACES held-out AUC 0.9634 / 0.9636 / 0.9635 / 0.9634 / 0.9633 with 2.3 / 4.1 / 5.2
+        / 6.1 / 7.2 experts per query (44 / 66 / 78 / 90 / 104 us per point), trained on
+        every scan 0.9775 / 0.9781 / 0.9781 / 0.9781 / 0.9781 with 13.8 / 34.4 / 47.0 /
+        57.8 / 70.1 experts per query (314 / 562 / 678 / 818 / 934 us per point), and the
+        same walls, free space and ECE (to 0.003) on the dense office and paper's world:
+        0.5 costs a third of 0.1 for 0.0006 of AUC on the densest data. An absolute
+        threshold on the coverage shares fails where dozens of experts overlap, every
+        one of them holding a few percent of the data: 0.05 kept 2.2 experts per query
+        on the full Intel log (B3) and scored held-out AUC 0.893 against the
+        clusterer's 0.989.
     reach_tolerance : float, default=1e-2
         Sets the *reach* ``reach_``: the distance beyond which the fitted kernel between
         two points stays below ``reach_tolerance`` times its value at distance 0. An
@@ -1039,7 +1047,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         clusterer=None,
         expert=None,
         *,
-        gating="clusterer",
+        gating="coverage",
         combiner="rbcm",
         max_cluster_samples=4000,
         min_expert_size=20,
@@ -2094,7 +2102,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         The index's table gives each query its candidate experts (a superset of those
         with data within ``reach_``). Those whose gate weight is at least
-        ``gating_threshold``, and the one with the largest weight, are kept if they have
+        ``gating_threshold`` (times the query's largest weight, with the coverage gate),
+        and the one with the largest weight, are kept if they have
         data within reach of the query (see :meth:`ExpertReach.within_reach`). A query
         that keeps none falls back to its best-weighted expert within reach, and to no
         expert (the prior) when none is.
@@ -2103,11 +2112,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         query, expert = index.candidates(Xc)
         if query.size == 0:
             return query, expert, np.empty(0)
+        threshold = self._gating_threshold()
         if self._gate() == "coverage":
             weights = self._coverage_gates(Xc, query, expert)
+            # Relative to the best-covered expert: where dozens of experts overlap, each
+            # holds a small share of the coverage, and all of them hold data.
+            passes = weights >= threshold * _query_max(query, weights)
         else:
             weights = self._pair_gates(_midpoints(Xc), query, expert)
-        keep = _best(query, weights) | (weights >= self._gating_threshold())
+            passes = weights >= threshold
+        keep = _best(query, weights) | passes
         near = np.zeros(query.size, dtype=bool)
         near[keep] = index.within_reach(Xc, query[keep], expert[keep])
         lost = np.ones(Xc.shape[0], dtype=bool)

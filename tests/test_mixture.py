@@ -303,7 +303,7 @@ def test_weighted_bisection_bounds_piece_weight():
 def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, grid):
     _, Q = grid
     model = _mixture(gating="coverage", max_expert_size=100).fit(paper.X, paper.y)
-    assert model._gating_threshold() == 0.05
+    assert model._gating_threshold() == 0.5
     # The width is where the kernel falls to exp(-1/8) of its peak (half a length scale
     # for the squared exponential between points; this RBF over segment rows sees a point
     # at distance r at sqrt(2) r).
@@ -325,12 +325,13 @@ def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, g
     assert covered.mean() > 0.9 and not covered.all()
     np.testing.assert_allclose(weights[covered], cover[covered] / total[query][covered])
     np.testing.assert_array_equal(weights[~covered], 1.0)
-    # Consulted: the shares of at least 0.05 and the largest, among those within reach.
+    # Consulted: the shares of at least the threshold times the largest (which is kept),
+    # among those within reach.
     q, e, w = model._consulted(Q)
     pairs = set(zip(q.tolist(), e.tolist(), strict=True))
     best = np.zeros(len(Q))
     np.maximum.at(best, query, weights)
-    kept = (weights >= 0.05) | (weights == best[query])
+    kept = weights >= model._gating_threshold() * best[query]
     near = index.within_reach(Q, query, expert)
     expected = set(zip(query[kept & near].tolist(), expert[kept & near].tolist(), strict=True))
     assert pairs == expected
@@ -338,8 +339,9 @@ def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, g
 
 def test_coverage_gate_consults_the_experts_whose_data_are_at_the_query(paper):
     # At the midpoints of training beams (pieces follow their nearest hit), the consulted
-    # experts hold at least half of the coverage near the query at 98 % of the queries
-    # (measured); the clusterer's gate, whose densities describe the hits only, at 83 %.
+    # experts include the one with the most data near the query, and hold at least 30 %
+    # of that data, at every query (measured); the clusterer's gate, whose densities
+    # describe the hits only, at 84 %.
     model = _mixture(gating="coverage", max_expert_size=100).fit(paper.X, paper.y)
     free = paper.y == 0
     Q = as_segments(0.5 * (paper.X[free, :2] + paper.X[free, 2:])[::7])
@@ -349,9 +351,12 @@ def test_coverage_gate_consults_the_experts_whose_data_are_at_the_query(paper):
     q, e, _ = model._consulted(Q)
     held = np.isin(query * model.n_experts_ + expert, q * model.n_experts_ + e)
     share = np.bincount(query[held], weights=cover[held], minlength=len(Q))
-    covered = total > 0
-    assert covered.all()
-    assert np.mean(share[covered] >= 0.5 * total[covered]) >= 0.95
+    best = np.zeros(len(Q))
+    np.maximum.at(best, query, cover)
+    holds_best = np.bincount(query[held & (cover == best[query])], minlength=len(Q)) > 0
+    assert np.all(total > 0)
+    assert holds_best.all()
+    assert np.mean(share >= 0.3 * total) >= 0.95
 
 
 def test_gating_threshold_skips_experts(paper, grid):
