@@ -461,8 +461,7 @@ class ExpertReach:
         """Order of the queries block by block, so that consecutive queries are near."""
         if not np.isfinite(self.reach):
             return np.arange(len(queries))
-        dim = self.dim
-        mids = 0.5 * (queries[:, :dim] + queries[:, dim:])
+        mids, _ = self._mids_and_half_lengths(queries)
         blocks = np.floor((mids - self.origin) / self.block).astype(np.int64)
         # Rows of blocks a few reaches tall, then blocks along each row: chunks of
         # consecutive queries stay compact.
@@ -487,9 +486,7 @@ class ExpertReach:
         if not np.isfinite(self.reach):
             return (np.repeat(np.arange(n), self.n_experts), np.tile(np.arange(self.n_experts), n))
         dim = self.dim
-        mids = 0.5 * (queries[:, :dim] + queries[:, dim:])
-        delta = queries[:, dim:] - queries[:, :dim]
-        half_length = 0.5 * np.sqrt(np.einsum("ij,ij->i", delta, delta))
+        mids, half_length = self._mids_and_half_lengths(queries)
         lists = [np.empty(0, np.intp)] * n
         code = self._block_codes(mids)
         pos = np.searchsorted(self._table_codes, code).clip(0, len(self._table_codes) - 1)
