@@ -220,14 +220,11 @@ SWEEPS = [
         "gating",
         "`gating` with its `gating_threshold` (predict time, one fit)",
         [
-            Entry("clusterer, 1e-3", "default", default=True),
+            Entry("coverage, auto (0.5)", "default", default=True),
+            Entry("clusterer, 1e-3", "default", {"gating": "clusterer", "gating_threshold": 1e-3}),
             Entry("clusterer, 0", "default", {"gating": "clusterer", "gating_threshold": 0.0}),
-            *(
-                Entry(f"coverage, {t:g}", "default", {"gating": "coverage", "gating_threshold": t})
-                for t in (0.5, 0.2, 0.1, 0.05, 0.02)
-            ),
         ],
-        quick=("clusterer, 1e-3", "coverage, 0.1"),
+        quick=("coverage, auto (0.5)", "clusterer, 1e-3"),
         extra=("predict", "consulted"),
     ),
     Sweep(
@@ -236,15 +233,19 @@ SWEEPS = [
         _predict_entries(
             "gating_threshold",
             [
-                ("1e-1", 1e-1),
-                ("1e-2", 1e-2),
-                ("auto (1e-3)", "auto"),
-                ("1e-4", 1e-4),
+                ("0.8", 0.8),
+                ("0.7", 0.7),
+                ("0.6", 0.6),
+                ("auto (0.5)", "auto"),
+                ("0.2", 0.2),
+                ("0.1", 0.1),
+                ("0.05", 0.05),
+                ("0.02", 0.02),
                 ("0", 0.0),
             ],
             "auto",
         ),
-        quick=("1e-2", "auto (1e-3)", "0"),
+        quick=("0.7", "auto (0.5)", "0.1"),
         extra=("predict", "consulted"),
     ),
     Sweep(
@@ -698,8 +699,8 @@ def parse_args(argv=None):
     parser.add_argument(
         "--quick",
         action="store_true",
-        help="fewer configurations: combiner, gating (clusterer / coverage 0.1), "
-        "gating_threshold 1e-2/auto/0, reach_tolerance "
+        help="fewer configurations: combiner, gating (coverage / clusterer), "
+        "gating_threshold 0.7/auto/0.1, reach_tolerance "
         "1e-1/1e-2, whole beams against the defaults",
     )
     parser.add_argument(
