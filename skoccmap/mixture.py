@@ -670,13 +670,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         there, the gate skipped them.
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="rbcm"
         Merging rule, see :mod:`skoccmap.combine`. The robust BCM is the default by
-        measurement on tuning data (``benchmarks/bench_tuning.py``: ACES, blocks protocol,
-        every 10th scan, seed 100; the office and the paper's world, noise seed 100): ACES
-        held-out AUC rbcm 0.951, bcm 0.950, poe 0.957, gpoe 0.952, moe 0.950; walls found
-        on the office (paper's world) rbcm 0.983 (0.900), bcm 0.979 (0.879), poe 0.979
-        (0.879), gpoe 0.974 (0.891), moe 0.879 (0.842), at ECE 0.038 / 0.031 / 0.032 /
-        0.043 / 0.064 on the office. ``"poe"`` ranks ACES' held-out points best; rbcm finds
-        the most walls, at an ECE still under 0.05. The mixture (``"moe"``, the
+        measurement on tuning data (``benchmarks/bench_tuning.py --only combiner``: ACES,
+        blocks protocol, every 10th scan, seed 100; the office and the paper's world,
+        noise seed 100; with the coverage gate): ACES held-out AUC rbcm 0.963, bcm
+        0.964, poe 0.964, gpoe 0.967, moe 0.955; walls found on the office (paper's
+        world) rbcm 0.980 (0.903), bcm 0.975 (0.893), poe 0.975 (0.893), gpoe 0.973
+        (0.889), moe 0.945 (0.856), at ECE 0.041 / 0.033 / 0.033 / 0.038 / 0.047 on the
+        office. ``"gpoe"`` ranks ACES' held-out points best; rbcm finds the most walls,
+        at an ECE still under 0.05. The mixture (``"moe"``, the
         paper's rule) lets an expert that knows nothing about a query (latent mean 0,
         probability 1/2) dilute one that does; the product rules weigh experts by their
         confidence.
