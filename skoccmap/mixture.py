@@ -868,12 +868,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         0.5 takes under half the time of 0.1 for 0.0006 of AUC on the densest data. An
         absolute threshold on the coverage shares fails where dozens of experts
         overlap, every one of them holding a few percent of the data: 0.05 kept 2.2
-        experts per query
-        on the full Intel log (B3) and scored held-out AUC 0.893 against the
-        clusterer's 0.989; relative, 0.5 keeps 21.8 and scores 0.988. Higher relative
-        thresholds lose the dense logs (ACES with every scan: 0.6 / 0.7 / 0.8 give
-        0.9770 / 0.9723 / 0.9647 with 9.8 / 6.5 / 4.0 experts per query): where
-        hundreds of poses saw a corridor its data fill many experts of equal coverage.
+        experts per query on the full Intel log (B3) and scored held-out AUC 0.893
+        against the clusterer's 0.989; relative, 0.5 keeps 21.8 and scores 0.988.
+        Higher relative thresholds lose the dense logs (ACES with every scan: 0.6 / 0.7
+        / 0.8 give 0.9770 / 0.9723 / 0.9647 with 9.8 / 6.5 / 4.0 experts per query):
+        where hundreds of poses saw a corridor its data fill many experts of equal
+        coverage.
     reach_tolerance : float, default=1e-2
         Sets the *reach* ``reach_``: the distance beyond which the fitted kernel between
         two points stays below ``reach_tolerance`` times its value at distance 0. An
@@ -2117,16 +2117,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         query, expert = index.candidates(Xc)
         if query.size == 0:
             return query, expert, np.empty(0)
-        threshold = self._gating_threshold()
-        if self._gate() == "coverage":
+        coverage = self._gate() == "coverage"
+        if coverage:
             weights = self._coverage_gates(Xc, query, expert)
-            # Relative to the best-covered expert: where dozens of experts overlap, each
-            # holds a small share of the coverage, and all of them hold data.
-            passes = weights >= threshold * _query_max(query, weights)
         else:
             weights = self._pair_gates(_midpoints(Xc), query, expert)
-            passes = weights >= threshold
-        keep = _best(query, weights) | passes
+        largest = _query_max(query, weights)
+        # The coverage gate's threshold is relative to the best-covered expert: where
+        # dozens of experts overlap, each holds a small share, and all of them hold data.
+        bound = self._gating_threshold() * (largest if coverage else 1.0)
+        keep = (weights == largest) | (weights >= bound)
         near = np.zeros(query.size, dtype=bool)
         near[keep] = index.within_reach(Xc, query[keep], expert[keep])
         lost = np.ones(Xc.shape[0], dtype=bool)
