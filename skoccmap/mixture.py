@@ -31,6 +31,7 @@ from ._shared_kernel import (
     warn_beyond_extent,
     window_pieces,
 )
+from ._thinning import thin_free_pieces
 from .classifier import _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .observations import HIT, NO_RETURN, RETURN, split_segments
@@ -741,6 +742,18 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``None`` cuts beams into equal pieces only. No-return beams are cut the other
         way: pieces double in length away from the sensor, from ``max_beam_length``, so
         that a beam leaving the map for the sensor's maximum range costs a few rows.
+    max_pieces_per_cell : int or None, default=None
+        Free pieces that share a cell of ``piece_cell_size`` metres (by midpoint), a
+        direction (bins of about 22.5 degrees, either way along the beam) and a length
+        (within a factor of two) are near-duplicates: at most this many of them are kept,
+        drawn at random, before the experts are formed; hits are all kept. On a dense log,
+        where the robot passes the same corridors again and again, this cuts experts, fit
+        and prediction. ``partial_fit`` counts the pieces earlier updates kept, so that a
+        map built online keeps as many pieces as one fit on all its rows. ``None`` keeps
+        every piece: the default until the benchmarks of record are re-measured with a cap
+        (the tuning sweep is ``benchmarks/bench_tuning.py --only max_pieces_per_cell``).
+    piece_cell_size : float, default=0.2
+        Side (metres) of the cells ``max_pieces_per_cell`` counts pieces in.
     piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
         Which expert a free piece (of a beam cut by ``max_beam_length`` and
         ``beam_end_length``) joins. ``"beam"``: its beam's, i.e. its hit's (the paper's
@@ -1031,6 +1044,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "max_expert_size": [Interval(Integral, 2, None, closed="left"), None],
         "max_beam_length": [Interval(Real, 0, None, closed="neither"), None],
         "beam_end_length": [Interval(Real, 0, None, closed="neither"), None],
+        "max_pieces_per_cell": [Interval(Integral, 1, None, closed="left"), None],
+        "piece_cell_size": [Interval(Real, 0, None, closed="neither")],
         "piece_assignment": [StrOptions({"nearest_hit", "beam"})],
         "nearest_hit_radius": [Interval(Real, 0, None, closed="left")],
         "share_hyperparameters": ["boolean"],
@@ -1059,6 +1074,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         max_expert_size=400,
         max_beam_length=1.0,
         beam_end_length=0.35,
+        max_pieces_per_cell=None,
+        piece_cell_size=0.2,
         piece_assignment="nearest_hit",
         nearest_hit_radius=2.0,
         share_hyperparameters=True,
@@ -1083,6 +1100,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.max_expert_size = max_expert_size
         self.max_beam_length = max_beam_length
         self.beam_end_length = beam_end_length
+        self.max_pieces_per_cell = max_pieces_per_cell
+        self.piece_cell_size = piece_cell_size
         self.piece_assignment = piece_assignment
         self.nearest_hit_radius = nearest_hit_radius
         self.share_hyperparameters = share_hyperparameters
@@ -1153,6 +1172,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         pieces, source = _beam_pieces(
             X, self.observation_kind_, self.max_beam_length, self.beam_end_length
         )
+        pieces, source = self._thinned(pieces, source, y_enc, rng)
         d = X.shape[1] // 2
         hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
         piece_hit = self._piece_hits(pieces, y_enc[source], row_hit[source], hits)
@@ -1183,6 +1203,20 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._learned_rows = pieces.shape[0]
         self.touched_experts_ = np.arange(self.n_experts_)
         return self
+
+    def _thinned(self, pieces, source, y_enc, rng, kept=None):
+        """``pieces`` and ``source`` without the free pieces ``max_pieces_per_cell`` drops."""
+        if self.max_pieces_per_cell is None:
+            return pieces, source
+        keep = thin_free_pieces(
+            pieces,
+            y_enc[source] != 1,
+            cell_size=self.piece_cell_size,
+            max_per_cell=self.max_pieces_per_cell,
+            random_state=rng,
+            kept=kept,
+        )
+        return pieces[keep], source[keep]
 
     def _piece_hits(self, pieces, piece_y, anchor_hit, hits):
         """The hit (index into ``hits``) each piece follows, and so its expert.
@@ -1488,6 +1522,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # 3. Pieces of the new rows, appended to the training state. Old pieces keep
         # their hit even where a new hit lies nearer.
         pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
+        pieces, source = self._thinned(
+            pieces, source, y_enc, rng, kept=self._pieces[self._piece_y != 1]
+        )
         new_piece_hit = self._piece_hits(pieces, y_enc[source], anchor[source], all_hits)
         all_pieces = np.vstack([self._pieces, pieces])
         piece_y = np.concatenate([self._piece_y, y_enc[source]])

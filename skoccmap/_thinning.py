@@ -1,0 +1,90 @@
+"""Thinning of near-duplicate free pieces on dense logs.
+
+A robot that drives the same corridor again and again sends hundreds of beams through each
+cell of it. Cut into pieces, these beams tell a GP expert the same thing many times over:
+the latent function is low there. They cost rows (and so experts, fit time and experts per
+query) without changing the map, so pieces that share a cell, a direction and a length are
+kept up to a number per key and the rest dropped before the experts are formed.
+"""
+
+import numpy as np
+
+__all__ = ["piece_keys", "thin_free_pieces"]
+
+# Width of a direction bin on each component of the unit direction: 2 sin(pi / 16), about
+# 22.5 degrees between neighbouring bins.
+_DIRECTION_BIN = 2.0 * np.sin(np.pi / 16.0)
+
+
+def piece_keys(pieces, cell_size):
+    """An integer key per piece: its midpoint's cell, its direction and its length octave.
+
+    Parameters
+    ----------
+    pieces : ndarray of shape (n_pieces, 2 * n_dims)
+        Segment rows ``[start, end]``.
+    cell_size : float
+        Side of the cells the midpoints are binned in.
+
+    Returns
+    -------
+    keys : ndarray of shape (n_pieces, 2 * n_dims + 1) of int64
+        Equal rows for pieces counted as duplicates of each other. Direction is taken up to
+        its sign (a beam piece observes the same line either way); zero-length rows (free
+        points) share one direction and length.
+    """
+    d = pieces.shape[1] // 2
+    start, end = pieces[:, :d], pieces[:, d:]
+    step = end - start
+    length = np.linalg.norm(step, axis=1)
+    unit = step / np.where(length > 0, length, 1.0)[:, None]
+    # Up to sign: the first non-zero component made positive.
+    first = unit[np.arange(len(unit)), np.argmax(unit != 0, axis=1)]
+    unit *= np.where(first < 0, -1.0, 1.0)[:, None]
+    octave = np.where(length > 0, np.floor(np.log2(np.where(length > 0, length, 1.0))), -1e3)
+    return np.column_stack(
+        [
+            np.floor(0.5 * (start + end) / cell_size),
+            np.floor((unit + 1.0) / _DIRECTION_BIN),
+            octave,
+        ]
+    ).astype(np.int64)
+
+
+def thin_free_pieces(pieces, free, *, cell_size, max_per_cell, random_state, kept=None):
+    """Which pieces to keep: all hits, and at most ``max_per_cell`` free pieces per key.
+
+    Parameters
+    ----------
+    pieces : ndarray of shape (n_pieces, 2 * n_dims)
+        Candidate segment rows.
+    free : ndarray of shape (n_pieces,) of bool
+        Free pieces (the ones that may be dropped).
+    cell_size : float
+        See :func:`piece_keys`.
+    max_per_cell : int
+        Free pieces kept per key, counting those of ``kept``.
+    random_state : RandomState
+        Chooses which free pieces of a crowded key are kept.
+    kept : ndarray of shape (n_kept, 2 * n_dims), default=None
+        Free pieces kept earlier (online updates): they fill their keys first.
+
+    Returns
+    -------
+    keep : ndarray of shape (n_pieces,) of bool
+    """
+    keep = ~free
+    candidates = np.flatnonzero(free)
+    if candidates.size == 0:
+        return keep
+    candidates = candidates[random_state.permutation(candidates.size)]
+    n_old = 0 if kept is None else len(kept)
+    rows = pieces[candidates] if kept is None else np.vstack([kept, pieces[candidates]])
+    key = np.unique(piece_keys(rows, cell_size), axis=0, return_inverse=True)[1].ravel()
+    # Rank of each row within its key, old rows first (a stable sort keeps their order).
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    rank = np.empty(key.size, dtype=np.intp)
+    rank[order] = np.arange(key.size) - np.searchsorted(sorted_key, sorted_key, side="left")
+    keep[candidates] = rank[n_old:] < max_per_cell
+    return keep

@@ -1,0 +1,72 @@
+"""Thinning of near-duplicate free pieces (``max_pieces_per_cell``)."""
+
+import numpy as np
+import pytest
+
+from skoccmap import MixtureGPOccupancyMap
+from skoccmap._thinning import piece_keys, thin_free_pieces
+from skoccmap.datasets import make_office_scans
+
+
+def test_keys_ignore_direction_sign_and_separate_cells_directions_lengths():
+    base = np.array([[0.0, 0.0, 0.5, 0.0]])
+    reversed_ = np.array([[0.5, 0.0, 0.0, 0.0]])
+    other_cell = base + [1.0, 0.0, 1.0, 0.0]
+    turned = np.array([[0.25, -0.25, 0.25, 0.25]])  # same midpoint, 90 degrees
+    longer = np.array([[-0.25, 0.0, 0.75, 0.0]])  # same midpoint, twice the length
+    keys = piece_keys(np.vstack([base, reversed_, other_cell, turned, longer]), 0.2)
+    assert np.array_equal(keys[0], keys[1])
+    for k in (2, 3, 4):
+        assert not np.array_equal(keys[0], keys[k])
+
+
+def test_at_most_cap_free_pieces_per_key_and_every_hit_kept():
+    rng = np.random.RandomState(0)
+    free_rows = np.tile([[0.02, 0.02, 0.72, 0.02]], (10, 1)) + rng.uniform(0, 0.01, (10, 4))
+    hits = np.tile([[1.0, 1.0, 1.0, 1.0]], (5, 1))
+    pieces = np.vstack([free_rows, hits])
+    free = np.r_[np.ones(10, bool), np.zeros(5, bool)]
+    keep = thin_free_pieces(pieces, free, cell_size=0.2, max_per_cell=3, random_state=rng)
+    assert keep[10:].all()
+    assert keep[:10].sum() == 3
+
+
+def test_pieces_kept_earlier_fill_their_key_first():
+    rng = np.random.RandomState(0)
+    row = np.array([[0.0, 0.0, 0.5, 0.0]])
+    pieces = np.repeat(row, 4, axis=0)
+    keep = thin_free_pieces(
+        pieces,
+        np.ones(4, bool),
+        cell_size=0.2,
+        max_per_cell=3,
+        random_state=rng,
+        kept=np.repeat(row, 2, axis=0),
+    )
+    assert keep.sum() == 1
+
+
+@pytest.fixture(scope="module")
+def office():
+    return make_office_scans(random_state=0)
+
+
+def test_map_keeps_fewer_pieces_and_online_keeps_as_many_as_fit(office):
+    X, y = office.X, office.y
+    plain = MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    thin = MixtureGPOccupancyMap(max_pieces_per_cell=2, random_state=0).fit(X, y)
+    assert thin._pieces.shape[0] < plain._pieces.shape[0]
+    # Hits are never dropped.
+    assert (thin._piece_y == 1).sum() == (plain._piece_y == 1).sum()
+    half = X.shape[0] // 2
+    online = MixtureGPOccupancyMap(max_pieces_per_cell=2, random_state=0)
+    online.partial_fit(X[:half], y[:half]).partial_fit(X[half:], y[half:])
+    # The cap counts what earlier updates kept: one batch or two keep as many pieces.
+    assert online._pieces.shape[0] == thin._pieces.shape[0]
+    proba = thin.predict_proba(X[y == 1][:50])[:, 1]
+    assert np.all(np.isfinite(proba)) and proba.mean() > 0.65
+
+
+def test_bad_cap_is_rejected(office):
+    with pytest.raises(ValueError, match="max_pieces_per_cell"):
+        MixtureGPOccupancyMap(max_pieces_per_cell=0).fit(office.X, office.y)
