@@ -53,7 +53,7 @@ def office():
 
 def test_map_keeps_fewer_pieces_and_online_keeps_as_many_as_fit(office):
     X, y = office.X, office.y
-    plain = MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    plain = MixtureGPOccupancyMap(max_pieces_per_cell=None, random_state=0).fit(X, y)
     thin = MixtureGPOccupancyMap(max_pieces_per_cell=2, random_state=0).fit(X, y)
     assert thin._pieces.shape[0] < plain._pieces.shape[0]
     # Hits are never dropped.
