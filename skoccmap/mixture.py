@@ -800,9 +800,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         to their beams).
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
-        kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to 32
+        kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to 64
         experts drawn at random (product-of-experts training of distributed GPs, Deisenroth
-        & Ng 2015), each on its own piece of the map. These are the experts of the paper's
+        & Ng 2015), each on its own piece of the map. On the tuning data
+        (``benchmarks/bench_length_scale.py``: ACES, random states 0-3) 32 experts with every
+        piece kept learn 1.65 / 2.08 / 1.49 / 1.32 m with every scan and 1.37 / 1.08 / 1.20
+        / 1.17 m with every 10th; 64 with ``max_pieces_per_cell=4`` learn 1.12 / 1.00 /
+        1.00 / 1.12 m and 1.13 / 1.18 / 1.03 / 1.03 m: the cap removes the drift with the
+        density, the larger draw halves the spread, for twice the learning (about 10 s
+        more on one core). These are the experts of the paper's
         rule (``piece_assignment="beam"``: a cluster's walls with the whole beams that saw
         them), also when the fitted experts hold the pieces nearest to their hits
         (``"nearest_hit"``; see there). A hyperparameter that ends at a bound raises a
@@ -815,14 +821,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         grows from 3.8 m to 307 m on ACES.
     hyperparameter_window : float or None, default=None
         Where the shared hyperparameters are learned (``share_hyperparameters=True``).
-        ``None``: on the data of up to 32 experts (of the paper's rule) drawn at random. A
-        radius in metres: on up to 32 windows of that radius, each centred on a random hit
+        ``None``: on the data of up to 64 experts (of the paper's rule) drawn at random. A
+        radius in metres: on up to 64 windows of that radius, each centred on a random hit
         and holding at most ``max_expert_size`` rows drawn at random from the rows whose
         midpoint lies within it. A window covers the same area with the same number of rows
         however dense the scans, while an expert's data cover a smaller area as scans
         accumulate, so the length scale learned on windows does not follow the density of
         the scans. On the tuning data (``benchmarks/bench_tuning.py``, ACES) ``None`` / 1.5
-        / 3 / 6 learn 1.25 / 0.54 / 0.72 / 0.60 m with every 10th training scan and 1.15 /
+        / 3 / 6 learn (with 32 pieces, every free piece kept) 1.25 / 0.54 / 0.72 / 0.60 m
+        with every 10th training scan and 1.15 /
         0.48 / 0.59 / 0.65 m with every scan (changes of 9 / 12 / 22 / 9 %; the draw of
         pieces moves each by tens of percent), for held-out AUC 0.951 / 0.915 / 0.932 /
         0.921 (every 10th) and 0.970 / 0.970 / 0.972 / 0.972 (every scan); the office finds
@@ -1363,7 +1370,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         :meth:`partial_fit` keeps the hyperparameters learned by the first fit, or last
         re-learned when the rows grew by ``hyperparameter_growth``; this learns them again
-        now as :meth:`fit` does (from up to 32 experts' pieces), refits all experts
+        now as :meth:`fit` does (from up to 64 experts' pieces), refits all experts
         (warm-started from their sites), and updates the reach and the spatial index.
         Clusters and pieces stay.
 

@@ -23,7 +23,8 @@ from skoccmap.observations import HIT, RETURN, as_segments
 def fitted():
     data = make_paper_scans(random_state=0)
     # Fixed expert hyperparameters keep the fit to a few seconds; max_expert_size=150 cuts the
-    # paper's world into about two dozen experts; beams stay with their hits, as in the paper.
+    # paper's world into about two dozen experts; beams stay with their hits and every piece
+    # is kept, as in the paper.
     expert = EPGaussianProcessClassifier(
         ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None
     )
@@ -33,6 +34,7 @@ def fitted():
         combiner="moe",
         max_expert_size=150,
         piece_assignment="beam",
+        max_pieces_per_cell=None,
         random_state=0,
     )
     with warnings.catch_warnings():
@@ -69,7 +71,8 @@ def test_several_experts_and_a_fitted_gate(fitted):
 
 def test_gate_favours_each_hits_own_expert(fitted):
     # At a hit assigned to expert k, the gate's most probable expert is k far more often than
-    # chance: measured 0.81 (chance, the largest expert's share of the hits, 0.06).
+    # chance: measured 0.67-0.70 over random states 0-2 (chance, the largest expert's share
+    # of the hits, 0.06).
     data, model, _ = fitted
     hits = data.kind == HIT
     weights = _gate(model, data.X[hits])

@@ -44,6 +44,9 @@ def _mixture(**params):
     params.setdefault("clusterer", GaussianMixture(5, random_state=0))
     params.setdefault("expert", _fast_expert())
     params.setdefault("random_state", 0)
+    # Every piece kept, so that the tests below can rebuild an expert's rows from the beams
+    # (thinning has its own tests, in test_thinning.py).
+    params.setdefault("max_pieces_per_cell", None)
     return MixtureGPOccupancyMap(**params)
 
 
@@ -859,7 +862,9 @@ def test_nearest_with_room_matches_a_greedy_assignment():
 def test_nearest_hit_experts_learn_their_kernel_on_whole_beams(paper):
     # The shared kernel is learned on the experts the paper's rule would make: every piece of
     # a beam in one group, groups of at most max_expert_size pieces, every piece in one.
-    model = MixtureGPOccupancyMap(max_expert_size=150, random_state=0).fit(paper.X, paper.y)
+    model = MixtureGPOccupancyMap(
+        max_expert_size=150, max_pieces_per_cell=None, random_state=0
+    ).fit(paper.X, paper.y)
     pieces, source = _beam_pieces(paper.X, model.observation_kind_, 1.0, 0.35)
     groups = model._hyperparameter_groups(None)
     group_of = np.full(pieces.shape[0], -1)

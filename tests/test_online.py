@@ -27,6 +27,8 @@ def _model(**params):
         ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None
     )
     params.setdefault("max_expert_size", 150)
+    # Every piece kept, so that the tests can rebuild an expert's rows from the beams.
+    params.setdefault("max_pieces_per_cell", None)
     return MixtureGPOccupancyMap(expert=expert, random_state=0, **params)
 
 
@@ -322,8 +324,12 @@ def test_refit_hyperparameters_empties_the_kernel_cache():
 @pytest.mark.parametrize("growth, relearns", [(2.0, True), (2.5, False), (None, False)])
 def test_hyperparameters_relearned_when_the_rows_grow(growth, relearns):
     data = make_paper_scans(random_state=0)
+    # Every piece kept: the cap would drop most of the shifted copy below.
     model = MixtureGPOccupancyMap(
-        max_expert_size=300, hyperparameter_growth=growth, random_state=0
+        max_expert_size=300,
+        hyperparameter_growth=growth,
+        max_pieces_per_cell=None,
+        random_state=0,
     ).fit(data.X, data.y)
     kernel, n_rows = model.shared_kernel_, model._pieces.shape[0]
     # The same scans again, shifted: about twice the rows (a few beams end near a hit of
