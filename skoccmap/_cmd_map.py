@@ -143,6 +143,13 @@ def add_model_arguments(parser):
         "('none': equal pieces; default 0.35)",
     )
     parser.add_argument(
+        "--max-pieces-per-cell",
+        type=_count_or_none,
+        default=4,
+        help="near-duplicate free pieces (same 0.2 m cell, direction and length) kept "
+        "('none': every piece; default 4)",
+    )
+    parser.add_argument(
         "--learn-all-hyperparameters",
         action="store_true",
         help="learn kernel hyperparameters per expert (slow) instead of once, shared",
@@ -171,6 +178,20 @@ def _length_or_none(text):
     return value
 
 
+def _count_or_none(text):
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number or 'none', got {text!r}"
+        ) from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {text!r}")
+    return value
+
+
 def make_mixture(args):
     from .mixture import MixtureGPOccupancyMap
 
@@ -179,6 +200,7 @@ def make_mixture(args):
         max_expert_size=args.max_expert_size,
         max_beam_length=args.max_beam_length,
         beam_end_length=args.beam_end_length,
+        max_pieces_per_cell=args.max_pieces_per_cell,
         share_hyperparameters=not args.learn_all_hyperparameters,
         n_jobs=args.n_jobs,
         random_state=args.seed,

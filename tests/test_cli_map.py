@@ -87,8 +87,10 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
 @pytest.mark.parametrize(
     "options, expected",
     [
-        ([], (1.0, 0.35)),
-        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None)),
+        ([], (1.0, 0.35, 4)),
+        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4)),
+        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None)),
+        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2)),
     ],
 )
 def test_beam_piece_options_reach_the_mixture(options, expected):
@@ -97,16 +99,20 @@ def test_beam_piece_options_reach_the_mixture(options, expected):
 
     args = build_parser().parse_args(["map", "log.txt", *options])
     model = make_mixture(args)
-    assert (model.max_beam_length, model.beam_end_length) == expected
+    assert (model.max_beam_length, model.beam_end_length, model.max_pieces_per_cell) == expected
 
 
-@pytest.mark.parametrize("value", ["0", "-1", "long"])
-def test_bad_beam_piece_option_is_refused(value, capsys):
+@pytest.mark.parametrize(
+    "option, value",
+    [("--max-beam-length", v) for v in ["0", "-1", "long"]]
+    + [("--max-pieces-per-cell", v) for v in ["0", "1.5", "many"]],
+)
+def test_bad_beam_piece_option_is_refused(option, value, capsys):
     from skoccmap.cli import build_parser
 
     with pytest.raises(SystemExit):
-        build_parser().parse_args(["map", "log.txt", "--max-beam-length", value])
-    assert "--max-beam-length" in capsys.readouterr().err
+        build_parser().parse_args(["map", "log.txt", option, value])
+    assert option in capsys.readouterr().err
 
 
 def _damaged_log(log, tmp_path):
