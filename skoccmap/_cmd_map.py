@@ -133,7 +133,8 @@ def add_model_arguments(parser):
         type=_length_or_none,
         default=1.0,
         help="beams are cut into pieces no longer than this, in metres ('none': no bound; "
-        "with --beam-end-length none too, whole beams, the paper's model; default 1)",
+        "with --beam-end-length none and --max-pieces-per-cell none too, whole beams, the "
+        "paper's model; default 1)",
     )
     parser.add_argument(
         "--beam-end-length",

@@ -125,7 +125,7 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                     kernel=single_kernel, optimizer=None, random_state=random_state
                 )
         else:
-            # The paper's model: whole beams with their hits, both hyperparameters learned,
+            # The paper's model: every whole beam with its hit, both hyperparameters learned,
             # gated by the clusters of hits.
             models[method] = MixtureGPOccupancyMap(
                 expert=EPGaussianProcessClassifier(kernel=_signal_and_integral_kernel()),
@@ -134,6 +134,7 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                 max_beam_length=None,
                 beam_end_length=None,
                 piece_assignment="beam",
+                max_pieces_per_cell=None,
                 n_jobs=n_jobs,
                 random_state=random_state,
             )

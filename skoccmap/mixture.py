@@ -714,8 +714,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         integral kernel a whole beam observes only the *average* of the latent function
         along it, which leaves the function free to stay high next to the wall the beam
         ended at: walls drawn thick and truly free cells marked occupied. ``None`` sets no
-        bound; with ``beam_end_length=None`` and ``piece_assignment="beam"`` too, beams stay
-        whole and with their hits (the paper's model). Chosen with
+        bound; with ``beam_end_length=None``, ``piece_assignment="beam"`` and
+        ``max_pieces_per_cell=None`` too, every beam stays whole and with its hit (the
+        paper's model). Chosen with
         ``piece_assignment="beam"`` on tuning data (``benchmarks/bench_tuning.py``: the
         office and the paper's world with noise seed 100, and the ACES log;
         ``benchmarks/bench_quality.py`` reports other seeds and Intel). Whole beams mark
