@@ -4,10 +4,12 @@ Run standalone::
 
     python benchmarks/bench_length_scale.py --n-jobs 2
     python benchmarks/bench_length_scale.py --pieces 32 64 --caps none 4 --states 0 1 2 3
+    python benchmarks/bench_length_scale.py --pieces 64 --every 10 --max-beam-lengths 1 2
 
 For every combination of the number of experts whose summed evidence learns the shared
 hyperparameters (``--pieces``, the estimator's ``_SHARED_PIECES``), of
-``max_pieces_per_cell`` (``--caps``) and of the training sparsity (``--every``: ACES on the
+``max_pieces_per_cell`` (``--caps``), of ``max_beam_length`` (``--max-beam-lengths``,
+default 1 m) and of the training sparsity (``--every``: ACES on the
 Hilbert-maps protocol, seed 100, trained on every scan and on every 10th remaining scan),
 :class:`skoccmap.MixtureGPOccupancyMap` is fitted up to the learned kernel (clustering,
 beam pieces, learning; the experts are not fitted) with each ``--states`` random state.
@@ -48,10 +50,12 @@ class _LearnOnly(mixture.MixtureGPOccupancyMap):
         raise _Learned(time.perf_counter() - start)
 
 
-def learned_length_scale(data, *, pieces, cap, state, n_jobs):
+def learned_length_scale(data, *, pieces, cap, beam, state, n_jobs):
     """Length scale (m) learned on ``data`` and the learning's seconds."""
     saved, mixture._SHARED_PIECES = mixture._SHARED_PIECES, pieces
-    model = _LearnOnly(max_pieces_per_cell=cap, random_state=state, n_jobs=n_jobs)
+    model = _LearnOnly(
+        max_pieces_per_cell=cap, max_beam_length=beam, random_state=state, n_jobs=n_jobs
+    )
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -70,6 +74,7 @@ def parse_args(argv=None):
     parser.add_argument("--pieces", type=int, nargs="+", default=[32, 64])
     parser.add_argument("--caps", nargs="+", default=["none", "4"])
     parser.add_argument("--every", type=int, nargs="+", default=[1, 10])
+    parser.add_argument("--max-beam-lengths", type=float, nargs="+", default=[1.0])
     parser.add_argument("--states", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--n-jobs", type=int, default=2)
     return parser.parse_args(argv)
@@ -79,23 +84,26 @@ def main(argv=None):
     args = parse_args(argv)
     caps = [None if c.lower() == "none" else int(c) for c in args.caps]
     rows = []
-    print("| experts learned on | max_pieces_per_cell | training scans | length scales (m) "
-          "| mean | max / min | learning s |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|")
+    print("| experts learned on | max_pieces_per_cell | max_beam_length | training scans "
+          "| length scales (m) | mean | max / min | learning s |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     for every in args.every:
         data = load_aces(SEED, every=every)
         if data is None:
             print("ACES log absent: nothing to measure")
             return
-        for pieces, cap in product(args.pieces, caps):
+        for pieces, cap, beam in product(args.pieces, caps, args.max_beam_lengths):
             runs = [
-                learned_length_scale(data, pieces=pieces, cap=cap, state=s, n_jobs=args.n_jobs)
+                learned_length_scale(
+                    data, pieces=pieces, cap=cap, beam=beam, state=s, n_jobs=args.n_jobs
+                )
                 for s in args.states
             ]
             scales = np.array([r[0] for r in runs])
             row = dict(
                 pieces=pieces,
                 cap=cap,
+                max_beam_length=beam,
                 every=every,
                 states=args.states,
                 length_scales=scales.tolist(),
@@ -103,7 +111,7 @@ def main(argv=None):
             )
             rows.append(row)
             print(
-                f"| {pieces} | {cap} | every {every} | "
+                f"| {pieces} | {cap} | {beam:g} | every {every} | "
                 + " / ".join(f"{v:.2f}" for v in scales)
                 + f" | {scales.mean():.2f} | {scales.max() / scales.min():.2f} | "
                 + f"{np.mean(row['learn_s']):.1f} |",
