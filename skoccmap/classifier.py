@@ -92,10 +92,6 @@ def _unpacked(posterior, lower):
 _STATIONARY_RTOL = 1e-4
 
 
-# Line-search trials per L-BFGS-B step.
-_MAX_LINE_SEARCH = 5
-
-
 def _is_stationary(opt_res, bounds):
     """Whether an L-BFGS-B result is a (bound-constrained) stationary point."""
     if opt_res.success:
@@ -151,16 +147,8 @@ def _minimize_in_bounds(optimizer, obj_func, initial_theta, bounds):
     ``optimizer(obj_func, initial_theta, bounds=bounds)``, as in scikit-learn's GPs.
     """
     if optimizer == "fmin_l_bfgs_b":
-        # Near the optimum the line search fails on EP's noise (see below), and each of its
-        # trials is a whole evaluation of the evidence: scipy's 20 trials made the summed
-        # evidence of 64 experts cost four times that of 32 (benchmark B2 at 4k rows).
         opt_res = scipy.optimize.minimize(
-            obj_func,
-            initial_theta,
-            method="L-BFGS-B",
-            jac=True,
-            bounds=bounds,
-            options={"maxls": _MAX_LINE_SEARCH},
+            obj_func, initial_theta, method="L-BFGS-B", jac=True, bounds=bounds
         )
         # EP's evidence is exact only to EP's tolerance, so near a flat optimum (often at a
         # bound, on separable data) the line search can fail although the projected
