@@ -808,8 +808,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         piece kept learn 1.65 / 2.08 / 1.49 / 1.32 m with every scan and 1.37 / 1.08 / 1.20
         / 1.17 m with every 10th; 64 with ``max_pieces_per_cell=4`` learn 1.12 / 1.00 /
         1.00 / 1.12 m and 1.13 / 1.18 / 1.03 / 1.03 m: the cap removes the drift with the
-        density, the larger draw halves the spread, for twice the learning (about 10 s
-        more on one core). These are the experts of the paper's
+        density, the larger draw halves the spread. It costs most on small maps, where the
+        learning dominates the fit: B3 (Intel, every 10th scan) fits in 32 s against 19 s
+        with 32. These are the experts of the paper's
         rule (``piece_assignment="beam"``: a cluster's walls with the whole beams that saw
         them), also when the fitted experts hold the pieces nearest to their hits
         (``"nearest_hit"``; see there). A hyperparameter that ends at a bound raises a
