@@ -14,6 +14,7 @@ from functools import partial
 from numbers import Integral, Real
 
 import numpy as np
+from joblib import effective_n_jobs
 from scipy.spatial import cKDTree
 from scipy.special import ndtri
 from sklearn import get_config
@@ -117,12 +118,12 @@ _AUTO_GATING_THRESHOLD = {"coverage": 0.5, "clusterer": 1e-3, "gpc": 1e-3}
 _NEAREST_HITS = 32
 
 
-def _observation_kinds(X, occupied, return_radius):
-    """HIT / RETURN / NO_RETURN code per row and the hit nearest to every beam's end.
+def _observation_kinds(X, occupied, return_radius, workers=1):
+    """HIT / RETURN / NO_RETURN code per row and the hit nearest to every return beam's end.
 
     A beam is a return beam when a hit lies within ``return_radius`` of its end (the
     observation model stops return beams a small margin short of their hit). A hit's
-    nearest hit is itself.
+    nearest hit is itself; a no-return beam's is -1.
     """
     d = X.shape[1] // 2
     kinds = np.full(X.shape[0], NO_RETURN, dtype=np.intp)
@@ -132,9 +133,14 @@ def _observation_kinds(X, occupied, return_radius):
     hit_rows = np.flatnonzero(occupied)
     nearest_hit[hit_rows] = hit_rows
     if beams.size and hit_rows.size:
-        dist, idx = cKDTree(X[hit_rows, :d]).query(X[beams, d:])
-        kinds[beams[dist <= return_radius]] = RETURN
-        nearest_hit[beams] = hit_rows[idx]
+        # Bounded: the nearest hit to the end of a no-return beam can lie far off, and
+        # looking for it dominated fits of millions of rows.
+        dist, idx = cKDTree(X[hit_rows, :d]).query(
+            X[beams, d:], distance_upper_bound=return_radius, workers=workers
+        )
+        ret = dist <= return_radius
+        kinds[beams[ret]] = RETURN
+        nearest_hit[beams[ret]] = hit_rows[idx[ret]]
     return kinds, nearest_hit
 
 
@@ -157,7 +163,7 @@ def _similarity_length_scale(kernel, dim):
 
 
 def _assign_no_return(
-    X_nr, X_ret, ret_labels, length_scale, max_references=None, random_state=None
+    X_nr, X_ret, ret_labels, length_scale, max_references=None, random_state=None, n_jobs=None
 ):
     """Label of the most similar return beam under the integral kernel, per no-return beam.
 
@@ -170,46 +176,56 @@ def _assign_no_return(
     With more than ``max_references`` return beams, each block of no-return beams is
     compared with its own uniform sample of (at most) that many: the cost stays linear in
     the number of no-return beams, and they spread over all return beams instead of
-    piling onto the few of one sample.
+    piling onto the few of one sample. The samples are drawn up front and the blocks run
+    in ``n_jobs`` threads, so the labels do not depend on ``n_jobs``.
     """
-    from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
-
     rng = check_random_state(random_state)
     dim = X_nr.shape[1] // 2
     scale = np.tile(np.broadcast_to(length_scale, (dim,)), 2)
     A, B_all = X_nr / scale, X_ret / scale
     n_ret = B_all.shape[0]
     n_ref = n_ret if max_references is None else min(n_ret, max_references)
+    blocks = list(gen_batches(A.shape[0], max(1, _NO_RETURN_PAIRS // n_ref)))
+    if n_ref == n_ret:
+        samples = [np.arange(n_ret)] * len(blocks)
+    else:
+        # Drawn with replacement (duplicates dropped): without, every block would
+        # permute all return beams, a cost quadratic in the data overall.
+        samples = [np.unique(rng.randint(n_ret, size=n_ref)) for _ in blocks]
     labels = np.empty(A.shape[0], dtype=np.intp)
-    for block in gen_batches(A.shape[0], max(1, _NO_RETURN_PAIRS // n_ref)):
-        rows = np.arange(A.shape[0])[block]
-        if n_ref == n_ret:
-            refs = np.arange(n_ret)
-        else:
-            # Drawn with replacement (duplicates dropped): without, every block would
-            # permute all return beams, a cost quadratic in the data overall.
-            refs = np.unique(rng.randint(n_ret, size=n_ref))
-        B = B_all[refs]
-        n_first = min(_NO_RETURN_FIRST, refs.size)
-        bound, dist2 = pair_upper_bound(
-            np.repeat(A[rows], refs.size, axis=0), np.tile(B, (rows.size, 1))
-        )
-        bound, dist2 = bound.reshape(rows.size, -1), dist2.reshape(rows.size, -1)
-        sim = np.full(bound.shape, -np.inf)
-        first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
-        ii = np.repeat(np.arange(rows.size), n_first)
-        sim[ii, first.ravel()] = pair_integrals(A[rows[ii]], B[first.ravel()])[0]
-        best = sim.max(axis=1)
-        # The slack covers rounding of the quadrature against the closed-form bound.
-        ii, jj = np.nonzero(
-            (bound * (1.0 + 1e-9) > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim)
-        )
-        sim[ii, jj] = pair_integrals(A[rows[ii]], B[jj])[0]
-        choice = np.argmax(sim, axis=1)
-        out_of_reach = sim[np.arange(rows.size), choice] <= 0.0
-        choice[out_of_reach] = np.argmin(dist2[out_of_reach], axis=1)
-        labels[rows] = ret_labels[refs[choice]]
+
+    def assign(block, refs):
+        labels[block] = ret_labels[refs[_most_similar(A[block], B_all[refs])]]
+
+    # Threads: the work is in numpy calls over a block's pairs, which release the GIL.
+    Parallel(n_jobs=n_jobs, require="sharedmem")(
+        delayed(assign)(block, refs) for block, refs in zip(blocks, samples, strict=True)
+    )
     return labels
+
+
+def _most_similar(A, B):
+    """Index into ``B`` of the most similar segment per row of ``A`` (scaled coordinates),
+    by bounds (see :func:`_assign_no_return`); the nearest where none is within reach."""
+    from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
+
+    n_first = min(_NO_RETURN_FIRST, B.shape[0])
+    bound, dist2 = pair_upper_bound(np.repeat(A, B.shape[0], axis=0), np.tile(B, (A.shape[0], 1)))
+    bound, dist2 = bound.reshape(A.shape[0], -1), dist2.reshape(A.shape[0], -1)
+    sim = np.full(bound.shape, -np.inf)
+    first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
+    ii = np.repeat(np.arange(A.shape[0]), n_first)
+    sim[ii, first.ravel()] = pair_integrals(A[ii], B[first.ravel()])[0]
+    best = sim.max(axis=1)
+    # The slack covers rounding of the quadrature against the closed-form bound.
+    ii, jj = np.nonzero(
+        (bound * (1.0 + 1e-9) > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim)
+    )
+    sim[ii, jj] = pair_integrals(A[ii], B[jj])[0]
+    choice = np.argmax(sim, axis=1)
+    out_of_reach = sim[np.arange(A.shape[0]), choice] <= 0.0
+    choice[out_of_reach] = np.argmin(dist2[out_of_reach], axis=1)
+    return choice
 
 
 def _beam_pieces(X, kinds, max_length, end_length):
@@ -324,35 +340,55 @@ def _bisect(points, max_size, weights=None):
     return pieces
 
 
-def _nearest_with_room(tree, points, radius, cap, rounds):
+def _nearest_with_room(tree, points, radius, cap, rounds, workers=1):
     """Index of each point's nearest hit (of ``tree``) that still has room, or -1.
 
     In round j every point still without a hit asks its j-th nearest hit within
     ``radius``, and a hit takes the nearest of its askers up to ``cap`` points in all; a
-    point whose ``rounds`` nearest hits within the radius are all full gets -1. Only the
-    j-th neighbours of the points still asking are looked up in round j, so memory stays
-    linear in the points.
+    point whose ``rounds`` nearest hits within the radius are all full gets -1.
+
+    The neighbours are looked up for blocks of rounds that double in length (1, 2-3,
+    4-7, ...; at most 8 rounds at a time) and only for the points still asking: a point
+    that asks in every round costs about two queries of ``rounds`` neighbours, not one
+    per round, and memory stays linear in the points. ``workers`` is passed to
+    :meth:`scipy.spatial.cKDTree.query`; the result does not depend on it.
     """
     n_hits = tree.n
+    rounds = min(rounds, n_hits)
     chosen = np.full(len(points), -1, dtype=np.intp)
     load = np.zeros(n_hits, dtype=np.float64)
     asking = np.arange(len(points))
-    for j in range(1, min(rounds, n_hits) + 1):
-        if asking.size == 0:
-            break
-        dist, hit = tree.query(points[asking], k=[j], distance_upper_bound=radius)
-        dist, hit = dist[:, 0], hit[:, 0]
-        inside = np.isfinite(dist)
-        # A point with no j-th hit within the radius has none further either.
-        asking, dist, hit = asking[inside], dist[inside], hit[inside]
-        order = np.lexsort((dist, hit))
-        asking, hit = asking[order], hit[order]
-        rank = np.arange(hit.size) - np.searchsorted(hit, hit, side="left")
-        take = rank < cap - load[hit]
-        chosen[asking[take]] = hit[take]
-        load += np.bincount(hit[take], minlength=n_hits)
-        asking = np.sort(asking[~take])
+    first = 1
+    while first <= rounds and asking.size:
+        last = min(2 * first - 1, first + 7, rounds)
+        dist, hit = tree.query(
+            points[asking],
+            k=list(range(first, last + 1)),
+            distance_upper_bound=radius,
+            workers=workers,
+        )
+        for col in range(last - first + 1):
+            # A point with no j-th hit within the radius has none further either.
+            inside = np.isfinite(dist[:, col])
+            asking, dist, hit = asking[inside], dist[inside], hit[inside]
+            if asking.size == 0:
+                break
+            order = np.lexsort((dist[:, col], hit[:, col]))
+            target = hit[order, col]
+            rank = np.arange(target.size) - np.searchsorted(target, target, side="left")
+            take = rank < cap - load[target]
+            chosen[asking[order[take]]] = target[take]
+            load += np.bincount(target[take], minlength=n_hits)
+            # Still asking, in point order (as the next round's lookups are).
+            left = np.sort(order[~take])
+            asking, dist, hit = asking[left], dist[left], hit[left]
+        first = last + 1
     return chosen
+
+
+def _query_workers(n_jobs):
+    """Threads for a k-d tree query under ``n_jobs`` (joblib's meaning, None = 1)."""
+    return max(int(effective_n_jobs(n_jobs)), 1)
 
 
 def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
@@ -1257,7 +1293,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # around one hit, and an expert is never split below one.
         cap = np.inf if self.max_expert_size is None else max(self.max_expert_size // 2, 1)
         chosen = _nearest_with_room(
-            cKDTree(hits), _midpoints(pieces[free]), self.nearest_hit_radius, cap, _NEAREST_HITS
+            cKDTree(hits),
+            _midpoints(pieces[free]),
+            self.nearest_hit_radius,
+            cap,
+            _NEAREST_HITS,
+            workers=_query_workers(self.n_jobs),
         )
         taken = chosen >= 0
         piece_hit[free[taken]] = chosen[taken]
@@ -1472,6 +1513,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                     self._similarity_length_scale(self._make_expert(), d),
                     max_references=_NO_RETURN_REFERENCES,
                     random_state=rng,
+                    n_jobs=self.n_jobs,
                 )
             else:
                 anchor[is_nr] = cKDTree(all_hits).query(_midpoints(X[is_nr]))[1]
@@ -1903,7 +1945,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         hit_rows = np.flatnonzero(occupied)
         # Free points follow the return-beam rule without a distance limit.
         radius = np.inf if self.layout == "points" else self.return_radius
-        kinds, anchor = _observation_kinds(X, occupied, radius)
+        kinds, anchor = _observation_kinds(
+            X, occupied, radius, workers=_query_workers(self.n_jobs)
+        )
         self.observation_kind_ = kinds
         is_ret = kinds == RETURN
         is_nr = kinds == NO_RETURN
@@ -1916,6 +1960,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                     self._similarity_length_scale(expert, d),
                     max_references=_NO_RETURN_REFERENCES,
                     random_state=rng,
+                    n_jobs=self.n_jobs,
                 )
             else:
                 # No return beams to compare with: the hit nearest to the beam's midpoint.
