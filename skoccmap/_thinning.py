@@ -80,7 +80,7 @@ def thin_free_pieces(pieces, free, *, cell_size, max_per_cell, random_state, kep
     candidates = candidates[random_state.permutation(candidates.size)]
     n_old = 0 if kept is None else len(kept)
     rows = pieces[candidates] if kept is None else np.vstack([kept, pieces[candidates]])
-    key = np.unique(piece_keys(rows, cell_size), axis=0, return_inverse=True)[1].ravel()
+    key = _flat_keys(piece_keys(rows, cell_size))
     # Rank of each row within its key, old rows first (a stable sort keeps their order).
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
@@ -88,3 +88,22 @@ def thin_free_pieces(pieces, free, *, cell_size, max_per_cell, random_state, kep
     rank[order] = np.arange(key.size) - np.searchsorted(sorted_key, sorted_key, side="left")
     keep[candidates] = rank[n_old:] < max_per_cell
     return keep
+
+
+def _flat_keys(keys):
+    """One int64 per row of ``keys``, equal exactly where the rows are equal.
+
+    Mixed radix over the columns' ranges: sorting one integer column is many times faster
+    than ``np.unique(axis=0)`` on millions of rows. Falls back to the latter when the
+    ranges overflow 63 bits.
+    """
+    if keys.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    low = keys.min(axis=0)
+    span = keys.max(axis=0) - low + 1
+    if np.prod([int(v) for v in span]) >= 2**63:
+        return np.unique(keys, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
+    flat = np.zeros(keys.shape[0], dtype=np.int64)
+    for column, size in zip((keys - low).T, span, strict=True):
+        flat = flat * size + column
+    return flat

@@ -70,3 +70,15 @@ def test_map_keeps_fewer_pieces_and_online_keeps_as_many_as_fit(office):
 def test_bad_cap_is_rejected(office):
     with pytest.raises(ValueError, match="max_pieces_per_cell"):
         MixtureGPOccupancyMap(max_pieces_per_cell=0).fit(office.X, office.y)
+
+
+@pytest.mark.parametrize("spread", [3, 2**40])
+def test_flat_keys_equal_exactly_where_rows_are(spread):
+    from skoccmap._thinning import _flat_keys
+
+    rng = np.random.default_rng(0)
+    keys = rng.integers(-spread, spread, size=(2000, 5))
+    keys[1000:] = keys[rng.integers(0, 1000, size=1000)]  # duplicated rows
+    flat = _flat_keys(keys)
+    same_row = (keys[:, None] == keys[None]).all(axis=-1)
+    np.testing.assert_array_equal(flat[:, None] == flat[None], same_row)
