@@ -165,32 +165,25 @@ def add_model_arguments(parser):
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
-def _length_or_none(text):
-    if text.strip().lower() == "none":
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a length in metres or 'none', got {text!r}"
-        ) from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive length, got {text!r}")
-    return value
+def _or_none(convert, what, valid, bound):
+    """An argparse type: 'none', or ``convert(text)`` that is ``valid`` (else ``bound``)."""
+
+    def parse(text):
+        if text.strip().lower() == "none":
+            return None
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what} or 'none', got {text!r}") from None
+        if not valid(value):
+            raise argparse.ArgumentTypeError(f"expected {bound}, got {text!r}")
+        return value
+
+    return parse
 
 
-def _count_or_none(text):
-    if text.strip().lower() == "none":
-        return None
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected a whole number or 'none', got {text!r}"
-        ) from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {text!r}")
-    return value
+_length_or_none = _or_none(float, "a length in metres", lambda v: v > 0, "a positive length")
+_count_or_none = _or_none(int, "a whole number", lambda v: v >= 1, "at least 1")
 
 
 def make_mixture(args):

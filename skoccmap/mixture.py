@@ -875,14 +875,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         midpoint lies within it. A window covers the same area with the same number of rows
         however dense the scans, while an expert's data cover a smaller area as scans
         accumulate, so the length scale learned on windows does not follow the density of
-        the scans. On the tuning data (``benchmarks/bench_tuning.py``, ACES) ``None`` / 1.5
-        / 3 / 6 learn (with 32 pieces, every free piece kept) 1.25 / 0.54 / 0.72 / 0.60 m
-        with every 10th training scan and 1.15 /
-        0.48 / 0.59 / 0.65 m with every scan (changes of 9 / 12 / 22 / 9 %; the draw of
-        pieces moves each by tens of percent), for held-out AUC 0.951 / 0.915 / 0.932 /
-        0.921 (every 10th) and 0.970 / 0.970 / 0.972 / 0.972 (every scan); the office finds
-        98.3 / 99.5 / 98.9 / 99.1 % of its walls (ECE 0.038 / 0.056 / 0.041 / 0.043) and the
-        paper's world 90.0 / 96.8 / 93.5 / 90.5 %. The windows' shorter length scale
+        the scans. On the tuning data (``benchmarks/bench_tuning.py``, ACES) ``None`` /
+        1.5 / 3 / 6 learn (with 32 pieces, every free piece kept) 1.25 / 0.54 / 0.72 /
+        0.60 m with every 10th training scan and 1.15 / 0.48 / 0.59 / 0.65 m with every
+        scan (changes of 9 / 12 / 22 / 9 %; the draw of pieces moves each by tens of
+        percent), for held-out AUC 0.951 / 0.915 / 0.932 / 0.921 (every 10th) and 0.970 /
+        0.970 / 0.972 / 0.972 (every scan); the office finds 98.3 / 99.5 / 98.9 / 99.1 % of
+        its walls (ECE 0.038 / 0.056 / 0.041 / 0.043) and the paper's world 90.0 / 96.8 /
+        93.5 / 90.5 %. The windows' shorter length scale
         extrapolates less into space the training scans barely saw, which costs held-out AUC
         on sparse scans: ``None`` stays the default.
     hyperparameter_growth : float or None, default=2.0
