@@ -28,7 +28,9 @@ labelled as report-log measurements).
   them (``skoccmap.metrics.map_quality`` on the observed 0.1 m cells): walls found, phantom
   rate, free found, ECE, wall thickness, AUC.
 
-The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``.
+The estimators' ``random_state`` is the data seed (100), as in ``bench_quality``;
+``--random-state N`` refits the same data with another one, to see how far a difference
+between two values is the draw of one fit (clustering sample, thinning, learning groups).
 
 **Sweeps** (one parameter at a time, all others at their defaults): ``combiner``,
 ``gating`` (with the threshold that suits each gate), ``gating_threshold`` and
@@ -549,7 +551,7 @@ def run(args, result, save):
 
             def fit(row, method=method, data=data, fitted=fitted):
                 model, fit_s, caught = fit_model(
-                    method, SEED, args.n_jobs, data.X, data.y, data.scan_index
+                    method, args.random_state, args.n_jobs, data.X, data.y, data.scan_index
                 )
                 row.update(fit_s=fit_s, **model_facts(model))
                 row["reach"] = float(getattr(model, "reach_", np.nan))
@@ -697,7 +699,8 @@ def tables(sweeps, rows, args):
             json_rows.append(record)
         out[sweep.name] = json_rows
         print_table(
-            f"Tuning: {sweep.title}; tuning data, seed {SEED}",
+            f"Tuning: {sweep.title}; tuning data, seed {SEED}"
+            + ("" if args.random_state == SEED else f", random_state {args.random_state}"),
             header,
             table,
         )
@@ -736,6 +739,13 @@ def parse_args(argv=None):
     )
     parser.add_argument("--n-jobs", type=int, default=1, help="parallel expert fits")
     parser.add_argument(
+        "--random-state",
+        type=int,
+        default=SEED,
+        help=f"the estimators' random_state (default {SEED}, the data seed); the data stay "
+        f"those of seed {SEED}",
+    )
+    parser.add_argument(
         "--out", default=None, help="folder of the JSON (default benchmarks/results[/quick])"
     )
     args = parser.parse_args(argv)
@@ -753,12 +763,15 @@ def main(argv=None):
         name += "_" + "_".join(args.only)
     if list(args.datasets) != list(DATASETS):
         name += "_" + "_".join(args.datasets)
+    if args.random_state != SEED:
+        name += f"_rs{args.random_state}"
     path = args.out / f"{name}.json"
     result, save = run_record(
         "tuning sweeps of MixtureGPOccupancyMap",
         args,
         path,
         seed=SEED,
+        random_state=args.random_state,
         note="fit and predict times are informative only (shared machine)",
         datasets={},
     )
