@@ -7,6 +7,8 @@ query) without changing the map, so pieces that share a cell, a direction and a 
 kept up to a number per key and the rest dropped before the experts are formed.
 """
 
+import math
+
 import numpy as np
 
 __all__ = ["piece_keys", "thin_free_pieces"]
@@ -101,7 +103,8 @@ def _flat_keys(keys):
         return np.zeros(0, dtype=np.int64)
     low = keys.min(axis=0)
     span = keys.max(axis=0) - low + 1
-    if np.prod([int(v) for v in span]) >= 2**63:
+    # Python integers: a product of int64 spans would wrap around and hide the overflow.
+    if math.prod(int(v) for v in span) >= 2**63:
         return np.unique(keys, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
     flat = np.zeros(keys.shape[0], dtype=np.int64)
     for column, size in zip((keys - low).T, span, strict=True):

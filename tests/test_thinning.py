@@ -82,3 +82,13 @@ def test_flat_keys_equal_exactly_where_rows_are(spread):
     flat = _flat_keys(keys)
     same_row = (keys[:, None] == keys[None]).all(axis=-1)
     np.testing.assert_array_equal(flat[:, None] == flat[None], same_row)
+
+
+def test_flat_keys_do_not_wrap_when_spans_overflow():
+    from skoccmap._thinning import _flat_keys
+
+    # Spans 2 x (2**16)**4 = 2**65: with wrapped int64 arithmetic the first two rows
+    # would both flatten to 0.
+    top = 2**16 - 1
+    keys = np.array([[0, 0, 0, 0, 0], [1, 0, 0, 0, 0], [0, top, top, top, top]])
+    assert np.unique(_flat_keys(keys)).size == 3
