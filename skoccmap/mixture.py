@@ -122,8 +122,9 @@ def _hit_tree(points):
     """k-d tree over hit points, for nearest-hit queries.
 
     Without compact nodes: on hits that share a coordinate exactly (the walls of a
-    simulated world along the axes) compact nodes made queries about 5x slower (520 against
-    110 us per query on B2's 3M observations), while on the Intel log both take 2-3 us.
+    simulated world along the axes) compact nodes made nearest-hit queries within 2 m
+    about 4x slower (545 against 126 us per query on B2's 3M observations, timed ad hoc),
+    while on the Intel log both take 2-3 us.
     """
     return cKDTree(points, compact_nodes=False)
 
@@ -215,8 +216,11 @@ def _assign_no_return(
 
 
 def _most_similar(A, B):
-    """Index into ``B`` of the most similar segment per row of ``A`` (scaled coordinates),
-    by bounds (see :func:`_assign_no_return`); the nearest where none is within reach."""
+    """Index into ``B`` of the most similar segment to each row of ``A``.
+
+    Rows in scaled coordinates; found by bounds (see :func:`_assign_no_return`); the
+    nearest segment where none is within the kernel's reach.
+    """
     from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
 
     n_first = min(_NO_RETURN_FIRST, B.shape[0])
@@ -882,9 +886,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         percent), for held-out AUC 0.951 / 0.915 / 0.932 / 0.921 (every 10th) and 0.970 /
         0.970 / 0.972 / 0.972 (every scan); the office finds 98.3 / 99.5 / 98.9 / 99.1 % of
         its walls (ECE 0.038 / 0.056 / 0.041 / 0.043) and the paper's world 90.0 / 96.8 /
-        93.5 / 90.5 %. The windows' shorter length scale
-        extrapolates less into space the training scans barely saw, which costs held-out AUC
-        on sparse scans: ``None`` stays the default.
+        93.5 / 90.5 %. The windows' shorter length scale extrapolates less into space the
+        training scans barely saw, which costs held-out AUC on sparse scans: ``None`` stays
+        the default.
     hyperparameter_growth : float or None, default=2.0
         :meth:`partial_fit` re-learns the shared hyperparameters, and refits every expert
         with them (as :meth:`refit_hyperparameters` does), whenever the training rows
