@@ -13,7 +13,7 @@ Evaluation (see :func:`pair_integrals` and the driver :func:`integral_kernel`):
 - point-point: the closed form.
 - segment-point and the inner integral of segment-segment: ``|w - v d|**2`` is a quadratic in
   ``v``, so the integral is a Gaussian factor times a difference of normal CDFs. It is written with
-  ``erfcx`` of non-negative arguments only, so that neither tail of the CDF cancels.
+  ``erfc`` of non-negative arguments only, so that neither tail of the CDF cancels.
 - in a kernel matrix, every pair with a point row or column (query cells, hits) takes these
   closed forms, vectorised over chunks of candidate pairs that a tiling of the points finds
   within the cut-off; only segment-segment pairs go through the quadrature below.
@@ -33,7 +33,7 @@ Gaussian).
 """
 
 import numpy as np
-from scipy.special import erfcx
+from scipy.special import erfc, erfcx
 
 _SQRT_2PI = np.sqrt(2.0 * np.pi)
 _SQRT_HALF = np.sqrt(0.5)
@@ -108,7 +108,7 @@ def point_point(p, q):
     return np.exp(-0.5 * np.einsum("...i,...i->...", diff, diff))
 
 
-def _inner_scalars(f0, dw, length):
+def _inner_scalars(f0, dw, length, ends=True):
     """Line-point integral from the scalars of ``f(v) = |w - v d|**2``.
 
     ``f0 = |w|**2``, ``dw = w . d``, ``length = |d|`` (>= _SHORT). Returns
@@ -120,28 +120,33 @@ def _inner_scalars(f0, dw, length):
 
         M0 = sqrt(2 pi) / length * exp(-h**2 / 2) * (Phi(x2) - Phi(x1))
 
-    ``Phi(x) exp(-h**2/2) = E(-x) exp(-f/2)`` for x <= 0 with ``E(z) = erfcx(z / sqrt 2) / 2`` and
-    ``f = h**2 + x**2`` (``f0`` at ``x1``, ``f1 = f(1)`` at ``x2``); the upper tail is symmetric.
-    Using only non-negative erfcx arguments keeps both tails free of cancellation.
+    The difference of CDFs is written with ``erfc`` of non-negative arguments only,
+    ``Phi(x) = erfc(|x| / sqrt 2) / 2`` for x <= 0 and the upper tail by symmetry, so neither
+    tail cancels. ``erfc`` is accurate relative to its value far into the tail (it
+    underflows only where ``exp(-x**2 / 2)`` does), so the Gaussian factor ``exp(-h**2 / 2)``
+    can stay outside: half the cost of the equivalent ``erfcx(z) exp(-f / 2)`` form.
 
     A tail term at an end where ``f`` exceeds its minimum by more than ``_TAIL`` is below
-    ``exp(-_TAIL / 2)`` of the result (erfcx decreases, and the other end or the peak dominates),
-    so its erfcx is skipped: erfcx of ``inf`` is 0 and costs a fraction of a finite argument.
+    ``exp(-_TAIL / 2)`` of the result (erfc decreases, and the other end or the peak
+    dominates), so its erfc is skipped: erfc of ``inf`` is 0 and costs a fraction of a
+    finite argument.
+
+    ``e0 = exp(-f0 / 2)`` and ``e1 = exp(-f(1) / 2)``, which only the gradients need, are
+    None unless ``ends``.
     """
     inv_len = 1.0 / length
     x1 = -dw * inv_len
     x2 = x1 + length
     f1 = f0 - 2.0 * dw + length * length
     h2 = np.maximum(f0 - x1 * x1, 0.0)
-    e0 = np.exp(-0.5 * f0)
-    e1 = np.exp(-0.5 * f1)
     # Peak before the segment (x1 >= 0), after it (x2 <= 0), or inside it.
     before, after = x1 >= 0.0, x2 <= 0.0
     fmin = np.where(before, f0, np.where(after, f1, h2))
-    g1 = 0.5 * erfcx(np.where(f0 - fmin <= _TAIL, np.abs(x1) * _SQRT_HALF, np.inf)) * e0
-    g2 = 0.5 * erfcx(np.where(f1 - fmin <= _TAIL, np.abs(x2) * _SQRT_HALF, np.inf)) * e1
-    diff = np.where(before, g1 - g2, np.where(after, g2 - g1, np.exp(-0.5 * h2) - g1 - g2))
-    m0 = _SQRT_2PI * inv_len * diff
+    t1 = erfc(np.where(f0 - fmin <= _TAIL, np.abs(x1) * _SQRT_HALF, np.inf))
+    t2 = erfc(np.where(f1 - fmin <= _TAIL, np.abs(x2) * _SQRT_HALF, np.inf))
+    diff = np.where(before, t1 - t2, np.where(after, t2 - t1, 2.0 - t1 - t2))
+    m0 = (0.5 * _SQRT_2PI) * inv_len * np.exp(-0.5 * h2) * diff
+    e0, e1 = (np.exp(-0.5 * f0), np.exp(-0.5 * f1)) if ends else (None, None)
     return m0, x1, x2, e0, e1, h2, inv_len, fmin
 
 
@@ -172,7 +177,7 @@ def _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, d):
 def segment_point(a, d, p, *, eval_gradient=False):
     """Average of the point kernel along a segment, against a point (scaled coordinates).
 
-    ``int_0^1 exp(-|a + v d - p|**2 / 2) dv`` in closed form (:func:`_inner_scalars`, erfcx
+    ``int_0^1 exp(-|a + v d - p|**2 / 2) dv`` in closed form (:func:`_inner_scalars`, erfc
     of non-negative arguments); segments shorter than the cancellation threshold ``_SHORT`` use
     Gauss-Legendre on the (then nearly flat) integrand. No cut-off is applied.
 
@@ -325,7 +330,7 @@ def _point_long_values(w, d, gradient, length=None):
     if length is None:
         length = np.sqrt(_dot(d, d))
     f0, dw = _dot(w, w), _dot(w, d)
-    m0, x1, x2, e0, e1, h2, inv_len, dist2 = _inner_scalars(f0, dw, length)
+    m0, x1, x2, e0, e1, h2, inv_len, dist2 = _inner_scalars(f0, dw, length, gradient is not None)
     if gradient == "aniso":
         return m0, _inner_gradient_aniso(m0, x1, x2, e0, e1, inv_len, w, d), dist2
     if gradient == "iso":
@@ -594,7 +599,9 @@ def _accumulate_panels(k, grad, pair, lo, span, n_nodes, a1, d1, a2, d2, len2, g
     coef_c = _dot(dd1, dd1)
     f0 = _dot(w0, w0)[:, None] + u * (coef_b[:, None] + u * coef_c[:, None])
     dw = _dot(dd2, w0)[:, None] + u * _dot(dd2, dd1)[:, None]
-    m0, x1, x2, e0, e1, h2, inv_len, _ = _inner_scalars(f0, dw, len2[pair][:, None])
+    m0, x1, x2, e0, e1, h2, inv_len, _ = _inner_scalars(
+        f0, dw, len2[pair][:, None], gradient is not None
+    )
     np.add.at(k, pair, (m0 @ w) * span)
     if gradient is None:
         return

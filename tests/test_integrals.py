@@ -195,6 +195,27 @@ def test_segment_point_matches_quad(length, offset):
     assert_close(grad, expected_grad)
 
 
+@pytest.mark.parametrize("length", [_SHORT * 1.001, 0.5, 3.0, 30.0])
+@pytest.mark.parametrize("beyond", [-7.9, -5.0, -2.0, 2.0, 5.0, 7.9])
+@pytest.mark.parametrize("aside", [0.0, 0.5, 3.0])
+def test_segment_point_tails_relative_to_value(length, beyond, aside):
+    # Points past either end along the segment's line (and beside it): the value is a
+    # difference of two far tails of the normal CDF, which must keep its relative digits
+    # up to the cut-off.
+    a = np.array([1.5, -0.5])
+    u = np.array([0.8, 0.6])
+    d = length * u
+    along = beyond if beyond < 0 else length + beyond
+    p = a + along * u + aside * np.array([-0.6, 0.8])
+
+    def f(v):
+        diff = a + v * d - p
+        return np.exp(-0.5 * diff @ diff)
+
+    expected = integrate.quad(f, 0, 1, epsabs=0.0, epsrel=1e-13, limit=200)[0]
+    assert segment_point(a, d, p) == pytest.approx(expected, rel=1e-11, abs=0.0)
+
+
 @pytest.mark.parametrize("length", [0.0, 1e-6, 0.3, 0.999, 1.001, 2.5, 40.0])
 def test_segment_self_matches_quad(length):
     def f(t, power):
