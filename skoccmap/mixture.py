@@ -49,6 +49,8 @@ _NO_RETURN_REFERENCES = 1000
 # (no-return, return) pairs bounded at once, and pairs per no-return beam evaluated first.
 _NO_RETURN_PAIRS = 1 << 18
 _NO_RETURN_FIRST = 4
+# ... and the pairs with the largest loose bound whose exact bound is computed first.
+_NO_RETURN_SCREEN = 16
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
 # Pieces (experts or windows) whose summed evidence learns the shared hyperparameters: a
@@ -219,26 +221,46 @@ def _most_similar(A, B):
     """Index into ``B`` of the most similar segment to each row of ``A``.
 
     Rows in scaled coordinates; found by bounds (see :func:`_assign_no_return`); the
-    nearest segment where none is within the kernel's reach.
+    nearest segment where none is within the kernel's reach. The exact bounds
+    (:func:`~skoccmap._integrals.pair_upper_bound`, which need the segments' distance) are
+    computed only for the pairs a looser, cheaper bound cannot rule out
+    (:func:`~skoccmap._integrals.loose_upper_bound`): the few with the largest loose bound,
+    then every pair whose loose bound reaches the ``_NO_RETURN_FIRST``-th largest exact one
+    or, later, the best similarity found.
     """
-    from ._integrals import _CUTOFF, pair_integrals, pair_upper_bound
+    from ._integrals import _CUTOFF, loose_upper_bound, pair_integrals, pair_upper_bound
 
-    n_first = min(_NO_RETURN_FIRST, B.shape[0])
-    bound, dist2 = pair_upper_bound(np.repeat(A, B.shape[0], axis=0), np.tile(B, (A.shape[0], 1)))
-    bound, dist2 = bound.reshape(A.shape[0], -1), dist2.reshape(A.shape[0], -1)
+    n_a, n_b = A.shape[0], B.shape[0]
+    n_first = min(_NO_RETURN_FIRST, n_b)
+    # Slack for the rounding of the two bounds and of the quadrature against them.
+    slack = 1.0 + 1e-9
+    loose = loose_upper_bound(A, B) * slack
+    bound = np.full((n_a, n_b), -1.0)  # -1: not computed (bounds are >= 0)
+    dist2 = np.full((n_a, n_b), np.inf)
+
+    def exact(ii, jj):
+        bound[ii, jj], dist2[ii, jj] = pair_upper_bound(A[ii], B[jj])
+
+    n_screen = min(_NO_RETURN_SCREEN, n_b)
+    top = np.argpartition(-loose, n_screen - 1, axis=1)[:, :n_screen]
+    exact(np.repeat(np.arange(n_a), n_screen), top.ravel())
+    # Every pair that may be among the n_first largest exact bounds.
+    kth = -np.partition(-bound, n_first - 1, axis=1)[:, n_first - 1]
+    exact(*np.nonzero((loose >= kth[:, None]) & (bound < 0.0)))
     sim = np.full(bound.shape, -np.inf)
     first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
-    ii = np.repeat(np.arange(A.shape[0]), n_first)
+    ii = np.repeat(np.arange(n_a), n_first)
     sim[ii, first.ravel()] = pair_integrals(A[ii], B[first.ravel()])[0]
     best = sim.max(axis=1)
-    # The slack covers rounding of the quadrature against the closed-form bound.
-    ii, jj = np.nonzero(
-        (bound * (1.0 + 1e-9) > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim)
-    )
+    exact(*np.nonzero((loose > best[:, None]) & (bound < 0.0)))
+    ii, jj = np.nonzero((bound * slack > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim))
     sim[ii, jj] = pair_integrals(A[ii], B[jj])[0]
     choice = np.argmax(sim, axis=1)
-    out_of_reach = sim[np.arange(A.shape[0]), choice] <= 0.0
-    choice[out_of_reach] = np.argmin(dist2[out_of_reach], axis=1)
+    out_of_reach = np.flatnonzero(sim[np.arange(n_a), choice] <= 0.0)
+    if out_of_reach.size:
+        rows = A[out_of_reach]
+        _, far = pair_upper_bound(np.repeat(rows, n_b, axis=0), np.tile(B, (rows.shape[0], 1)))
+        choice[out_of_reach] = np.argmin(far.reshape(rows.shape[0], n_b), axis=1)
     return choice
 
 

@@ -13,6 +13,7 @@ from skoccmap._integrals import (
     _SHORT,
     gauss_legendre_order,
     integral_kernel,
+    loose_upper_bound,
     pair_integrals,
     pair_upper_bound,
     segment_point,
@@ -427,6 +428,30 @@ def test_diagonal_of_points_is_exactly_one():
     K = integral_kernel(X, length_scale=0.4)
     assert np.all(np.diag(K)[is_point] == 1.0)
     assert np.all(np.diag(K)[~is_point] < 1.0)
+
+
+@pytest.mark.parametrize("dim", [2, 3, 5])
+@pytest.mark.parametrize("offset", [0.0, 1e3])
+def test_loose_upper_bound_bounds_the_exact_bound(dim, offset):
+    # Random segments, points, segments that touch end to end or cross, and coordinates far
+    # from the origin: the screening bound may never fall below pair_upper_bound.
+    rng = np.random.default_rng(10 * dim)
+    s1 = rng.uniform(-4, 4, size=(60, 2 * dim))
+    s2 = rng.uniform(-4, 4, size=(80, 2 * dim))
+    s2[:10, dim:] = s2[:10, :dim]  # points
+    s1[:5, dim:] = s1[:5, :dim]
+    s2[10:20, :dim] = s1[10:20, dim:]  # touching at an end
+    s2[20:30, :dim] = s1[20:30, dim:]
+    s2[20:30, dim:] = s1[20:30, dim:] + 2.0 * (s1[20:30, dim:] - s1[20:30, :dim])  # collinear
+    s1, s2 = s1 + offset, s2 + offset
+    loose = loose_upper_bound(s1, s2)
+    ii, jj = np.meshgrid(np.arange(len(s1)), np.arange(len(s2)), indexing="ij")
+    exact, _ = pair_upper_bound(s1[ii.ravel()], s2[jj.ravel()])
+    exact = exact.reshape(loose.shape)
+    assert np.all(loose >= exact * (1.0 - 1e-12))
+    # Not vacuous: a useful screen rules out most far pairs.
+    if dim == 2:
+        assert np.mean(loose < 2.0 * exact + 1e-3) > 0.5
 
 
 @pytest.mark.parametrize("dim", [2, 3, 5])
