@@ -10,6 +10,7 @@ every expert so that a query is sent to the experts with data within a *reach* o
 import numpy as np
 from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
+from sklearn.utils.parallel import Parallel, delayed
 
 __all__ = ["ExpertReach", "kernel_reach"]
 
@@ -423,7 +424,7 @@ class ExpertReach:
         for k in np.flatnonzero(np.diff(bounds)):
             yield k, order[bounds[k] : bounds[k + 1]]
 
-    def coverage(self, queries, query_index, expert_index, width):
+    def coverage(self, queries, query_index, expert_index, width, n_jobs=None):
         """How much of the space near each pair's query the pair's expert has data in.
 
         The expert's cells (of side ``cell``) near the query, each weighted by
@@ -432,17 +433,20 @@ class ExpertReach:
         or the reach: a kernel density of the area the expert's training segments cover,
         smooth in the query. It counts where the data are, not how many rows lie there:
         repeated beams through a cell add nothing, as they add little to a GP's posterior.
-        Zero for every pair when the reach is infinite (no cells are indexed).
+        Zero for every pair when the reach is infinite (no cells are indexed). The experts
+        are taken in ``n_jobs`` threads (the k-d tree searches release the GIL); each
+        writes its own pairs, so the result does not depend on ``n_jobs``.
         """
         cover = np.zeros(query_index.size)
         if not np.isfinite(self.reach) or query_index.size == 0:
             return cover
         mids, half = self._mids_and_half_lengths(queries)
         cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
-        for k, pairs in self._pairs_by_expert(expert_index):
+
+        def cover_of(k, pairs):
             tree = self._expert_trees[k]
             if tree is None:
-                continue
+                return
             q = query_index[pairs]
             near = cKDTree(mids[q]).sparse_distance_matrix(
                 tree, cut + half[q].max(), output_type="ndarray"
@@ -451,6 +455,10 @@ class ExpertReach:
             inside = d <= cut
             weight = np.exp(-0.5 * (np.maximum(d[inside], 0.0) / width) ** 2)
             cover[pairs] = np.bincount(near["i"][inside], weights=weight, minlength=q.size)
+
+        Parallel(n_jobs=n_jobs, require="sharedmem")(
+            delayed(cover_of)(k, pairs) for k, pairs in self._pairs_by_expert(expert_index)
+        )
         return cover
 
     def _block_codes(self, mids):

@@ -2236,7 +2236,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """``gating="coverage"``: each candidate's share of the coverage of the query
         (:meth:`ExpertReach.coverage` with width ``coverage_width_``); equal weights where
         no candidate covers it."""
-        cover = self._reach_index.coverage(Xc, query, expert, self.coverage_width_)
+        cover = self._reach_index.coverage(
+            Xc, query, expert, self.coverage_width_, n_jobs=self.n_jobs
+        )
         total = np.bincount(query, weights=cover, minlength=Xc.shape[0])[query]
         return np.where(total > 0, cover / np.where(total > 0, total, 1.0), 1.0)
 

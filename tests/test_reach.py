@@ -263,6 +263,10 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim):
         expected[j] = np.sum(np.exp(-0.5 * (d / width) ** 2))
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-300)
     assert np.any(got > 0) and np.any(got == 0)
+    # Experts taken in threads write their own pairs: the same coverage, bit for bit.
+    threaded = np.empty(query.size)
+    threaded[shuffle] = index.coverage(queries, query[shuffle], cand[shuffle], width, n_jobs=2)
+    np.testing.assert_array_equal(threaded, got)
 
 
 def test_coverage_grows_with_the_data_near_the_query():
