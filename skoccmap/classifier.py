@@ -761,6 +761,12 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
             X = validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
         else:
             X = validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
+        return self._latent(X)
+
+    def _latent(self, X, prior_variance=None):
+        """:meth:`latent_mean_and_variance` of validated queries of a fitted binary model,
+        given their prior variance ``k(x, x)`` when the caller has it (a mixture whose
+        experts share one kernel computes it once for all of them)."""
         n_train = self.X_train_.shape[0]
         mean = np.empty(X.shape[0])
         var = np.empty(X.shape[0])
@@ -768,9 +774,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         posterior = _unpacked(self._posterior, self._posterior_lower)
         for rows in gen_batches(X.shape[0], block):
             K_star = self.kernel_(X[rows], self.X_train_)
-            mean[rows], var[rows] = ep_latent_predictive(
-                K_star, self.kernel_.diag(X[rows]), posterior
-            )
+            k_diag = self.kernel_.diag(X[rows]) if prior_variance is None else prior_variance[rows]
+            mean[rows], var[rows] = ep_latent_predictive(K_star, k_diag, posterior)
         return mean, np.maximum(var, _VAR_FLOOR)
 
     def predict_var(self, X):

@@ -33,7 +33,7 @@ from ._shared_kernel import (
     window_pieces,
 )
 from ._thinning import thin_free_pieces
-from .classifier import _from_lower_triangle, _lower_triangle
+from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .observations import HIT, NO_RETURN, RETURN, split_segments
 
@@ -2319,14 +2319,24 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         variances = np.empty(query.size)
         prior = np.empty(query.size) if needs_prior else None
         bounds = np.searchsorted(expert, np.arange(self.n_experts_ + 1))
+        # One kernel for every expert: its prior variance at the chunk's queries, once.
+        shared_prior = None
+        if self.shared_kernel_ is not None:
+            shared_prior = np.asarray(self.shared_kernel_.diag(Xc), dtype=np.float64)
 
         def predict_expert(k):
             # Each task writes its own slice of the pairs: results do not depend on n_jobs.
             part = slice(bounds[k], bounds[k + 1])
             rows = Xc[query[part]]
-            means[part], variances[part] = self.experts_[k].latent_mean_and_variance(rows)
+            model = self.experts_[k]
+            k_diag = None if shared_prior is None else shared_prior[query[part]]
+            if isinstance(model, EPGaussianProcessClassifier) and model.n_classes_ == 2:
+                # The mixture validated the queries: the expert's own checks only cost.
+                means[part], variances[part] = model._latent(rows, k_diag)
+            else:
+                means[part], variances[part] = model.latent_mean_and_variance(rows)
             if needs_prior:
-                prior[part] = _prior_variance(self.experts_[k], rows)
+                prior[part] = _prior_variance(model, rows) if k_diag is None else k_diag
 
         # Threads, not processes: shipping all experts to workers per chunk costs more than
         # the kernels, which spend their time in numpy calls that release the GIL.
