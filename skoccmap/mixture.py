@@ -831,7 +831,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         (302 / 268 / 192 / 160 / 110 us per point, 1732 / 1607 / 1346 / 1087 / 743
         experts) and a length scale of 1.67 / 1.54 / 1.10 / 1.22 / 1.02 m; on every 10th
         scan 0.9622 / 0.9637 / 0.9645 / 0.9603 / 0.9589 (``None`` against 4 with random
-        states 1 and 2: 0.9619 / 0.9643 and 0.9556 / 0.9561) and 1.16 / 1.46 / 1.24 / 1.21
+        states 1 and 2, ``--datasets aces --random-state 1`` and ``2``: 0.9619 / 0.9643 and
+        0.9556 / 0.9561) and 1.16 / 1.46 / 1.24 / 1.21
         / 1.10 m. The dense office finds 99.9 / 99.9 / 99.9 / 100.0 / 100.0 % of its walls
         at ECE 0.025 / 0.024 / 0.024 / 0.025 / 0.028 with 6.0 / 5.6 / 5.2 / 4.6 / 3.6
         experts per query; the sparse worlds barely change (office walls 98.0 % down to
