@@ -519,7 +519,11 @@ def loose_upper_bound(s1, s2):
     # pair_upper_bound computes for segments that touch.
     scale = 1.0 + np.sqrt(np.maximum(_dot(m1, m1)[:, None], _dot(m2, m2)[None, :]))
     gap = np.maximum(gap - 1e-7 * scale, 0.0)
-    cross = d1 @ d2.T
+    # As _dot forms it in pair_upper_bound, so that the area term is the same to the bit
+    # (a matrix product rounds differently, and nearly parallel long segments cancel).
+    cross = d1[:, None, 0] * d2[None, :, 0]
+    for k in range(1, dim):
+        cross += d1[:, None, k] * d2[None, :, k]
     with np.errstate(divide="ignore"):
         bound = np.exp(-0.5 * gap * gap) * np.minimum(
             1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2[:, None], len2_2[None, :]))

@@ -2115,6 +2115,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 random_state=rng,
             )
         if not windows:
+            # Each expert learns its own kernel: no shared one (a re-learn must not leave
+            # the previous one, which prediction would take for every expert's prior).
+            self.shared_kernel_ = None
             return expert
         _log(self.verbose, f"learning shared hyperparameters on {len(windows)} piece(s)")
         learner = clone(expert)
@@ -2331,7 +2334,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             rows = Xc[query[part]]
             model = self.experts_[k]
             k_diag = None if shared_prior is None else shared_prior[query[part]]
-            if isinstance(model, EPGaussianProcessClassifier) and model.n_classes_ == 2:
+            if type(model) is EPGaussianProcessClassifier and model.n_classes_ == 2:
                 # The mixture validated the queries: the expert's own checks only cost.
                 means[part], variances[part] = model._latent(rows, k_diag)
             else:
