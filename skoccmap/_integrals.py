@@ -382,10 +382,12 @@ def _point_segment_pairs(s1, s2, dim, gradient):
 
 
 def _dot(x, y):
-    """Row-wise dot product of (n, D) arrays (column loop: D is 2 or 3, faster than einsum)."""
-    out = x[:, 0] * y[:, 0]
-    for k in range(1, x.shape[1]):
-        out += x[:, k] * y[:, k]
+    """Dot product over the last axis, e.g. row-wise for (n, D) arrays (column loop: D is 2
+    or 3, faster than einsum). The operands broadcast; the order of the operations is that
+    of the row-wise case, so a broadcast (n1, n2) product equals it to the bit."""
+    out = x[..., 0] * y[..., 0]
+    for k in range(1, x.shape[-1]):
+        out += x[..., k] * y[..., k]
     return out
 
 
@@ -519,11 +521,9 @@ def loose_upper_bound(s1, s2):
     # pair_upper_bound computes for segments that touch.
     scale = 1.0 + np.sqrt(np.maximum(_dot(m1, m1)[:, None], _dot(m2, m2)[None, :]))
     gap = np.maximum(gap - 1e-7 * scale, 0.0)
-    # As _dot forms it in pair_upper_bound, so that the area term is the same to the bit
+    # Formed by _dot as in pair_upper_bound, so that the area term is the same to the bit
     # (a matrix product rounds differently, and nearly parallel long segments cancel).
-    cross = d1[:, None, 0] * d2[None, :, 0]
-    for k in range(1, dim):
-        cross += d1[:, None, k] * d2[None, :, k]
+    cross = _dot(d1[:, None, :], d2[None, :, :])
     with np.errstate(divide="ignore"):
         bound = np.exp(-0.5 * gap * gap) * np.minimum(
             1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2[:, None], len2_2[None, :]))
