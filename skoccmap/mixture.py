@@ -2365,17 +2365,18 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         alone = np.ones(Xc.shape[0], dtype=bool)
         alone[reached] = False
         if np.any(alone):
-            variance[alone] = self._unreached_prior_variance(Xc[alone])
+            variance[alone] = (
+                shared_prior[alone]
+                if shared_prior is not None
+                else self._unreached_prior_variance(Xc[alone])
+            )
         return proba, mean, variance
 
     def _unreached_prior_variance(self, X):
-        """Prior latent variance where no expert reaches: the experts' mean prior precision.
-
-        With shared hyperparameters every expert has the same prior; otherwise the
-        precision is averaged over up to 16 experts spread over the list.
+        """Prior latent variance where no expert reaches, without shared hyperparameters
+        (with them every expert has the shared kernel's prior): the experts' mean prior
+        precision, averaged over up to 16 experts spread over the list.
         """
-        if self.shared_kernel_ is not None:
-            return np.asarray(self.shared_kernel_.diag(X), dtype=np.float64)
         chosen = np.unique(np.linspace(0, self.n_experts_ - 1, 16).astype(int))
         precision = np.mean([1.0 / _prior_variance(self.experts_[k], X) for k in chosen], axis=0)
         return 1.0 / precision
