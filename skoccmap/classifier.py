@@ -169,17 +169,39 @@ def _evaluated_once(obj_func, resolution=_THETA_RESOLUTION):
     return once
 
 
+def _first_step_scale(obj_func, initial_theta):
+    """Largest gradient component at ``initial_theta`` (at least 1): dividing the objective
+    by it makes L-BFGS-B's first step, the negative gradient (its Hessian estimate starts as
+    the identity), move no log-hyperparameter by more than one unit. Unscaled, EP's summed
+    evidence has gradients in the hundreds and the first step went to a bound of the
+    length scale (1e5 or 1e-5 m), an evaluation wasted at a meaningless kernel."""
+    _, grad = obj_func(np.asarray(initial_theta, dtype=float))
+    grad = np.asarray(grad, dtype=float)
+    if grad.size == 0 or not np.all(np.isfinite(grad)):
+        return 1.0
+    return max(1.0, float(np.max(np.abs(grad))))
+
+
 def _minimize_in_bounds(optimizer, obj_func, initial_theta, bounds):
     """Minimise ``obj_func`` over log-hyperparameters within ``bounds``; ``(theta, value)``.
 
     ``optimizer`` is ``"fmin_l_bfgs_b"`` (L-BFGS-B with the analytic gradient, each point
-    evaluated once to :data:`_THETA_RESOLUTION`) or a callable
-    ``optimizer(obj_func, initial_theta, bounds=bounds)``, as in scikit-learn's GPs.
+    evaluated once to :data:`_THETA_RESOLUTION`, the objective scaled by
+    :func:`_first_step_scale`) or a callable ``optimizer(obj_func, initial_theta,
+    bounds=bounds)``, as in scikit-learn's GPs.
     """
     if optimizer == "fmin_l_bfgs_b":
+        once = _evaluated_once(obj_func)
+        scale = _first_step_scale(once, initial_theta)
+
+        def scaled(theta):
+            value, grad = once(theta)
+            return value / scale, np.asarray(grad, dtype=float) / scale
+
         opt_res = scipy.optimize.minimize(
-            _evaluated_once(obj_func), initial_theta, method="L-BFGS-B", jac=True, bounds=bounds
+            scaled, initial_theta, method="L-BFGS-B", jac=True, bounds=bounds
         )
+        opt_res.fun, opt_res.jac = opt_res.fun * scale, opt_res.jac * scale
         # EP's evidence is exact only to EP's tolerance, so near a flat optimum (often at a
         # bound, on separable data) the line search can fail although the projected
         # gradient vanishes: that is convergence, not a warning.

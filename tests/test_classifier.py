@@ -615,6 +615,26 @@ def test_lbfgs_does_not_re_evaluate_a_point_below_the_evidence_noise():
     assert theta[0] == pytest.approx(0.5 + x_star, abs=1e-5)
     assert np.isfinite(value)
 
+
+def test_lbfgs_first_step_moves_at_most_one_log_unit():
+    """Summed EP evidences have gradients in the hundreds: unscaled, L-BFGS-B's first step
+    (the negative gradient) lands on a bound of the length scale."""
+    calls = []
+
+    def obj(theta, eval_gradient=True):
+        calls.append(np.array(theta, copy=True))
+        x = theta - np.array([0.5, -0.3])
+        return 400.0 * np.sum(x**2) + 30.0 * np.sum(x**4), 800.0 * x + 120.0 * x**3
+
+    bounds = np.array([[-11.5, 11.5], [-11.5, 11.5]])
+    theta, value = _minimize_in_bounds("fmin_l_bfgs_b", obj, np.zeros(2), bounds)
+    first_move = calls[1] - calls[0]
+    assert np.array_equal(calls[0], np.zeros(2))
+    assert np.max(np.abs(first_move)) <= 1.0 + 1e-12
+    # The minimiser and the value are those of the unscaled objective.
+    np.testing.assert_allclose(theta, [0.5, -0.3], atol=1e-5)
+    assert value == pytest.approx(0.0, abs=1e-6)
+
 def _holding(clf, X, y, tau, nu, n_held):
     """``clf`` fitted on ``X`` with the first ``n_held`` rows' sites held at ``tau``, ``nu``."""
     tau = np.r_[tau[:n_held], np.zeros(len(X) - n_held)]
