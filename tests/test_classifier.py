@@ -564,7 +564,6 @@ def test_stationarity_ignores_gradients_pressing_on_bounds():
     assert not _is_stationary(result([1.0, 1.0], [0.0, 0.01]), bounds)
 
 
-
 def test_evaluated_once_answers_nearby_points_from_the_first_evaluation():
     calls = []
 
@@ -634,6 +633,7 @@ def test_lbfgs_first_step_moves_at_most_one_log_unit():
     # The minimiser and the value are those of the unscaled objective.
     np.testing.assert_allclose(theta, [0.5, -0.3], atol=1e-5)
     assert value == pytest.approx(0.0, abs=1e-6)
+
 
 def _holding(clf, X, y, tau, nu, n_held):
     """``clf`` fitted on ``X`` with the first ``n_held`` rows' sites held at ``tau``, ``nu``."""
