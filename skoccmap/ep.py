@@ -44,6 +44,10 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 # loses more than ~1e-9 relative accuracy to cancellation; those columns are recomputed exactly.
 _CANCELLATION_THRESHOLD = 1e-4
 
+# Parallel EP has stalled when its largest site residual has not reached a new minimum in this
+# many sweeps; it then goes on with sequential sweeps (see expectation_propagation).
+_STALL_SWEEPS = 20
+
 
 class EPPosterior(NamedTuple):
     """Gaussian approximation q(g) = N(mean, Sigma), Sigma = (K^-1 + diag(tau))^-1.
@@ -325,6 +329,12 @@ def expectation_propagation(
         ``"parallel"`` updates every site from the current marginals, then refactorises
         (O(n^3) per sweep, vectorised). ``"sequential"`` updates one site at a time with rank-one
         updates of Sigma (O(n^2) per site) and refactorises after each sweep, as in R&W.
+        Parallel EP is not guaranteed to converge: at large signal variances on nearly
+        duplicate rows (a wall hit again and again) it can settle into a cycle at the given
+        damping. When its largest residual has not reached a new minimum for 20 sweeps
+        (``_STALL_SWEEPS``) the damping moves halfway to 1; when that stalls too, EP goes on
+        from the current sites with undamped sequential sweeps (R&W Algorithm 3.5 as
+        written) for the rest of ``max_iter``. Both updates have the same fixed point.
     damping : float in [0, 1), default=0.5
         Weight kept on the current sites: ``new = damping * current + (1 - damping) *
         proposed``, in natural parameters. 0 is undamped EP; more damping steadies parallel EP
@@ -366,15 +376,24 @@ def expectation_propagation(
         raise ValueError(f"acceleration must be >= 0, got {acceleration}.")
     posterior = ep_posterior(K, tau, nu)
     if update == "sequential":
-        residual = np.inf
-        for n_iter in range(1, max_iter + 1):
-            tau, nu, posterior, residual = _sequential_sweep(
-                K, y, mean, tau, nu, posterior, damping
-            )
-            if residual <= tol:
-                return EPResult(tau, nu, posterior, n_iter, True, residual)
-        return EPResult(tau, nu, posterior, max_iter, False, residual)
-    return _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, acceleration)
+        return _sequential_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol)
+    result = _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, acceleration)
+    if result.converged or result.n_iter == max_iter:
+        return result
+    # Stalled in a cycle: sequential sweeps from here, within the same budget of sweeps.
+    tau, nu, posterior, done = result[:4]
+    return _sequential_ep(K, y, mean, tau, nu, posterior, 0.0, max_iter - done, tol, done=done)
+
+
+def _sequential_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, done=0):
+    """Sequential sweeps until the residual is within ``tol``; ``done`` sweeps were run
+    before (they count in ``n_iter``)."""
+    residual = np.inf
+    for n_iter in range(1, max_iter + 1):
+        tau, nu, posterior, residual = _sequential_sweep(K, y, mean, tau, nu, posterior, damping)
+        if residual <= tol:
+            return EPResult(tau, nu, posterior, done + n_iter, True, residual)
+    return EPResult(tau, nu, posterior, done + max_iter, False, residual)
 
 
 def _residual(tau, nu, tau_new, nu_new):
@@ -396,19 +415,32 @@ def _proposed_sites(y, mean, tau, nu, posterior):
 
 
 def _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, memory):
-    """Damped parallel EP, with Anderson acceleration of the damped fixed-point map."""
+    """Damped parallel EP, with Anderson acceleration of the damped fixed-point map.
+
+    A first stall (no new smallest residual in ``_STALL_SWEEPS`` sweeps) moves the damping
+    halfway to 1; a second returns, unconverged before ``max_iter`` sweeps."""
     n = tau.shape[0]
     xs, fs = [], []  # past iterates and their damped steps, for Anderson mixing
-    best = np.inf
+    lowest = np.inf
+    best, best_iter, stalls = np.inf, 0, 0
     residual = np.inf
     for n_iter in range(1, max_iter + 1):
         tau_prop, nu_prop = _proposed_sites(y, mean, tau, nu, posterior)
         residual = _residual(tau, nu, tau_prop, nu_prop)
         if residual <= tol:
             return EPResult(tau, nu, posterior, n_iter, True, residual)
-        if residual > 10.0 * best:
+        if residual > 10.0 * lowest:
             xs, fs = [], []  # acceleration is leading away: restart it from here
-        best = min(best, residual)
+        lowest = min(lowest, residual)
+        if residual < best:
+            best, best_iter = residual, n_iter
+        elif n_iter - best_iter >= _STALL_SWEEPS:
+            if stalls:
+                return EPResult(tau, nu, posterior, n_iter, False, residual)
+            # First stall: damp harder (halfway to 1) and restart the acceleration.
+            stalls, damping = 1, 0.5 * (1.0 + damping)
+            xs, fs = [], []
+            best, best_iter = residual, n_iter
         x = np.concatenate([tau, nu])
         step = (1.0 - damping) * np.concatenate([tau_prop - tau, nu_prop - nu])
         x_new = x + step

@@ -12,6 +12,7 @@ from scipy.stats import multivariate_normal, norm
 from sklearn.gaussian_process.kernels import RBF
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
+import skoccmap.ep as ep_module
 from skoccmap.ep import (
     ep_append_sites,
     ep_latent_joint_predictive,
@@ -338,6 +339,28 @@ def test_sequential_and_parallel_reach_the_same_fixed_point():
         np.testing.assert_allclose(res.site_nu, ref.site_nu, rtol=1e-6, atol=1e-9)
         lml = ep_log_marginal_likelihood(K, y, res.site_precision, res.site_nu)
         np.testing.assert_allclose(lml, ref_lml, rtol=1e-6)
+
+
+def _wall_hit_again_and_again():
+    """39 hits within 3 cm of each other and one free point 6 m away, signal variance 1e3:
+    the kernel matrix is numerically singular and damped parallel EP cycles."""
+    rng = np.random.RandomState(0)
+    hits = np.column_stack([21.67 + 0.03 * rng.rand(39), np.full(39, 8.95)])
+    X = np.vstack([[16.07, 6.54], hits])
+    return (C(1e3) * RBF(1.67))(X), np.r_[-1.0, np.ones(39)]
+
+
+def test_parallel_ep_that_cycles_reaches_the_sequential_fixed_point(monkeypatch):
+    K, y = _wall_hit_again_and_again()
+    with monkeypatch.context() as patch:
+        patch.setattr(ep_module, "_STALL_SWEEPS", 10**9)  # the plain damped iteration
+        cycling = expectation_propagation(K, y)
+    assert not cycling.converged and cycling.residual > 1e-2
+    res = expectation_propagation(K, y, tol=1e-10)
+    ref = expectation_propagation(K, y, update="sequential", damping=0.0, tol=1e-10)
+    assert res.converged and res.n_iter <= 200
+    np.testing.assert_allclose(res.posterior.mean, ref.posterior.mean, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(res.posterior.var, ref.posterior.var, rtol=1e-6, atol=1e-9)
 
 
 @pytest.mark.parametrize("ard", [False, True])
