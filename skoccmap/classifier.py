@@ -243,7 +243,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     ep_update : {"parallel", "sequential"}, default="parallel"
         ``"parallel"`` updates all sites from the current marginals and refactorises once per
         sweep; ``"sequential"`` updates one site at a time with rank-one updates. Both reach
-        the same fixed point.
+        the same fixed point. Parallel EP that stalls in a cycle damps harder and then
+        finishes with sequential sweeps (see :func:`skoccmap.ep.expectation_propagation`).
     damping : float in [0, 1), default=0.5
         Weight kept on the current site parameters in each update: ``new = damping * current
         + (1 - damping) * proposed``. 0 is undamped EP. Raise it if parallel EP oscillates
