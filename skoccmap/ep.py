@@ -45,7 +45,8 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _CANCELLATION_THRESHOLD = 1e-4
 
 # Parallel EP has stalled when its largest site residual has not reached a new minimum in this
-# many sweeps; it then goes on with sequential sweeps (see expectation_propagation).
+# many sweeps; it then damps harder, and after a second stall goes on with sequential sweeps
+# (see expectation_propagation).
 _STALL_SWEEPS = 20
 
 
@@ -418,7 +419,8 @@ def _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, memory)
     """Damped parallel EP, with Anderson acceleration of the damped fixed-point map.
 
     A first stall (no new smallest residual in ``_STALL_SWEEPS`` sweeps) moves the damping
-    halfway to 1; a second returns, unconverged before ``max_iter`` sweeps."""
+    halfway to 1; a second stall returns the current sites, unconverged, before ``max_iter``
+    sweeps."""
     n = tau.shape[0]
     xs, fs = [], []  # past iterates and their damped steps, for Anderson mixing
     lowest = np.inf
