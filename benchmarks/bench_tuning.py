@@ -36,7 +36,8 @@ between two values is the draw of one fit (clustering sample, thinning, learning
 ``gating`` (with the threshold that suits each gate), ``gating_threshold`` and
 ``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
 ``max_beam_length`` (with ``beam_end_length`` 0.35, and the whole-beam model with both
-``None``), ``beam_end_length``, ``piece_assignment``, ``nearest_hit_radius``,
+``None``), ``beam_end_length``, ``max_pieces_per_cell``, ``min_hit_frequency`` (with the
+share of hits left out as transient), ``piece_assignment``, ``nearest_hit_radius``,
 ``share_hyperparameters``, ``hyperparameter_window`` (with
 the learned length scale; ``--datasets aces_all`` adds ACES trained on every scan, for the
 length scale's stability against the density of the scans), and the default expert's signal
@@ -166,6 +167,11 @@ FITS = {
     "cap_8": ({"max_pieces_per_cell": 8}, "max_pieces_per_cell=8"),
     "cap_4": ({"max_pieces_per_cell": 4}, "max_pieces_per_cell=4"),
     "cap_2": ({"max_pieces_per_cell": 2}, "max_pieces_per_cell=2"),
+    "hits_none": ({"min_hit_frequency": None}, "min_hit_frequency=None"),
+    "hits_0.1": ({"min_hit_frequency": 0.1}, "min_hit_frequency=0.1"),
+    "hits_0.3": ({"min_hit_frequency": 0.3}, "min_hit_frequency=0.3"),
+    "hits_0.4": ({"min_hit_frequency": 0.4}, "min_hit_frequency=0.4"),
+    "hits_0.5": ({"min_hit_frequency": 0.5}, "min_hit_frequency=0.5"),
     "pieces_beam": ({"piece_assignment": "beam"}, 'piece_assignment="beam"'),
     "radius_1": ({"nearest_hit_radius": 1.0}, "nearest_hit_radius=1"),
     "radius_4": ({"nearest_hit_radius": 4.0}, "nearest_hit_radius=4"),
@@ -311,6 +317,21 @@ SWEEPS = [
         ],
         quick=("None", "4"),
         extra=("length_scale", "predict", "consulted", "fit"),
+    ),
+    Sweep(
+        "min_hit_frequency",
+        "`min_hit_frequency` (hits left out where 0.1 m cells count hits / (hits + passes) "
+        "below it)",
+        [
+            Entry("None", "hits_none"),
+            Entry("0.1", "hits_0.1"),
+            Entry("0.2", "default", default=True),
+            Entry("0.3", "hits_0.3"),
+            Entry("0.4", "hits_0.4"),
+            Entry("0.5", "hits_0.5"),
+        ],
+        quick=("None", "0.2"),
+        extra=("transient", "thickness"),
     ),
     Sweep(
         "piece_assignment",
@@ -636,6 +657,10 @@ EXTRA_COLUMNS = {
     "length_scale": ("length scale m", _value("length_scale", ".3f")),
     "thickness": ("thickness m", _value("wall_thickness", ".2f")),
     "fit": ("fit s", _value("fit_s", ".0f")),
+    "transient": (
+        "transient hits %",
+        lambda row: fmt(100 * row["transient_hits"], ".2f") if "transient_hits" in row else "",
+    ),
     "signal": ("signal variance", _value("signal_variance", ".3g")),
     "kernel": ("learned kernel", lambda row: str(row.get("kernel", ""))),
 }

@@ -151,6 +151,14 @@ def add_model_arguments(parser):
         "('none': every piece; default 4)",
     )
     parser.add_argument(
+        "--min-hit-frequency",
+        type=_fraction_or_none,
+        default=0.2,
+        help="hits in 0.1 m cells that free beams cross more often than this fraction of "
+        "their visits (hits / (hits + passes) below it) are transient and left out "
+        "('none': keep every hit; default 0.2)",
+    )
+    parser.add_argument(
         "--learn-all-hyperparameters",
         action="store_true",
         help="learn kernel hyperparameters per expert (slow) instead of once, shared",
@@ -184,6 +192,7 @@ def _or_none(convert, what, valid, bound):
 
 _length_or_none = _or_none(float, "a length in metres", lambda v: v > 0, "a positive length")
 _count_or_none = _or_none(int, "a whole number", lambda v: v >= 1, "at least 1")
+_fraction_or_none = _or_none(float, "a number", lambda v: 0 <= v <= 1, "between 0 and 1")
 
 
 def make_mixture(args):
@@ -195,6 +204,7 @@ def make_mixture(args):
         max_beam_length=args.max_beam_length,
         beam_end_length=args.beam_end_length,
         max_pieces_per_cell=args.max_pieces_per_cell,
+        min_hit_frequency=args.min_hit_frequency,
         share_hyperparameters=not args.learn_all_hyperparameters,
         n_jobs=args.n_jobs,
         random_state=args.seed,

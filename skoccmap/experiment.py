@@ -125,8 +125,8 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                     kernel=single_kernel, optimizer=None, random_state=random_state
                 )
         else:
-            # The paper's model: every whole beam with its hit, both hyperparameters learned,
-            # gated by the clusters of hits.
+            # The paper's model: every whole beam with its hit, every hit, both
+            # hyperparameters learned, gated by the clusters of hits.
             models[method] = MixtureGPOccupancyMap(
                 expert=EPGaussianProcessClassifier(kernel=_signal_and_integral_kernel()),
                 gating="clusterer",
@@ -135,6 +135,7 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                 beam_end_length=None,
                 piece_assignment="beam",
                 max_pieces_per_cell=None,
+                min_hit_frequency=None,
                 n_jobs=n_jobs,
                 random_state=random_state,
             )

@@ -87,10 +87,12 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
 @pytest.mark.parametrize(
     "options, expected",
     [
-        ([], (1.0, 0.35, 4)),
-        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4)),
-        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None)),
-        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2)),
+        ([], (1.0, 0.35, 4, 0.2)),
+        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4, 0.2)),
+        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None, 0.2)),
+        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2, 0.2)),
+        (["--min-hit-frequency", "none"], (1.0, 0.35, 4, None)),
+        (["--min-hit-frequency", "0.4"], (1.0, 0.35, 4, 0.4)),
     ],
 )
 def test_beam_piece_options_reach_the_mixture(options, expected):
@@ -99,13 +101,20 @@ def test_beam_piece_options_reach_the_mixture(options, expected):
 
     args = build_parser().parse_args(["map", "log.txt", *options])
     model = make_mixture(args)
-    assert (model.max_beam_length, model.beam_end_length, model.max_pieces_per_cell) == expected
+    settings = (
+        model.max_beam_length,
+        model.beam_end_length,
+        model.max_pieces_per_cell,
+        model.min_hit_frequency,
+    )
+    assert settings == expected
 
 
 @pytest.mark.parametrize(
     "option, value",
     [("--max-beam-length", v) for v in ["0", "-1", "long"]]
-    + [("--max-pieces-per-cell", v) for v in ["0", "1.5", "many"]],
+    + [("--max-pieces-per-cell", v) for v in ["0", "1.5", "many"]]
+    + [("--min-hit-frequency", v) for v in ["-0.1", "2", "often"]],
 )
 def test_bad_beam_piece_option_is_refused(option, value, capsys):
     from skoccmap.cli import build_parser

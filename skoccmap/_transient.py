@@ -1,0 +1,123 @@
+"""Hits that the free beams contradict: transient obstacles.
+
+A person walking down a corridor is hit by a few beams of a few scans, and the same spot
+is crossed by dozens of beams before and after. A GP classifier whose probit is nearly a
+step (signal variance 1e3) takes every label as a constraint it must meet, so the few
+hits draw a dark blob a length scale wide however many beams crossed the spot, where a
+counting grid, which weighs the hits against the passes, draws free space. Counting the
+hits in and the free beams through every cell, as the frequency grid does, finds those
+hits: a hit whose cell counts ``hits / (hits + passes)`` below a bound is left out of
+the experts' training rows (its beam stays free evidence).
+
+The counts live on an unbounded grid of absolute cell coordinates, so that the counts of
+online updates add up to the counts of all rows seen.
+"""
+
+import numpy as np
+
+from .baselines import _traverse_flat
+
+__all__ = ["CellCounts"]
+
+# Free rows traversed at once (the counting grid's chunk).
+_CHUNK = 100_000
+
+
+class CellCounts:
+    """Hits in and free rows through the cells of side ``cell_size``, summed over updates.
+
+    Cells are counted as :class:`skoccmap.baselines.FrequencyGridMap` counts them: a hit in
+    the cell holding it, a free row in every cell it crosses except its end cell (a row
+    inside one cell passes that cell).
+
+    Parameters
+    ----------
+    cell_size : float
+        Cell edge (metres).
+    n_dims : int
+        Spatial dimension D.
+    """
+
+    def __init__(self, cell_size, n_dims):
+        self.cell_size = float(cell_size)
+        self.n_dims = int(n_dims)
+        self._bits = 62 // self.n_dims
+        self.keys = np.empty(0, dtype=np.int64)
+        self.hits = np.empty(0, dtype=np.int64)
+        self.passes = np.empty(0, dtype=np.int64)
+
+    def _cells(self, points):
+        return np.floor(points / self.cell_size).astype(np.int64)
+
+    def _check_range(self, cells):
+        half = 1 << (self._bits - 1)
+        if cells.size and np.abs(cells).max() >= half:
+            raise ValueError(
+                f"Coordinates beyond {half * self.cell_size:g} m of the origin cannot be "
+                "counted in cells; move the data's origin near the map."
+            )
+
+    def _keys(self, cells):
+        """One int64 per cell: the offset coordinates side by side, ``62 // D`` bits each."""
+        keys = np.zeros(cells.shape[0], dtype=np.int64)
+        for column in (cells + (1 << (self._bits - 1))).T:
+            keys = (keys << self._bits) | column
+        return keys
+
+    def add(self, X, occupied):
+        """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits)."""
+        d = self.n_dims
+        starts, ends = X[:, :d], X[:, d:]
+        self._check_range(self._cells(starts))
+        self._check_range(self._cells(ends))
+        keys = [self._keys(self._cells(ends[occupied]))]
+        is_hit = [np.ones(keys[0].size, dtype=bool)]
+        free = np.flatnonzero(~occupied)
+        for lo in range(0, free.size, _CHUNK):
+            rows = free[lo : lo + _CHUNK]
+            ends_cell = self._cells(ends[rows])
+            low = np.minimum(self._cells(starts[rows]).min(axis=0), ends_cell.min(axis=0))
+            shape = np.maximum(self._cells(starts[rows]).max(axis=0), ends_cell.max(axis=0))
+            shape = tuple(int(s) for s in shape - low + 1)
+            # Grid units from the absolute cell coordinates, so that every batch rounds a
+            # point to the same cell.
+            q0 = starts[rows] / self.cell_size - low
+            q1 = ends[rows] / self.cell_size - low
+            seg, flat = _traverse_flat(q0, q1, shape)
+            # The end and start cells as the traversal floors them.
+            top = np.asarray(shape) - 1
+            first = np.ravel_multi_index(
+                tuple(np.clip(np.floor(q0), 0, top).astype(np.int64).T), shape
+            )
+            last = np.ravel_multi_index(
+                tuple(np.clip(np.floor(q1), 0, top).astype(np.int64).T), shape
+            )
+            keep = (flat != last[seg]) | (first[seg] == last[seg])
+            cells = np.column_stack(np.unravel_index(flat[keep], shape)) + low
+            keys.append(self._keys(cells))
+            is_hit.append(np.zeros(cells.shape[0], dtype=bool))
+        keys, is_hit = np.concatenate([self.keys, *keys]), np.concatenate(is_hit)
+        n_old = self.keys.size
+        self.keys, inverse = np.unique(keys, return_inverse=True)
+        inverse = inverse.ravel()
+        old, new = inverse[:n_old], inverse[n_old:]
+        hits = np.bincount(new[is_hit], minlength=self.keys.size)
+        passes = np.bincount(new[~is_hit], minlength=self.keys.size)
+        hits[old] += self.hits
+        passes[old] += self.passes
+        self.hits, self.passes = hits, passes
+        return self
+
+    def frequency(self, points):
+        """``hits / (hits + passes)`` of the cells holding ``points`` (1 where uncounted)."""
+        cells = self._cells(points)
+        self._check_range(cells)
+        keys = self._keys(cells)
+        pos = np.searchsorted(self.keys, keys).clip(0, max(self.keys.size - 1, 0))
+        out = np.ones(keys.size)
+        if self.keys.size == 0:
+            return out
+        found = self.keys[pos] == keys
+        hits, passes = self.hits[pos[found]], self.passes[pos[found]]
+        out[found] = hits / np.maximum(hits + passes, 1)
+        return out

@@ -1,0 +1,97 @@
+import numpy as np
+import pytest
+
+from skoccmap import MixtureGPOccupancyMap
+from skoccmap._transient import CellCounts
+from skoccmap.baselines import FrequencyGridMap
+from skoccmap.datasets import make_office_scans
+
+
+def _random_rows(rng, n_dims, n_beams=300, n_hits=200):
+    starts = rng.uniform(-3, 3, size=(n_beams, n_dims))
+    ends = starts + rng.normal(scale=1.5, size=(n_beams, n_dims))
+    hits = rng.uniform(-3, 3, size=(n_hits, n_dims))
+    X = np.vstack([np.hstack([starts, ends]), np.hstack([hits, hits])])
+    y = np.r_[np.zeros(n_beams, int), np.ones(n_hits, int)]
+    return X, y
+
+
+@pytest.mark.parametrize("n_dims", [2, 3])
+def test_counts_are_the_frequency_grid_counts(n_dims):
+    X, y = _random_rows(np.random.default_rng(n_dims), n_dims)
+    counts = CellCounts(0.1, n_dims).add(X, y == 1)
+    grid = FrequencyGridMap(resolution=0.1).fit(X, y)
+    hits = X[y == 1, n_dims:]
+    np.testing.assert_array_equal(counts.frequency(hits), grid.predict_proba(X[y == 1])[:, 1])
+    # Cells where nothing was counted hold no evidence against a hit.
+    assert counts.frequency(np.full((1, n_dims), 100.0))[0] == 1.0
+
+
+def test_counts_of_batches_add_up_to_the_counts_of_all_rows():
+    X, y = _random_rows(np.random.default_rng(0), 2)
+    order = np.random.default_rng(1).permutation(len(X))
+    X, y = X[order], y[order]
+    whole = CellCounts(0.1, 2).add(X, y == 1)
+    parts = CellCounts(0.1, 2)
+    for rows in np.array_split(np.arange(len(X)), 3):
+        parts.add(X[rows], y[rows] == 1)
+    np.testing.assert_array_equal(parts.keys, whole.keys)
+    np.testing.assert_array_equal(parts.hits, whole.hits)
+    np.testing.assert_array_equal(parts.passes, whole.passes)
+
+
+def test_coordinates_too_far_to_count_are_an_error():
+    X = np.array([[0.0, 0.0, 1e12, 0.0]])
+    with pytest.raises(ValueError, match="cannot be counted"):
+        CellCounts(0.1, 2).add(X, np.array([False]))
+
+
+@pytest.fixture(scope="module")
+def office_with_a_passer_by():
+    """The office, and someone standing where many beams pass, seen from three poses."""
+    office = make_office_scans(random_state=0)
+    X, y = office.X, office.y
+    grid = FrequencyGridMap(resolution=0.1).fit(X, y)
+    cell = np.argsort(-(grid.passes_ * (grid.hits_ == 0)))[8]
+    index = np.unravel_index(grid.cell_index_[cell], grid.shape_)
+    spot = grid.origin_ + (np.array(index) + 0.5) * 0.1
+    assert grid.passes_[cell] >= 20
+    poses = office.scans.poses[:, :2]
+    rows = []
+    for k in np.argsort(np.linalg.norm(poses - spot, axis=1))[1:4]:
+        toward = (spot - poses[k]) / np.linalg.norm(spot - poses[k])
+        hit = spot + np.random.default_rng(k).normal(scale=0.03, size=2)
+        rows += [np.r_[hit, hit], np.r_[poses[k], hit - 0.05 * toward]]
+    return np.vstack([X, rows]), np.r_[y, [1, 0] * 3], spot
+
+
+def test_hits_the_beams_contradict_are_left_out(office_with_a_passer_by):
+    X, y, spot = office_with_a_passer_by
+    query = np.r_[spot, spot][None, :]
+    model = MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    assert model.transient_hits_.shape == (X.shape[0],)
+    assert model.transient_hits_[-6::2].all() and not model.transient_hits_[-5::2].any()
+    # A few wall cells that grazing beams cross more often than the wall is hit, no more.
+    assert model.transient_hits_.sum() < 0.01 * (y == 1).sum()
+    assert model.predict_proba(query)[0, 1] < 0.2
+    # Kept, the two hits draw an occupied blob among the free beams.
+    kept = MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(X, y)
+    assert not kept.transient_hits_.any()
+    assert kept.predict_proba(query)[0, 1] > 0.5
+
+
+def test_online_updates_count_every_row_seen(office_with_a_passer_by):
+    X, y, _ = office_with_a_passer_by
+    # The passer-by's rows arrive last: the beams of the earlier batches contradict them.
+    online = MixtureGPOccupancyMap(random_state=0)
+    half = X.shape[0] // 2
+    online.partial_fit(X[:half], y[:half]).partial_fit(X[half:], y[half:])
+    assert online.transient_hits_.shape == (X.shape[0],)
+    assert online.transient_hits_[-6::2].all()
+    assert (online._piece_y == 1).sum() == (y == 1).sum() - online.transient_hits_.sum()
+
+
+def test_bad_min_hit_frequency_is_rejected(office_with_a_passer_by):
+    X, y, _ = office_with_a_passer_by
+    with pytest.raises(ValueError, match="min_hit_frequency"):
+        MixtureGPOccupancyMap(min_hit_frequency=1.5).fit(X, y)
