@@ -867,9 +867,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         walking through the held-out scans as occupied: trained on every scan, 1621 of
         ACES' 7122 held-out hits lie in cells the training beams call transient (below
         0.2), and without them 0.2 ranks the held-out points better than keeping every hit
-        (0.9964 against 0.9956: the same fits scored without those points, ad hoc): its loss with every scan
-        is the map no longer drawing where people walked. Higher values lose the dense
-        log's walls as well.
+        (0.9964 against 0.9956: the same fits scored without those points, ad hoc): its
+        loss with every scan is the map no longer drawing where people walked. Higher
+        values cost the dense log more AUC and the sparse worlds some walls.
     piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
         Which expert a free piece (of a beam cut by ``max_beam_length`` and
         ``beam_end_length``) joins. ``"beam"``: its beam's, i.e. its hit's (the paper's
