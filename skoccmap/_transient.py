@@ -65,7 +65,11 @@ class CellCounts:
         return keys
 
     def add(self, X, occupied):
-        """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits)."""
+        """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits).
+
+        The count arrays are replaced, never written into: a shallow copy of these counts
+        keeps its own.
+        """
         d = self.n_dims
         starts, ends = X[:, :d], X[:, d:]
         self._check_range(self._cells(starts))

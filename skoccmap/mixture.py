@@ -5,6 +5,7 @@ The hit points are clustered; every observation joins a cluster; one GP classifi
 the experts, whose latent predictions are merged by a rule of :mod:`skoccmap.combine`.
 """
 
+import copy
 import re
 import sys
 import threading
@@ -1304,7 +1305,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             X, self.observation_kind_, self.max_beam_length, self.beam_end_length
         )
         self._cell_counts = None
-        self.transient_hits_ = self._transient_hits(X, occupied)
+        self.transient_hits_, self._cell_counts = self._transient_hits(X, occupied)
         pieces, source = self._thinned(pieces, source, y_enc, rng, self.transient_hits_)
         d = X.shape[1] // 2
         hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
@@ -1339,17 +1340,18 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     def _transient_hits(self, X, occupied):
         """Rows that are hits contradicted by the free rows (``min_hit_frequency``),
-        counting every row seen so far."""
+        counting every row seen so far, and the counts with these rows added (a new
+        object: ``partial_fit`` commits it with the rest of its update)."""
         transient = np.zeros(X.shape[0], dtype=bool)
         if self.min_hit_frequency is None:
-            return transient
+            return transient, self._cell_counts
         d = X.shape[1] // 2
-        if self._cell_counts is None:
-            self._cell_counts = CellCounts(_HIT_CELL_SIZE, d)
-        self._cell_counts.add(X, occupied)
-        frequency = self._cell_counts.frequency(X[occupied, d:])
+        counts = self._cell_counts
+        counts = CellCounts(_HIT_CELL_SIZE, d) if counts is None else copy.copy(counts)
+        counts.add(X, occupied)
+        frequency = counts.frequency(X[occupied, d:])
         transient[np.flatnonzero(occupied)[frequency < self.min_hit_frequency]] = True
-        return transient
+        return transient, counts
 
     def _thinned(self, pieces, source, y_enc, rng, transient, kept=None):
         """``pieces`` and ``source`` without the transient hits and the free pieces
@@ -1679,7 +1681,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # 3. Pieces of the new rows, appended to the training state. Old pieces keep
         # their hit even where a new hit lies nearer.
         pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
-        transient = self._transient_hits(X, occupied)
+        transient, cell_counts = self._transient_hits(X, occupied)
         pieces, source = self._thinned(
             pieces, source, y_enc, rng, transient, kept=self._pieces[self._piece_y != 1]
         )
@@ -1773,6 +1775,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.touched_experts_ = touched
         self.observation_kind_ = np.concatenate([self.observation_kind_, kinds])
         self.transient_hits_ = np.concatenate([self.transient_hits_, transient])
+        self._cell_counts = cell_counts
         self.cluster_labels_ = row_expert
         self._hits, self._hit_expert = all_hits, all_hit_expert
         self._row_hit = row_hit

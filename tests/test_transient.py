@@ -1,3 +1,5 @@
+import copy
+
 import numpy as np
 import pytest
 
@@ -38,6 +40,12 @@ def test_counts_of_batches_add_up_to_the_counts_of_all_rows():
     np.testing.assert_array_equal(parts.keys, whole.keys)
     np.testing.assert_array_equal(parts.hits, whole.hits)
     np.testing.assert_array_equal(parts.passes, whole.passes)
+    # Adding to a shallow copy leaves the original's counts as they were.
+    before = copy.copy(parts)
+    keys, hits = before.keys.copy(), before.hits.copy()
+    copy.copy(before).add(X, y == 1)
+    np.testing.assert_array_equal(before.keys, keys)
+    np.testing.assert_array_equal(before.hits, hits)
 
 
 def test_coordinates_too_far_to_count_are_an_error():
