@@ -167,8 +167,8 @@ FITS = {
     "cap_8": ({"max_pieces_per_cell": 8}, "max_pieces_per_cell=8"),
     "cap_4": ({"max_pieces_per_cell": 4}, "max_pieces_per_cell=4"),
     "cap_2": ({"max_pieces_per_cell": 2}, "max_pieces_per_cell=2"),
-    "hits_none": ({"min_hit_frequency": None}, "min_hit_frequency=None"),
     "hits_0.1": ({"min_hit_frequency": 0.1}, "min_hit_frequency=0.1"),
+    "hits_0.2": ({"min_hit_frequency": 0.2}, "min_hit_frequency=0.2"),
     "hits_0.3": ({"min_hit_frequency": 0.3}, "min_hit_frequency=0.3"),
     "hits_0.4": ({"min_hit_frequency": 0.4}, "min_hit_frequency=0.4"),
     "hits_0.5": ({"min_hit_frequency": 0.5}, "min_hit_frequency=0.5"),
@@ -323,9 +323,9 @@ SWEEPS = [
         "`min_hit_frequency` (hits left out where 0.1 m cells count hits / (hits + passes) "
         "below it)",
         [
-            Entry("None", "hits_none"),
+            Entry("None", "default", default=True),
             Entry("0.1", "hits_0.1"),
-            Entry("0.2", "default", default=True),
+            Entry("0.2", "hits_0.2"),
             Entry("0.3", "hits_0.3"),
             Entry("0.4", "hits_0.4"),
             Entry("0.5", "hits_0.5"),

@@ -153,10 +153,10 @@ def add_model_arguments(parser):
     parser.add_argument(
         "--min-hit-frequency",
         type=_fraction_or_none,
-        default=0.2,
-        help="hits in 0.1 m cells that free beams cross more often than this fraction of "
-        "their visits (hits / (hits + passes) below it) are transient and left out "
-        "('none': keep every hit; default 0.2)",
+        default=None,
+        help="leave out the hits of 0.1 m cells that free beams cross so often that hits / "
+        "(hits + passes) is below this: people walking by (0.2 clears them; default none: "
+        "keep every hit)",
     )
     parser.add_argument(
         "--learn-all-hyperparameters",

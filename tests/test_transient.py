@@ -76,14 +76,14 @@ def office_with_a_passer_by():
 def test_hits_the_beams_contradict_are_left_out(office_with_a_passer_by):
     X, y, spot = office_with_a_passer_by
     query = np.r_[spot, spot][None, :]
-    model = MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    model = MixtureGPOccupancyMap(min_hit_frequency=0.2, random_state=0).fit(X, y)
     assert model.transient_hits_.shape == (X.shape[0],)
     assert model.transient_hits_[-6::2].all() and not model.transient_hits_[-5::2].any()
     # A few wall cells that grazing beams cross more often than the wall is hit, no more.
     assert model.transient_hits_.sum() < 0.01 * (y == 1).sum()
     assert model.predict_proba(query)[0, 1] < 0.2
     # Kept, the two hits draw an occupied blob among the free beams.
-    kept = MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(X, y)
+    kept = MixtureGPOccupancyMap(random_state=0).fit(X, y)
     assert not kept.transient_hits_.any()
     assert kept.predict_proba(query)[0, 1] > 0.5
 
@@ -91,7 +91,7 @@ def test_hits_the_beams_contradict_are_left_out(office_with_a_passer_by):
 def test_online_updates_count_every_row_seen(office_with_a_passer_by):
     X, y, _ = office_with_a_passer_by
     # The passer-by's rows arrive last: the beams of the earlier batches contradict them.
-    online = MixtureGPOccupancyMap(random_state=0)
+    online = MixtureGPOccupancyMap(min_hit_frequency=0.2, random_state=0)
     half = X.shape[0] // 2
     online.partial_fit(X[:half], y[:half]).partial_fit(X[half:], y[half:])
     assert online.transient_hits_.shape == (X.shape[0],)
