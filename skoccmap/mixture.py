@@ -851,7 +851,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         counted as :class:`~skoccmap.baselines.FrequencyGridMap` counts them, over every
         row seen, :meth:`partial_fit` calls included) is taken for a transient obstacle
         -- someone walking by, a door that moved -- and marked in ``transient_hits_``;
-        its beam stays free evidence. An expert's probit is nearly a step at the default
+        its beam stays free evidence, and the pieces that would have followed it follow
+        the nearest hit that is not transient. An expert's probit is nearly a step at the default
         signal variance, so it meets every label it is given: three hits of a passer-by
         among dozens of beams draw a dark blob a length scale wide in ACES' corridors,
         where a counting grid, which weighs hits against passes, draws free space. 0.2
@@ -1314,7 +1315,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         pieces, source = self._thinned(pieces, source, y_enc, rng, self.transient_hits_)
         d = X.shape[1] // 2
         hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
-        piece_hit = self._piece_hits(pieces, y_enc[source], row_hit[source], hits)
+        piece_hit = self._piece_hits(
+            pieces, y_enc[source], row_hit[source], hits, self.transient_hits_[occupied]
+        )
         hit_expert = self._split_clusters(hits, labels[occupied], pieces, piece_hit)
         piece_expert = hit_expert[piece_hit]
         self.cluster_labels_ = hit_expert[row_hit]
@@ -1376,8 +1379,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         )
         return pieces[keep], source[keep]
 
-    def _piece_hits(self, pieces, piece_y, anchor_hit, hits):
+    def _piece_hits(self, pieces, piece_y, anchor_hit, hits, transient_hit):
         """The hit (index into ``hits``) each piece follows, and so its expert.
+
+        Transient hits (``transient_hit``, see ``min_hit_frequency``) take no pieces:
+        pieces that would follow one follow the hit nearest to it that is not transient,
+        so that no expert is left with the free space around a passer-by and no hit.
 
         ``anchor_hit`` is the anchor hit of each piece's row, which ``"beam"`` keeps.
         ``"nearest_hit"``: a free piece within ``nearest_hit_radius`` of a hit follows the
@@ -1387,15 +1394,22 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         split below one hit). A hit has room for ``max_expert_size // 2`` pieces (see
         :func:`_nearest_with_room`).
         """
-        if self.piece_assignment == "beam" or hits.shape[0] == 0:
+        lasting = np.flatnonzero(~transient_hit)
+        if lasting.size == 0:
             return anchor_hit
-        free = np.flatnonzero(piece_y != 1)
+        tree = _hit_tree(hits[lasting])
         piece_hit = anchor_hit.copy()
+        moved = transient_hit[piece_hit]
+        if np.any(moved):
+            piece_hit[moved] = lasting[tree.query(hits[piece_hit[moved]])[1]]
+        if self.piece_assignment == "beam":
+            return piece_hit
+        free = np.flatnonzero(piece_y != 1)
         # A hit takes at most half an expert of pieces: with dense scans thousands lie
         # around one hit, and an expert is never split below one.
         cap = np.inf if self.max_expert_size is None else max(self.max_expert_size // 2, 1)
         chosen = _nearest_with_room(
-            _hit_tree(hits),
+            tree,
             _midpoints(pieces[free]),
             self.nearest_hit_radius,
             cap,
@@ -1403,7 +1417,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             workers=_query_workers(self.n_jobs),
         )
         taken = chosen >= 0
-        piece_hit[free[taken]] = chosen[taken]
+        piece_hit[free[taken]] = lasting[chosen[taken]]
         return piece_hit
 
     # -- online mapping --------------------------------------------------------------
@@ -1690,7 +1704,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         pieces, source = self._thinned(
             pieces, source, y_enc, rng, transient, kept=self._pieces[self._piece_y != 1]
         )
-        new_piece_hit = self._piece_hits(pieces, y_enc[source], anchor[source], all_hits)
+        hit_rows = np.concatenate([self.observation_kind_, kinds]) == HIT
+        new_piece_hit = self._piece_hits(
+            pieces,
+            y_enc[source],
+            anchor[source],
+            all_hits,
+            np.concatenate([self.transient_hits_, transient])[hit_rows],
+        )
         all_pieces = np.vstack([self._pieces, pieces])
         piece_y = np.concatenate([self._piece_y, y_enc[source]])
         piece_hit = np.concatenate([self._piece_hit, new_piece_hit])

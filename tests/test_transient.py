@@ -82,6 +82,8 @@ def test_hits_the_beams_contradict_are_left_out(office_with_a_passer_by):
     # A few wall cells that grazing beams cross more often than the wall is hit, no more.
     assert model.transient_hits_.sum() < 0.01 * (y == 1).sum()
     assert model.predict_proba(query)[0, 1] < 0.2
+    # No piece follows a transient hit: no expert holds a passer-by's free space alone.
+    assert not model.transient_hits_[y == 1][model._piece_hit].any()
     # Kept, the two hits draw an occupied blob among the free beams.
     kept = MixtureGPOccupancyMap(random_state=0).fit(X, y)
     assert not kept.transient_hits_.any()
@@ -96,6 +98,7 @@ def test_online_updates_count_every_row_seen(office_with_a_passer_by):
     online.partial_fit(X[:half], y[:half]).partial_fit(X[half:], y[half:])
     assert online.transient_hits_.shape == (X.shape[0],)
     assert online.transient_hits_[-6::2].all()
+    assert not online.transient_hits_[y == 1][online._piece_hit].any()
     assert (online._piece_y == 1).sum() == (y == 1).sum() - online.transient_hits_.sum()
 
 
