@@ -862,19 +862,18 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         dense logs. On the tuning data (``benchmarks/bench_tuning.py --only
         min_hit_frequency``, seed 100) ``None`` / 0.1 / 0.2 / 0.3 / 0.4 / 0.5 leave out
         0 / 0.5 / 2.8 / 7.1 / 12.4 / 15.4 % of ACES' hits trained on every 10th scan, at
-        held-out AUC 0.9603 / 0.9609 / 0.9625 / 0.9673 / 0.9642 / 0.9657, and 0 / 6.0 /
-        11.6 / 18.8 / 26.4 / 36.0 % trained on every scan, at 0.9782 / 0.9723 / 0.9720 /
-        0.9598 / 0.9537 / 0.9366; the simulated worlds, where nothing moves, keep every
+        held-out AUC 0.9603 / 0.9630 / 0.9683 / 0.9688 / 0.9701 / 0.9667, and 0 / 6.0 /
+        11.6 / 18.8 / 26.4 / 36.0 % trained on every scan, at 0.9782 / 0.9774 / 0.9745 /
+        0.9662 / 0.9718 / 0.9704; the simulated worlds, where nothing moves, keep every
         score up to 0.3 and lose up to a point of walls found at 0.4 and 0.5. Part of the
         dense log's loss is the protocol's: its held-out hits include the people of the
-        held-out scans, and trained on every scan, without the 1621 of ACES' 7122 held-out
-        hits that lie in cells the training beams call transient, 0.2 ranks the held-out
-        points better than keeping every hit (0.9964 against 0.9956: the same fits scored
-        without those points, ad hoc). The rest is walls: where passes of a log do not
-        quite align, beams cross wall cells that other passes hit: on the Intel log (B4 of
-        ``benchmarks/bench_quality.py``, report seeds) 0.2 scores 0.9792 / 0.9713 / 0.9515
-        trained on every 1st / 10th / 40th scan against 0.9899 / 0.9756 / 0.9513 with every
-        hit, and most of the hits it leaves out lie on walls, door frames and furniture.
+        held-out scans (about a fifth of ACES' held-out hits lie in cells the training
+        beams call transient). The rest is walls: where passes of a log do not quite
+        align, beams cross wall cells that other passes hit, and on the Intel log most of
+        the hits 0.2 leaves out lie on walls, door frames and furniture (B4 of
+        ``benchmarks/bench_quality.py`` measured Intel before transient hits stopped
+        taking beam pieces: 0.9792 / 0.9713 / 0.9515 trained on every 1st / 10th / 40th
+        scan against 0.9899 / 0.9756 / 0.9513 with every hit; see benchmarks/README.md).
         Use it for a navigation map of a log with people in it
         (``skoccmap map --min-hit-frequency 0.2``), and look at ``transient_hits_``.
     piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
