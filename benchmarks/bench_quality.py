@@ -509,6 +509,8 @@ def run_logs(args, result, save, cache):
     methods = log_methods(args.methods)
     logs = result.setdefault("logs", {"rows": [], "summary": [], "protocol": {}})
     for name, (path, role, title) in LOGS.items():
+        if name not in args.logs:
+            continue
         if not path.is_file():
             print(f"\nB4 logs: {path} not found, skipped", flush=True)
             logs["protocol"][name] = {"skipped": f"{path} not found"}
@@ -956,6 +958,13 @@ def parse_args(argv=None):
         choices=FAMILIES,
         default=list(FAMILIES),
         help="methods to run (default all)",
+    )
+    parser.add_argument(
+        "--logs",
+        nargs="+",
+        choices=tuple(LOGS),
+        default=list(LOGS),
+        help="real logs to run (default all)",
     )
     parser.add_argument(
         "--logs-every",
