@@ -871,9 +871,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         beams call transient). The rest is walls: where passes of a log do not quite
         align, beams cross wall cells that other passes hit, and on the Intel log most of
         the hits 0.2 leaves out lie on walls, door frames and furniture (B4 of
-        ``benchmarks/bench_quality.py`` measured Intel before transient hits stopped
-        taking beam pieces: 0.9792 / 0.9713 / 0.9515 trained on every 1st / 10th / 40th
-        scan against 0.9899 / 0.9756 / 0.9513 with every hit; see benchmarks/README.md).
+        ``benchmarks/bench_quality.py``, report seeds: 0.9839 / 0.9702 / 0.9518 trained
+        on every 1st / 10th / 40th scan against 0.9899 / 0.9756 / 0.9513 with every hit).
         Use it for a navigation map of a log with people in it
         (``skoccmap map --min-hit-frequency 0.2``), and look at ``transient_hits_``.
     piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
