@@ -852,8 +852,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         row seen, :meth:`partial_fit` calls included) is taken for a transient obstacle
         -- someone walking by, a door that moved -- and marked in ``transient_hits_``;
         its beam stays free evidence, and the pieces that would have followed it follow
-        the nearest hit that is not transient. An expert's probit is nearly a step at the default
-        signal variance, so it meets every label it is given: three hits of a passer-by
+        the nearest hit that is not transient. An expert's probit is nearly a step at the
+        default signal variance, so it meets every label it is given: three hits of a passer-by
         among dozens of beams draw a dark blob a length scale wide in ACES' corridors,
         where a counting grid, which weighs hits against passes, draws free space. 0.2
         (about the free threshold of ROS' map_server, 0.196: a hit is left out where a
