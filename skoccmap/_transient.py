@@ -15,7 +15,7 @@ online updates add up to the counts of all rows seen.
 
 import numpy as np
 
-from .baselines import _traverse_flat
+from .baselines import _passed_cells
 
 __all__ = ["CellCounts"]
 
@@ -65,7 +65,8 @@ class CellCounts:
         return keys
 
     def add(self, X, occupied):
-        """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits).
+        """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits); free rows
+        pass the cells :func:`skoccmap.baselines._passed_cells` says.
 
         The count arrays are replaced, never written into: a shallow copy of these counts
         keeps its own.
@@ -79,25 +80,16 @@ class CellCounts:
         free = np.flatnonzero(~occupied)
         for lo in range(0, free.size, _CHUNK):
             rows = free[lo : lo + _CHUNK]
-            ends_cell = self._cells(ends[rows])
-            low = np.minimum(self._cells(starts[rows]).min(axis=0), ends_cell.min(axis=0))
-            shape = np.maximum(self._cells(starts[rows]).max(axis=0), ends_cell.max(axis=0))
-            shape = tuple(int(s) for s in shape - low + 1)
+            first, last = self._cells(starts[rows]), self._cells(ends[rows])
+            low = np.minimum(first.min(axis=0), last.min(axis=0))
+            high = np.maximum(first.max(axis=0), last.max(axis=0))
+            shape = tuple(int(n) for n in high - low + 1)
             # Grid units from the absolute cell coordinates, so that every batch rounds a
             # point to the same cell.
-            q0 = starts[rows] / self.cell_size - low
-            q1 = ends[rows] / self.cell_size - low
-            seg, flat = _traverse_flat(q0, q1, shape)
-            # The end and start cells as the traversal floors them.
-            top = np.asarray(shape) - 1
-            first = np.ravel_multi_index(
-                tuple(np.clip(np.floor(q0), 0, top).astype(np.int64).T), shape
+            _, flat = _passed_cells(
+                starts[rows] / self.cell_size - low, ends[rows] / self.cell_size - low, shape
             )
-            last = np.ravel_multi_index(
-                tuple(np.clip(np.floor(q1), 0, top).astype(np.int64).T), shape
-            )
-            keep = (flat != last[seg]) | (first[seg] == last[seg])
-            cells = np.column_stack(np.unravel_index(flat[keep], shape)) + low
+            cells = np.column_stack(np.unravel_index(flat, shape)) + low
             keys.append(self._keys(cells))
             is_hit.append(np.zeros(cells.shape[0], dtype=bool))
         keys, is_hit = np.concatenate([self.keys, *keys]), np.concatenate(is_hit)

@@ -157,6 +157,24 @@ def _traverse_flat(q0, q1, shape):
     return np.concatenate(seg_parts), np.concatenate(flat_parts)
 
 
+def _passed_cells(q0, q1, shape):
+    """The cells free segments pass, in grid units: (segment, flat cell) pairs.
+
+    Every cell a segment crosses (:func:`_traverse_flat`) except its end cell, as OctoMap's
+    ray update does, so a beam ending a few centimetres short of its hit does not pass the
+    hit's cell; a segment inside a single cell passes that cell.
+    """
+    seg, flat = _traverse_flat(q0, q1, shape)
+    top = np.asarray(shape) - 1
+
+    def cell(q):
+        return np.ravel_multi_index(tuple(np.clip(np.floor(q), 0, top).astype(np.int64).T), shape)
+
+    first, last = cell(q0)[seg], cell(q1)[seg]
+    keep = (flat != last) | (first == last)
+    return seg[keep], flat[keep]
+
+
 # --------------------------------------------------------------------------------------------
 # Shared by the estimators
 # --------------------------------------------------------------------------------------------
@@ -274,12 +292,9 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         return rows, self._flat(self._cell_of(ends[rows]))
 
     def _free_cells(self, starts, ends, hit):
-        """Chunks of (row, flat cell) pairs: the cells each free row passes.
-
-        Every cell a free row crosses (exact traversal) except its end cell, as OctoMap's ray
-        update does, so a beam ending a few centimetres short of its hit does not pass the
-        hit's cell; a free row inside a single cell passes that cell. Free rows longer than
-        ``max_free_length`` pass nothing. ``chunk_size`` rows are traversed at once.
+        """Chunks of (row, flat cell) pairs: the cells each free row passes
+        (:func:`_passed_cells`). Free rows longer than ``max_free_length`` pass nothing.
+        ``chunk_size`` rows are traversed at once.
         """
         free = np.flatnonzero(~hit)
         if self.max_free_length is not None:
@@ -288,13 +303,10 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         res = float(self.resolution)
         for lo in range(0, free.size, self.chunk_size):
             rows = free[lo : lo + self.chunk_size]
-            seg, flat = _traverse_flat(
+            seg, flat = _passed_cells(
                 (starts[rows] - self.origin_) / res, (ends[rows] - self.origin_) / res, self.shape_
             )
-            end_flat = self._flat(self._cell_of(ends[rows]))[seg]
-            start_flat = self._flat(self._cell_of(starts[rows]))[seg]
-            keep = (flat != end_flat) | (start_flat == end_flat)
-            yield rows[seg[keep]], flat[keep]
+            yield rows[seg], flat
 
     def _cell_position(self, X):
         """Position in ``cell_index_`` of the cell holding each query's midpoint, else -1."""
