@@ -241,9 +241,15 @@ def log_methods(families):
     # The grids with every beam and with the protocol's 40 m bound on free beams (the
     # Hilbert map's default), both fixed before any result.
     r, bound = LOG_GRID_RESOLUTION, HILBERT_MAX_BEAM_RANGE
-    methods = [MIXTURE, TRANSIENT_MIXTURE, _frequency(r), _frequency(r, bound), _octomap(r)]
-    methods.append(_octomap(r, bound))
-    methods.append(HILBERT)
+    methods = [
+        MIXTURE,
+        TRANSIENT_MIXTURE,
+        _frequency(r),
+        _frequency(r, bound),
+        _octomap(r),
+        _octomap(r, bound),
+        HILBERT,
+    ]
     return [m for m in methods if m.family in families]
 
 

@@ -1308,8 +1308,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         pieces, source = _beam_pieces(
             X, self.observation_kind_, self.max_beam_length, self.beam_end_length
         )
-        self._cell_counts = None
-        self.transient_hits_, self._cell_counts = self._transient_hits(X, occupied)
+        self.transient_hits_, self._cell_counts = self._transient_hits(X, occupied, None)
         pieces, source = self._thinned(pieces, source, y_enc, rng, self.transient_hits_)
         d = X.shape[1] // 2
         hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
@@ -1344,15 +1343,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.touched_experts_ = np.arange(self.n_experts_)
         return self
 
-    def _transient_hits(self, X, occupied):
+    def _transient_hits(self, X, occupied, counts):
         """Rows that are hits contradicted by the free rows (``min_hit_frequency``),
-        counting every row seen so far, and the counts with these rows added (a new
-        object: ``partial_fit`` commits it with the rest of its update)."""
+        counting these rows and those of ``counts`` (the rows seen before, or None), and
+        the counts with these rows added (a new object: ``partial_fit`` commits it with the
+        rest of its update)."""
         transient = np.zeros(X.shape[0], dtype=bool)
         if self.min_hit_frequency is None:
-            return transient, self._cell_counts
+            return transient, counts
         d = X.shape[1] // 2
-        counts = self._cell_counts
         counts = CellCounts(_HIT_CELL_SIZE, d) if counts is None else copy.copy(counts)
         counts.add(X, occupied)
         frequency = counts.frequency(X[occupied, d:])
@@ -1698,7 +1697,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # 3. Pieces of the new rows, appended to the training state. Old pieces keep
         # their hit even where a new hit lies nearer.
         pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
-        transient, cell_counts = self._transient_hits(X, occupied)
+        transient, cell_counts = self._transient_hits(X, occupied, self._cell_counts)
         pieces, source = self._thinned(
             pieces, source, y_enc, rng, transient, kept=self._pieces[self._piece_y != 1]
         )
