@@ -7,7 +7,9 @@ hits draw a dark blob a length scale wide however many beams crossed the spot, w
 counting grid, which weighs the hits against the passes, draws free space. Counting the
 hits in and the free beams through every cell, as the frequency grid does, finds those
 hits: a hit whose cell counts ``hits / (hits + passes)`` below a bound is left out of
-the experts' training rows (its beam stays free evidence).
+the experts' training rows (its beam stays free evidence). A passer-by leaves a few hits
+in a cell; a wall seen from many poses collects more, however many beams of poses that do
+not quite align with it cross its cells, so a cell hit more than a few times keeps its hits.
 
 The counts live on an unbounded grid of absolute cell coordinates, so that the counts of
 online updates add up to the counts of all rows seen.
@@ -104,16 +106,22 @@ class CellCounts:
         self.hits, self.passes = hits, passes
         return self
 
-    def frequency(self, points):
-        """``hits / (hits + passes)`` of the cells holding ``points`` (1 where uncounted)."""
+    def counted(self, points):
+        """Hits in and free rows through the cells holding ``points`` (0 where uncounted)."""
         cells = self._cells(points)
         self._check_range(cells)
         keys = self._keys(cells)
-        pos = np.searchsorted(self.keys, keys).clip(0, max(self.keys.size - 1, 0))
-        out = np.ones(keys.size)
+        hits = np.zeros(keys.size, dtype=np.int64)
+        passes = np.zeros(keys.size, dtype=np.int64)
         if self.keys.size == 0:
-            return out
+            return hits, passes
+        pos = np.searchsorted(self.keys, keys).clip(0, self.keys.size - 1)
         found = self.keys[pos] == keys
-        hits, passes = self.hits[pos[found]], self.passes[pos[found]]
-        out[found] = hits / np.maximum(hits + passes, 1)
-        return out
+        hits[found], passes[found] = self.hits[pos[found]], self.passes[pos[found]]
+        return hits, passes
+
+    def frequency(self, points):
+        """``hits / (hits + passes)`` of the cells holding ``points`` (1 where uncounted)."""
+        hits, passes = self.counted(points)
+        seen = hits + passes
+        return np.where(seen > 0, hits / np.maximum(seen, 1), 1.0)

@@ -124,6 +124,9 @@ _NEAREST_HITS = 32
 # Cells (metres) in which ``min_hit_frequency`` counts hits and passes: the counting grid of
 # the Hilbert-maps protocol.
 _HIT_CELL_SIZE = 0.1
+# ... and a cell hit more often than this is lasting structure whatever its frequency: a
+# passer-by leaves a few hits per cell, a wall seen from many poses collects more.
+_MAX_TRANSIENT_HITS = 3
 
 
 def _hit_tree(points):
@@ -1354,8 +1357,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         d = X.shape[1] // 2
         counts = CellCounts(_HIT_CELL_SIZE, d) if counts is None else copy.copy(counts)
         counts.add(X, occupied)
-        frequency = counts.frequency(X[occupied, d:])
-        transient[np.flatnonzero(occupied)[frequency < self.min_hit_frequency]] = True
+        hits = X[occupied, d:]
+        left_out = (counts.frequency(hits) < self.min_hit_frequency) & (
+            counts.counted(hits)[0] <= _MAX_TRANSIENT_HITS
+        )
+        transient[np.flatnonzero(occupied)[left_out]] = True
         return transient, counts
 
     def _thinned(self, pieces, source, y_enc, rng, transient, kept=None):

@@ -106,3 +106,18 @@ def test_bad_min_hit_frequency_is_rejected(office_with_a_passer_by):
     X, y, _ = office_with_a_passer_by
     with pytest.raises(ValueError, match="min_hit_frequency"):
         MixtureGPOccupancyMap(min_hit_frequency=1.5).fit(X, y)
+
+
+@pytest.mark.parametrize("n_hits, left_out", [(3, True), (4, False)])
+def test_a_cell_hit_more_than_a_few_times_keeps_its_hits(n_hits, left_out):
+    # Forty beams cross the cell [0, 0.1)^2 and end 2 m beyond it; hits in it from elsewhere.
+    y_beam = np.linspace(0.01, 0.09, 40)
+    beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 2.0), y_beam])
+    hits = np.tile([0.05, 0.05, 0.05, 0.05], (n_hits, 1))
+    ends = np.column_stack([np.full(40, 2.0), y_beam, np.full(40, 2.0), y_beam])
+    X = np.vstack([beams, hits, ends])
+    y = np.r_[np.zeros(40, int), np.ones(n_hits + 40, int)]
+    model = MixtureGPOccupancyMap(min_hit_frequency=0.2, random_state=0).fit(X, y)
+    # n_hits / (n_hits + 40) is below 0.2 either way: the count decides.
+    assert model.transient_hits_[40 : 40 + n_hits].all() == left_out
+    assert not model.transient_hits_[40 + n_hits :].any()
