@@ -153,10 +153,10 @@ def add_model_arguments(parser):
     parser.add_argument(
         "--min-hit-frequency",
         type=_fraction_or_none,
-        default=None,
-        help="leave out the hits of 0.1 m cells that free beams cross so often that hits / "
-        "(hits + passes) is below this: people walking by (0.2 clears them; default none: "
-        "keep every hit)",
+        default=0.2,
+        help="leave out the hits of 0.1 m cells hit at most 3 times that free beams cross so "
+        "often that hits / (hits + passes) is below this: people walking by ('none': keep "
+        "every hit; default 0.2)",
     )
     parser.add_argument(
         "--learn-all-hyperparameters",

@@ -848,36 +848,32 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         97.8 % at 2). 4 is the smallest cap that keeps every score of keeping all pieces.
     piece_cell_size : float, default=0.2
         Side (metres) of the cells ``max_pieces_per_cell`` counts pieces in.
-    min_hit_frequency : float or None, default=None
+    min_hit_frequency : float or None, default=0.2
         Leaves out of the experts' rows the hits that the free beams contradict: a hit
-        whose 0.1 m cell counts ``hits / (hits + passes)`` below this (hits and free rows
-        counted as :class:`~skoccmap.baselines.FrequencyGridMap` counts them, over every
-        row seen, :meth:`partial_fit` calls included) is taken for a transient obstacle
-        -- someone walking by, a door that moved -- and marked in ``transient_hits_``;
-        its beam stays free evidence, and the pieces that would have followed it follow
-        the nearest hit that is not transient. An expert's probit is nearly a step at the
-        default signal variance, so it meets every label it is given: three hits of a passer-by
-        among dozens of beams draw a dark blob a length scale wide in ACES' corridors,
-        where a counting grid, which weighs hits against passes, draws free space. 0.2
-        (about the free threshold of ROS' map_server, 0.196: a hit is left out where a
-        counting grid would call its cell free) clears those corridors; ``None`` keeps
-        every hit (the paper's model). Off by default, because it costs held-out AUC on
-        dense logs. On the tuning data (``benchmarks/bench_tuning.py --only
-        min_hit_frequency``, seed 100) ``None`` / 0.1 / 0.2 / 0.3 / 0.4 / 0.5 leave out
-        0 / 0.5 / 2.8 / 7.1 / 12.4 / 15.4 % of ACES' hits trained on every 10th scan, at
-        held-out AUC 0.9603 / 0.9630 / 0.9683 / 0.9688 / 0.9701 / 0.9667, and 0 / 6.0 /
-        11.6 / 18.8 / 26.4 / 36.0 % trained on every scan, at 0.9782 / 0.9774 / 0.9745 /
-        0.9662 / 0.9718 / 0.9704; the simulated worlds, where nothing moves, keep every
-        score up to 0.3 and lose up to a point of walls found at 0.4 and 0.5. Part of the
-        dense log's loss is the protocol's: its held-out hits include the people of the
-        held-out scans (about a fifth of ACES' held-out hits lie in cells the training
-        beams call transient). The rest is walls: where passes of a log do not quite
-        align, beams cross wall cells that other passes hit, and on the Intel log most of
-        the hits 0.2 leaves out lie on walls, door frames and furniture (B4 of
-        ``benchmarks/bench_quality.py``, report seeds: 0.9839 / 0.9702 / 0.9518 trained
-        on every 1st / 10th / 40th scan against 0.9899 / 0.9756 / 0.9513 with every hit).
-        Use it for a navigation map of a log with people in it
-        (``skoccmap map --min-hit-frequency 0.2``), and look at ``transient_hits_``.
+        whose 0.1 m cell counts ``hits / (hits + passes)`` below this and holds at most 3
+        hits (hits and free rows counted as :class:`~skoccmap.baselines.FrequencyGridMap`
+        counts them, over every row seen, :meth:`partial_fit` calls included) is taken for
+        a transient obstacle -- someone walking by, a door that moved -- and marked in
+        ``transient_hits_``; its beam stays free evidence, and the pieces that would have
+        followed it follow the nearest hit that is not transient. An expert's probit is
+        nearly a step at the default signal variance, so it meets every label it is
+        given: three hits of a passer-by among dozens of beams draw a dark blob a length
+        scale wide in ACES' corridors, where a counting grid, which weighs hits against
+        passes, draws free space. 0.2 (about the free threshold of ROS' map_server, 0.196:
+        a hit is left out where a counting grid would call its cell free) clears those
+        corridors. A passer-by leaves a few hits per cell; a cell hit more than 3 times is
+        lasting structure, however many beams cross it: where the passes of a log do not
+        quite align, beams cross wall cells that other passes hit, and without that bound
+        0.2 left out 11.6 % of ACES' hits trained on every scan, most of them on walls.
+        ``None`` keeps every hit (the paper's model). Chosen on the tuning data
+        (``benchmarks/bench_tuning.py --only min_hit_frequency``, seed 100): ``None`` /
+        0.2 leave out 0 / 2.8 % of ACES' hits trained on every 10th scan, at held-out AUC
+        0.9603 / 0.9683, and 0 / 3.5 % trained on every scan, at 0.9782 / 0.9769 (0.9745
+        without the bound on the hits per cell); the simulated worlds, where nothing
+        moves, keep every score. Part of the dense log's loss is the protocol's: its
+        held-out hits include the people of the held-out scans (about a fifth of ACES'
+        held-out hits lie in cells the training beams call transient). Look at
+        ``transient_hits_`` to see what was left out.
     piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
         Which expert a free piece (of a beam cut by ``max_beam_length`` and
         ``beam_end_length``) joins. ``"beam"``: its beam's, i.e. its hit's (the paper's
@@ -1213,7 +1209,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         beam_end_length=0.35,
         max_pieces_per_cell=4,
         piece_cell_size=0.2,
-        min_hit_frequency=None,
+        min_hit_frequency=0.2,
         piece_assignment="nearest_hit",
         nearest_hit_radius=2.0,
         share_hyperparameters=True,

@@ -87,11 +87,11 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
 @pytest.mark.parametrize(
     "options, expected",
     [
-        ([], (1.0, 0.35, 4, None)),
-        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4, None)),
-        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None, None)),
-        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2, None)),
-        (["--min-hit-frequency", "0.2"], (1.0, 0.35, 4, 0.2)),
+        ([], (1.0, 0.35, 4, 0.2)),
+        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4, 0.2)),
+        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None, 0.2)),
+        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2, 0.2)),
+        (["--min-hit-frequency", "none"], (1.0, 0.35, 4, None)),
         (["--min-hit-frequency", "0.4"], (1.0, 0.35, 4, 0.4)),
     ],
 )

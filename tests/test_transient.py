@@ -85,7 +85,7 @@ def test_hits_the_beams_contradict_are_left_out(office_with_a_passer_by):
     # No piece follows a transient hit: no expert holds a passer-by's free space alone.
     assert not model.transient_hits_[y == 1][model._piece_hit].any()
     # Kept, the two hits draw an occupied blob among the free beams.
-    kept = MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    kept = MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(X, y)
     assert not kept.transient_hits_.any()
     assert kept.predict_proba(query)[0, 1] > 0.5
 
