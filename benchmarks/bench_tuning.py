@@ -36,7 +36,8 @@ between two values is the draw of one fit (clustering sample, thinning, learning
 ``gating`` (with the threshold that suits each gate), ``gating_threshold`` and
 ``reach_tolerance`` (experts consulted per query), ``max_expert_size``,
 ``max_beam_length`` (with ``beam_end_length`` 0.35, and the whole-beam model with both
-``None``), ``beam_end_length``, ``max_pieces_per_cell``, ``min_hit_frequency`` (with the
+``None``), ``beam_end_length``, ``max_pieces_per_cell``, ``piece_cell_size``,
+``min_hit_frequency`` (with the
 share of hits left out as transient), ``piece_assignment``, ``nearest_hit_radius``,
 ``share_hyperparameters``, ``hyperparameter_window`` (with
 the learned length scale; ``--datasets aces_all`` adds ACES trained on every scan, for the
@@ -167,8 +168,11 @@ FITS = {
     "cap_8": ({"max_pieces_per_cell": 8}, "max_pieces_per_cell=8"),
     "cap_4": ({"max_pieces_per_cell": 4}, "max_pieces_per_cell=4"),
     "cap_2": ({"max_pieces_per_cell": 2}, "max_pieces_per_cell=2"),
+    "piece_cell_0.3": ({"piece_cell_size": 0.3}, "piece_cell_size=0.3"),
+    "piece_cell_0.4": ({"piece_cell_size": 0.4}, "piece_cell_size=0.4"),
+    "piece_cell_0.6": ({"piece_cell_size": 0.6}, "piece_cell_size=0.6"),
+    "hits_none": ({"min_hit_frequency": None}, "min_hit_frequency=None"),
     "hits_0.1": ({"min_hit_frequency": 0.1}, "min_hit_frequency=0.1"),
-    "hits_0.2": ({"min_hit_frequency": 0.2}, "min_hit_frequency=0.2"),
     "hits_0.3": ({"min_hit_frequency": 0.3}, "min_hit_frequency=0.3"),
     "hits_0.4": ({"min_hit_frequency": 0.4}, "min_hit_frequency=0.4"),
     "hits_0.5": ({"min_hit_frequency": 0.5}, "min_hit_frequency=0.5"),
@@ -319,13 +323,25 @@ SWEEPS = [
         extra=("length_scale", "predict", "consulted", "fit"),
     ),
     Sweep(
+        "piece_cell_size",
+        "`piece_cell_size` (side of the cells `max_pieces_per_cell` counts pieces in)",
+        [
+            Entry("0.2", "default", default=True),
+            Entry("0.3", "piece_cell_0.3"),
+            Entry("0.4", "piece_cell_0.4"),
+            Entry("0.6", "piece_cell_0.6"),
+        ],
+        quick=("0.2", "0.4"),
+        extra=("length_scale", "predict", "consulted", "fit"),
+    ),
+    Sweep(
         "min_hit_frequency",
         "`min_hit_frequency` (hits left out where 0.1 m cells count hits / (hits + passes) "
         "below it)",
         [
-            Entry("None", "default", default=True),
+            Entry("None", "hits_none"),
             Entry("0.1", "hits_0.1"),
-            Entry("0.2", "hits_0.2"),
+            Entry("0.2", "default", default=True),
             Entry("0.3", "hits_0.3"),
             Entry("0.4", "hits_0.4"),
             Entry("0.5", "hits_0.5"),
