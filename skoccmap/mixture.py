@@ -129,6 +129,18 @@ _HIT_CELL_SIZE = 0.1
 _MAX_TRANSIENT_HITS = 3
 
 
+def _warn_if_every_hit_transient(transient_hit, bound):
+    """A map whose every hit was left out as transient shows no obstacle: say so."""
+    if transient_hit.size and transient_hit.all():
+        warnings.warn(
+            f"Every hit was left out as transient (min_hit_frequency={bound}): free beams "
+            "cross each hit's cell far more often than it is hit, so the map shows no "
+            "obstacle. Set min_hit_frequency=None to keep every hit.",
+            UserWarning,
+            stacklevel=3,
+        )
+
+
 def _hit_tree(points):
     """k-d tree over hit points, for nearest-hit queries.
 
@@ -1319,6 +1331,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             X, self.observation_kind_, self.max_beam_length, self.beam_end_length
         )
         self.transient_hits_, self._cell_counts = self._transient_hits(X, occupied, None)
+        _warn_if_every_hit_transient(self.transient_hits_[occupied], self.min_hit_frequency)
+        if self.min_hit_frequency is not None:
+            _log(
+                self.verbose,
+                f"{int(self.transient_hits_.sum())} of {int(occupied.sum())} hits left out as "
+                f"transient (min_hit_frequency={self.min_hit_frequency})",
+            )
         pieces, source = self._thinned(pieces, source, y_enc, rng, self.transient_hits_)
         d = X.shape[1] // 2
         hits, row_hit = X[occupied, :d], (np.cumsum(occupied) - 1)[anchor]
@@ -1715,12 +1734,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             pieces, source, y_enc, rng, transient, kept=self._pieces[self._piece_y != 1]
         )
         hit_rows = np.concatenate([self.observation_kind_, kinds]) == HIT
+        transient_hit = np.concatenate([self.transient_hits_, transient])[hit_rows]
+        _warn_if_every_hit_transient(transient_hit, self.min_hit_frequency)
         new_piece_hit = self._piece_hits(
-            pieces,
-            y_enc[source],
-            anchor[source],
-            all_hits,
-            np.concatenate([self.transient_hits_, transient])[hit_rows],
+            pieces, y_enc[source], anchor[source], all_hits, transient_hit
         )
         all_pieces = np.vstack([self._pieces, pieces])
         piece_y = np.concatenate([self._piece_y, y_enc[source]])

@@ -531,6 +531,7 @@ def test_verbose_reports_progress(paper, capsys):
     _mixture(verbose=2, max_expert_size=100).fit(paper.X, paper.y)
     out = capsys.readouterr().out
     assert "clustering" in out and "expert(s) fitted" in out and "split" in out
+    assert "hits left out as transient" in out
 
 
 # --- bad input ------------------------------------------------------------------------

@@ -1,4 +1,5 @@
 import copy
+import warnings
 
 import numpy as np
 import pytest
@@ -121,3 +122,20 @@ def test_a_cell_hit_more_than_a_few_times_keeps_its_hits(n_hits, left_out):
     # n_hits / (n_hits + 40) is below 0.2 either way: the count decides.
     assert model.transient_hits_[40 : 40 + n_hits].all() == left_out
     assert not model.transient_hits_[40 + n_hits :].any()
+
+
+def test_a_map_without_a_lasting_hit_says_so():
+    # Three hits in one cell that forty beams cross, and no other hit.
+    y_beam = np.linspace(0.01, 0.09, 40)
+    beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 2.0), y_beam])
+    X = np.vstack([beams, np.tile([0.05, 0.05, 0.05, 0.05], (3, 1))])
+    y = np.r_[np.zeros(40, int), np.ones(3, int)]
+    with pytest.warns(UserWarning, match="Every hit was left out as transient"):
+        MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    with pytest.warns(UserWarning, match="Every hit was left out as transient"):
+        MixtureGPOccupancyMap(random_state=0).partial_fit(X, y, classes=[0, 1])
+    # Kept, the hits make a map with an obstacle and no warning.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        model = MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(X, y)
+    assert model.predict_proba(X[-1:])[0, 1] > 0.5
