@@ -111,7 +111,8 @@ def test_bad_min_hit_frequency_is_rejected(office_with_a_passer_by):
 
 @pytest.mark.parametrize("n_hits, left_out", [(3, True), (4, False)])
 def test_a_cell_hit_more_than_a_few_times_keeps_its_hits(n_hits, left_out):
-    # Forty beams cross the cell [0, 0.1)^2 and end 2 m beyond it; hits in it from elsewhere.
+    # Forty beams cross the cell [0, 0.1)^2 and end in hits 2 m beyond it (one cell hit 40
+    # times); n_hits more hits, of beams from elsewhere, lie in the crossed cell.
     y_beam = np.linspace(0.01, 0.09, 40)
     beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 2.0), y_beam])
     hits = np.tile([0.05, 0.05, 0.05, 0.05], (n_hits, 1))
