@@ -15,6 +15,8 @@ The counts live on an unbounded grid of absolute cell coordinates, so that the c
 online updates add up to the counts of all rows seen.
 """
 
+import math
+
 import numpy as np
 
 from .baselines import _passed_cells
@@ -23,6 +25,32 @@ __all__ = ["CellCounts"]
 
 # Free rows traversed at once (the counting grid's chunk).
 _CHUNK = 100_000
+
+
+def _occurrences(flat, shape):
+    """The cells (coordinates in ``shape``) among the flat indices ``flat``, and how often
+    each occurs: a dense count where the grid is not much larger than the indices."""
+    size = math.prod(shape)
+    if size <= 4 * flat.size:
+        count = np.bincount(flat, minlength=size)
+        cells = np.flatnonzero(count)
+        count = count[cells]
+    else:
+        cells, count = np.unique(flat, return_counts=True)
+    return np.column_stack(np.unravel_index(cells, shape)), count.astype(np.int64)
+
+
+def _merged(parts):
+    """Sorted unique keys of ``(keys, hits, passes)`` parts, with their counts summed."""
+    keys = np.concatenate([p[0] for p in parts])
+    merged, inverse = np.unique(keys, return_inverse=True)
+    inverse = inverse.ravel()
+    sums = []
+    for column in (1, 2):
+        total = np.zeros(merged.size, dtype=np.int64)
+        np.add.at(total, inverse, np.concatenate([p[column] for p in parts]))
+        sums.append(total)
+    return merged, sums[0], sums[1]
 
 
 class CellCounts:
@@ -70,15 +98,17 @@ class CellCounts:
         """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits); free rows
         pass the cells :func:`skoccmap.baselines._passed_cells` says.
 
-        The count arrays are replaced, never written into: a shallow copy of these counts
-        keeps its own.
+        The free rows are taken ``_CHUNK`` at a time, each chunk's passes reduced to one
+        count per cell before the next: memory follows the map's cells, not the cells all
+        beams cross. The count arrays are replaced, never written into: a shallow copy of
+        these counts keeps its own.
         """
         d = self.n_dims
         starts, ends = X[:, :d], X[:, d:]
         self._check_range(self._cells(starts))
         self._check_range(self._cells(ends))
-        keys = [self._keys(self._cells(ends[occupied]))]
-        is_hit = [np.ones(keys[0].size, dtype=bool)]
+        keys, hits = np.unique(self._keys(self._cells(ends[occupied])), return_counts=True)
+        parts = [(self.keys, self.hits, self.passes), (keys, hits, np.zeros_like(hits))]
         free = np.flatnonzero(~occupied)
         for lo in range(0, free.size, _CHUNK):
             rows = free[lo : lo + _CHUNK]
@@ -91,19 +121,9 @@ class CellCounts:
             _, flat = _passed_cells(
                 starts[rows] / self.cell_size - low, ends[rows] / self.cell_size - low, shape
             )
-            cells = np.column_stack(np.unravel_index(flat, shape)) + low
-            keys.append(self._keys(cells))
-            is_hit.append(np.zeros(cells.shape[0], dtype=bool))
-        keys, is_hit = np.concatenate([self.keys, *keys]), np.concatenate(is_hit)
-        n_old = self.keys.size
-        self.keys, inverse = np.unique(keys, return_inverse=True)
-        inverse = inverse.ravel()
-        old, new = inverse[:n_old], inverse[n_old:]
-        hits = np.bincount(new[is_hit], minlength=self.keys.size)
-        passes = np.bincount(new[~is_hit], minlength=self.keys.size)
-        hits[old] += self.hits
-        passes[old] += self.passes
-        self.hits, self.passes = hits, passes
+            cells, passes = _occurrences(flat, shape)
+            parts.append((self._keys(cells + low), np.zeros_like(passes), passes))
+        self.keys, self.hits, self.passes = _merged(parts)
         return self
 
     def counted(self, points):
