@@ -23,8 +23,9 @@ from .baselines import _passed_cells
 
 __all__ = ["CellCounts"]
 
-# Free rows traversed at once (the counting grid's chunk).
-_CHUNK = 100_000
+# Free rows traversed at once: their passed cells (tens per row) stay within tens of MB; at
+# 100 000 rows a 3M-row fit's peak memory rose by 0.7 GiB here.
+_CHUNK = 16_384
 
 
 def _occurrences(flat, shape):
