@@ -41,6 +41,12 @@ def _occurrences(flat, shape):
     return np.column_stack(np.unravel_index(cells, shape)), count.astype(np.int64)
 
 
+def _frequency(hits, passes):
+    """``hits / (hits + passes)``, 1 where nothing was counted."""
+    seen = hits + passes
+    return np.where(seen > 0, hits / np.maximum(seen, 1), 1.0)
+
+
 def _merged(parts):
     """Sorted unique keys of ``(keys, hits, passes)`` parts, with their counts summed."""
     keys = np.concatenate([p[0] for p in parts])
@@ -143,6 +149,10 @@ class CellCounts:
 
     def frequency(self, points):
         """``hits / (hits + passes)`` of the cells holding ``points`` (1 where uncounted)."""
+        return _frequency(*self.counted(points))
+
+    def transient(self, points, bound, max_hits):
+        """Whether the cell holding each point counts ``hits / (hits + passes)`` below
+        ``bound`` and at most ``max_hits`` hits: few hits, contradicted by many passes."""
         hits, passes = self.counted(points)
-        seen = hits + passes
-        return np.where(seen > 0, hits / np.maximum(seen, 1), 1.0)
+        return (_frequency(hits, passes) < bound) & (hits <= max_hits)

@@ -1383,10 +1383,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         d = X.shape[1] // 2
         counts = CellCounts(_HIT_CELL_SIZE, d) if counts is None else copy.copy(counts)
         counts.add(X, occupied)
-        hit_points = X[occupied, d:]
-        left_out = (counts.frequency(hit_points) < self.min_hit_frequency) & (
-            counts.counted(hit_points)[0] <= _MAX_TRANSIENT_HITS
-        )
+        left_out = counts.transient(X[occupied, d:], self.min_hit_frequency, _MAX_TRANSIENT_HITS)
         transient[np.flatnonzero(occupied)[left_out]] = True
         return transient, counts
 
