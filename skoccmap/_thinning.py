@@ -17,6 +17,9 @@ __all__ = ["piece_keys", "thin_free_pieces"]
 # 22.5 degrees between neighbouring bins.
 _DIRECTION_BIN = 2.0 * np.sin(np.pi / 16.0)
 
+# Pieces keyed at once (tens of MB of temporaries).
+_KEY_BLOCK = 1 << 18
+
 
 def piece_keys(pieces, cell_size):
     """An integer key per piece: its midpoint's cell, its direction and its length octave.
@@ -81,8 +84,7 @@ def thin_free_pieces(pieces, free, *, cell_size, max_per_cell, random_state, kep
         return keep
     candidates = candidates[random_state.permutation(candidates.size)]
     n_old = 0 if kept is None else len(kept)
-    rows = pieces[candidates] if kept is None else np.vstack([kept, pieces[candidates]])
-    key = _flat_keys(piece_keys(rows, cell_size))
+    key = _flat_piece_keys(pieces, candidates, cell_size, kept)
     # Rank of each row within its key, old rows first (a stable sort keeps their order).
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
@@ -90,6 +92,42 @@ def thin_free_pieces(pieces, free, *, cell_size, max_per_cell, random_state, kep
     rank[order] = np.arange(key.size) - np.searchsorted(sorted_key, sorted_key, side="left")
     keep[candidates] = rank[n_old:] < max_per_cell
     return keep
+
+
+def _flat_piece_keys(pieces, rows, cell_size, kept=None):
+    """``_flat_keys(piece_keys(...))`` of ``kept`` followed by ``pieces[rows]``, a block
+    of rows at a time: the keys' temporaries, tens of bytes per piece, would otherwise
+    cost gigabytes on logs of millions of beams. Two passes: the columns' ranges, then
+    the keys."""
+    kept = np.empty((0, pieces.shape[1])) if kept is None else kept
+
+    def blocks():
+        for block in _blocks(len(kept)):
+            yield piece_keys(kept[block], cell_size)
+        for block in _blocks(rows.size):
+            yield piece_keys(pieces[rows[block]], cell_size)
+
+    n_keys = len(kept) + rows.size
+    if n_keys == 0:
+        return np.zeros(0, dtype=np.int64)
+    low = np.min([keys.min(axis=0) for keys in blocks()], axis=0)
+    span = np.max([keys.max(axis=0) for keys in blocks()], axis=0) - low + 1
+    # Python integers: a product of int64 spans would wrap around and hide the overflow.
+    if math.prod(int(v) for v in span) >= 2**63:
+        return _flat_keys(np.vstack(list(blocks())))
+    flat = np.empty(n_keys, dtype=np.int64)
+    at = 0
+    for keys in blocks():
+        flat[at : at + keys.shape[0]] = _mixed_radix(keys - low, span)
+        at += keys.shape[0]
+    return flat
+
+
+def _mixed_radix(offsets, span):
+    flat = np.zeros(offsets.shape[0], dtype=np.int64)
+    for column, size in zip(offsets.T, span, strict=True):
+        flat = flat * size + column
+    return flat
 
 
 def _flat_keys(keys):
@@ -106,7 +144,9 @@ def _flat_keys(keys):
     # Python integers: a product of int64 spans would wrap around and hide the overflow.
     if math.prod(int(v) for v in span) >= 2**63:
         return np.unique(keys, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
-    flat = np.zeros(keys.shape[0], dtype=np.int64)
-    for column, size in zip((keys - low).T, span, strict=True):
-        flat = flat * size + column
-    return flat
+    return _mixed_radix(keys - low, span)
+
+
+def _blocks(n):
+    """Slices of at most ``_KEY_BLOCK`` of ``n`` rows (none when ``n`` is 0)."""
+    return (slice(lo, min(lo + _KEY_BLOCK, n)) for lo in range(0, n, _KEY_BLOCK))

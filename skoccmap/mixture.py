@@ -296,20 +296,27 @@ def _beam_pieces(X, kinds, max_length, end_length):
     whole. Hits and free points stay as they are.
     """
     d = X.shape[1] // 2
-    no_return = kinds == NO_RETURN
+    no_return = np.flatnonzero(kinds == NO_RETURN)
+    rest = np.flatnonzero(kinds != NO_RETURN)
     near, near_source = split_segments(
-        X[~no_return], max_length, end_length=end_length, graded=kinds[~no_return] == RETURN
+        X[rest], max_length, end_length=end_length, graded=kinds[rest] == RETURN
     )
-    parts, sources = [near], [np.flatnonzero(~no_return)[near_source]]
-    if np.any(no_return):
-        # From the far end, pieces double towards the sensor: split the reversed segments.
-        reversed_rows = np.hstack([X[no_return, d:], X[no_return, :d]])
-        far, far_source = split_segments(reversed_rows, None, end_length=max_length)
-        parts.append(np.hstack([far[:, d:], far[:, :d]]))
-        sources.append(np.flatnonzero(no_return)[far_source])
-    pieces, source = np.vstack(parts), np.concatenate(sources)
-    order = np.argsort(source, kind="stable")
-    return pieces[order], source[order]
+    near_source = rest[near_source]
+    if no_return.size == 0:
+        return near, near_source
+    # From the far end, pieces double towards the sensor: split the reversed segments.
+    far, far_source = split_segments(
+        np.hstack([X[no_return, d:], X[no_return, :d]]), None, end_length=max_length
+    )
+    far_source = no_return[far_source]
+    # Both parts are in row order and no row is in both: merge them by row, in place.
+    at_near = np.arange(near_source.size) + np.searchsorted(far_source, near_source)
+    at_far = np.arange(far_source.size) + np.searchsorted(near_source, far_source)
+    pieces = np.empty((at_near.size + at_far.size, 2 * d))
+    source = np.empty(pieces.shape[0], dtype=near_source.dtype)
+    pieces[at_near], source[at_near] = near, near_source
+    pieces[at_far, :d], pieces[at_far, d:], source[at_far] = far[:, d:], far[:, :d], far_source
+    return pieces, source
 
 
 # ---------------------------------------------------------------------------------------
@@ -1389,20 +1396,24 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     def _thinned(self, pieces, source, y_enc, rng, transient, kept=None):
         """``pieces`` and ``source`` without the transient hits and the free pieces
-        ``max_pieces_per_cell`` drops."""
-        if np.any(transient):
-            keep = ~transient[source]
-            pieces, source = pieces[keep], source[keep]
-        if self.max_pieces_per_cell is None:
+        ``max_pieces_per_cell`` drops.
+
+        One selection of ``pieces``: with millions of pieces, each copy costs hundreds of
+        MB. Transient hits' pieces are hit pieces, which thinning never drops, so the
+        order of the two rules does not matter.
+        """
+        keep = ~transient[source]
+        if self.max_pieces_per_cell is not None:
+            keep &= thin_free_pieces(
+                pieces,
+                y_enc[source] != 1,
+                cell_size=self.piece_cell_size,
+                max_per_cell=self.max_pieces_per_cell,
+                random_state=rng,
+                kept=kept,
+            )
+        if np.all(keep):
             return pieces, source
-        keep = thin_free_pieces(
-            pieces,
-            y_enc[source] != 1,
-            cell_size=self.piece_cell_size,
-            max_per_cell=self.max_pieces_per_cell,
-            random_state=rng,
-            kept=kept,
-        )
         return pieces[keep], source[keep]
 
     def _piece_hits(self, pieces, piece_y, anchor_hit, hits, transient_hit):

@@ -58,6 +58,9 @@ NO_RETURN = int(ObservationKind.NO_RETURN)
 # anything further from unit length than this is a caller's mistake, not rounding.
 _UNIT_TOL = 1e-3
 
+# Pieces computed at once by split_segments (a few tens of MB of temporaries).
+_PIECE_BLOCK = 1 << 18
+
 _POSE_COLUMNS = {3: 2, 7: 3}
 
 
@@ -637,20 +640,26 @@ def split_segments(X, max_length, *, end_length=None, graded=None):
         n_rest = np.maximum(np.ceil(rest / max_length - 1e-9), 1).astype(np.intp)
     n_pieces = n_end + n_rest
     source = np.repeat(np.arange(X.shape[0]), n_pieces)
-    # Index of each piece counted from its segment's end: 0 .. n_pieces - 1.
-    first = np.cumsum(n_pieces) - n_pieces
-    p = n_pieces[source] - 1 - (np.arange(source.size) - first[source])
-    in_end = p < n_end[source]
-    u = np.where(in_end, 0, p - n_end[source])
-    base, step = ends[n_end[source]], rest[source] / n_rest[source]
-    near = np.where(in_end, ends[np.minimum(p, ends.size - 1)], base + u * step)
-    far = np.where(in_end, ends[np.minimum(p + 1, ends.size - 1)], base + (u + 1) * step)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t0 = np.nan_to_num(1.0 - far / lengths[source])[:, None]
-        t1 = np.nan_to_num(1.0 - near / lengths[source], nan=1.0)[:, None]
     d = X.shape[1] // 2
-    start, end = X[source, :d], X[source, d:]
-    pieces = np.concatenate([start + t0 * (end - start), start + t1 * (end - start)], axis=1)
+    pieces = np.empty((source.size, 2 * d))
+    # Pieces a block of segments at a time: a dozen temporaries per piece would otherwise
+    # cost gigabytes on logs of millions of beams.
+    first = np.cumsum(n_pieces) - n_pieces
+    for block in _blocks(source.size):
+        seg = source[block]
+        # Index of each piece counted from its segment's end: 0 .. n_pieces - 1.
+        p = n_pieces[seg] - 1 - (np.arange(block.start, block.stop) - first[seg])
+        in_end = p < n_end[seg]
+        u = np.where(in_end, 0, p - n_end[seg])
+        base, step = ends[n_end[seg]], rest[seg] / n_rest[seg]
+        near = np.where(in_end, ends[np.minimum(p, ends.size - 1)], base + u * step)
+        far = np.where(in_end, ends[np.minimum(p + 1, ends.size - 1)], base + (u + 1) * step)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t0 = np.nan_to_num(1.0 - far / lengths[seg])[:, None]
+            t1 = np.nan_to_num(1.0 - near / lengths[seg], nan=1.0)[:, None]
+        start, end = X[seg, :d], X[seg, d:]
+        pieces[block, :d] = start + t0 * (end - start)
+        pieces[block, d:] = start + t1 * (end - start)
     return pieces, source
 
 
@@ -664,3 +673,8 @@ def _check_piece_length(value, name, allow_none=False):
     if not value > 0:
         raise ValueError(f"{name} must be > 0, got {value!r}.")
     return value
+
+
+def _blocks(n):
+    """Slices of at most ``_PIECE_BLOCK`` of ``n`` rows (none when ``n`` is 0)."""
+    return (slice(lo, min(lo + _PIECE_BLOCK, n)) for lo in range(0, n, _PIECE_BLOCK))

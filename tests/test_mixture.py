@@ -942,6 +942,24 @@ def test_beam_pieces_shrink_towards_hits_and_grow_away_from_the_sensor():
     np.testing.assert_array_equal(pieces, X)
 
 
+def test_beam_pieces_keep_row_order_when_kinds_interleave():
+    X = np.array(
+        [
+            [0.0, 0.0, 2.5, 0.0],
+            [0.0, 0.0, 0.0, 9.0],
+            [2.55, 0.0, 2.55, 0.0],
+            [1.0, 1.0, 7.0, 1.0],
+            [0.0, 0.0, -3.0, 0.0],
+        ]
+    )
+    kinds = np.array([RETURN, NO_RETURN, HIT, NO_RETURN, RETURN])
+    pieces, source = _beam_pieces(X, kinds, 1.0, 0.5)
+    assert np.all(np.diff(source) >= 0)
+    for row in range(len(X)):
+        alone, _ = _beam_pieces(X[row : row + 1], kinds[row : row + 1], 1.0, 0.5)
+        np.testing.assert_array_equal(pieces[source == row], alone)
+
+
 def test_fixed_shared_kernel_at_a_bound_does_not_warn(paper):
     from sklearn.exceptions import ConvergenceWarning
 

@@ -353,6 +353,21 @@ def test_split_segments_rejects_bad_bound(max_length):
         split_segments([[0.0, 0.0, 1.0, 0.0]], max_length)
 
 
+def test_split_segments_in_blocks_equals_at_once(monkeypatch):
+    import skoccmap.observations as observations
+
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-10.0, 10.0, size=(60, 4))
+    X[::9, 2:] = X[::9, :2]  # points stay whole
+    graded = rng.random(60) < 0.5
+    at_once = split_segments(X, 1.0, end_length=0.25, graded=graded)
+    monkeypatch.setattr(observations, "_PIECE_BLOCK", 7)
+    in_blocks = split_segments(X, 1.0, end_length=0.25, graded=graded)
+    assert at_once[0].shape[0] > 7 * 10
+    for a, b in zip(at_once, in_blocks, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_split_segments_exact_multiples_and_bad_end_length():
     # 0.3 m is three 0.1 m pieces, although 0.3 / 0.1 rounds above 3.
     pieces, _ = split_segments([[0.0, 0.0, 0.3, 0.0]], 0.1)

@@ -92,3 +92,18 @@ def test_flat_keys_do_not_wrap_when_spans_overflow():
     top = 2**16 - 1
     keys = np.array([[0, 0, 0, 0, 0], [1, 0, 0, 0, 0], [0, top, top, top, top]])
     assert np.unique(_flat_keys(keys)).size == 3
+
+
+def test_keys_taken_in_blocks_equal_the_keys_taken_at_once(monkeypatch):
+    import skoccmap._thinning as thinning
+
+    rng = np.random.default_rng(1)
+    pieces = rng.uniform(-5.0, 5.0, size=(200, 4))
+    pieces[::7, 2:] = pieces[::7, :2]  # free points: zero length
+    kept = rng.uniform(-5.0, 5.0, size=(30, 4))
+    rows = rng.permutation(200)[:150]
+    at_once = thinning._flat_keys(piece_keys(np.vstack([kept, pieces[rows]]), 0.2))
+    monkeypatch.setattr(thinning, "_KEY_BLOCK", 16)
+    in_blocks = thinning._flat_piece_keys(pieces, rows, 0.2, kept)
+    np.testing.assert_array_equal(in_blocks, at_once)
+    assert thinning._flat_piece_keys(pieces, rows[:0], 0.2).shape == (0,)
