@@ -48,6 +48,8 @@ _CANCELLATION_THRESHOLD = 1e-4
 # many sweeps; it then damps harder, and after a second stall goes on with sequential sweeps
 # (see expectation_propagation).
 _STALL_SWEEPS = 20
+# Rows of a triangular factor solved at once by _solve_lower.
+_TRIANGULAR_BLOCK = 64
 
 
 class EPPosterior(NamedTuple):
@@ -601,9 +603,24 @@ def ep_log_marginal_likelihood_gradient(K_gradient, posterior):
 def _whitened_cross(posterior, K_cross):
     """``V = L^-1 S^1/2 K_cross^T`` (Cholesky form): ``K_cross`` through ``B``'s factor, so
     that the posterior's covariance at new points is ``K_new - V^T V``."""
-    return solve_triangular(
-        posterior.L, posterior.sqrt_tau[:, None] * K_cross.T, lower=True, check_finite=False
-    )
+    return _solve_lower(posterior.L, posterior.sqrt_tau[:, None] * K_cross.T)
+
+
+def _solve_lower(L, B):
+    """``L^-1 B`` for a lower-triangular ``L`` (``B`` is overwritten), by blocks of rows.
+
+    Forward substitution a block of ``_TRIANGULAR_BLOCK`` rows at a time: the update of a
+    block by the rows solved before it is a matrix product, and the block's own triangle is
+    solved by ``np.linalg.solve``. Both release the GIL, where SciPy's ``solve_triangular``
+    holds it: experts that predict in threads (a mixture's map) then run in parallel.
+    """
+    n = L.shape[0]
+    for lo in range(0, n, _TRIANGULAR_BLOCK):
+        hi = min(lo + _TRIANGULAR_BLOCK, n)
+        if lo:
+            B[lo:hi] -= L[lo:hi, :lo] @ B[:lo]
+        B[lo:hi] = solve_triangular(L[lo:hi, lo:hi], B[lo:hi], lower=True, check_finite=False)
+    return B
 
 
 def ep_latent_predictive(K_star, k_star_diag, posterior):

@@ -413,3 +413,18 @@ def test_gradient_shape_is_checked():
     res = expectation_propagation(np.eye(3), [1, -1, 1])
     with pytest.raises(ValueError, match="K_gradient must have shape"):
         ep_log_marginal_likelihood_gradient(np.zeros((2, 2, 1)), res.posterior)
+
+
+@pytest.mark.parametrize("n", [1, 40, 64, 150])
+def test_blocked_lower_solve_matches_lapack(n):
+    from scipy.linalg import solve_triangular
+
+    from skoccmap.ep import _solve_lower
+
+    rng = np.random.default_rng(n)
+    # A Cholesky factor of I + A A^T, as EP's B = I + S^1/2 K S^1/2 has.
+    A = rng.normal(size=(n, n))
+    L = np.linalg.cholesky(np.eye(n) + A @ A.T)
+    B = rng.normal(size=(n, 7))
+    expected = solve_triangular(L, B, lower=True)
+    np.testing.assert_allclose(_solve_lower(L, B.copy()), expected, rtol=1e-10, atol=1e-12)
