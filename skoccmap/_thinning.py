@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from .observations import _row_blocks
+
 __all__ = ["piece_keys", "thin_free_pieces"]
 
 # Width of a direction bin on each component of the unit direction: 2 sin(pi / 16), about
@@ -102,9 +104,9 @@ def _flat_piece_keys(pieces, rows, cell_size, kept=None):
     kept = np.empty((0, pieces.shape[1])) if kept is None else kept
 
     def blocks():
-        for block in _blocks(len(kept)):
+        for block in _row_blocks(len(kept), _KEY_BLOCK):
             yield piece_keys(kept[block], cell_size)
-        for block in _blocks(rows.size):
+        for block in _row_blocks(rows.size, _KEY_BLOCK):
             yield piece_keys(pieces[rows[block]], cell_size)
 
     n_keys = len(kept) + rows.size
@@ -145,8 +147,3 @@ def _flat_keys(keys):
     if math.prod(int(v) for v in span) >= 2**63:
         return np.unique(keys, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
     return _mixed_radix(keys - low, span)
-
-
-def _blocks(n):
-    """Slices of at most ``_KEY_BLOCK`` of ``n`` rows (none when ``n`` is 0)."""
-    return (slice(lo, min(lo + _KEY_BLOCK, n)) for lo in range(0, n, _KEY_BLOCK))

@@ -610,9 +610,10 @@ def _solve_lower(L, B):
     """``L^-1 B`` for a lower-triangular ``L`` (``B`` is overwritten), by blocks of rows.
 
     Forward substitution a block of ``_TRIANGULAR_BLOCK`` rows at a time: the update of a
-    block by the rows solved before it is a matrix product, and the block's own triangle is
-    solved by ``np.linalg.solve``. Both release the GIL, where SciPy's ``solve_triangular``
-    holds it: experts that predict in threads (a mixture's map) then run in parallel.
+    block by the rows solved before it is a matrix product, which releases the GIL, and
+    only the block's own small triangle goes to SciPy's ``solve_triangular``, which holds
+    it. Experts that predict in threads (a mixture's map) then run in parallel for most of
+    the solve.
     """
     n = L.shape[0]
     for lo in range(0, n, _TRIANGULAR_BLOCK):

@@ -645,7 +645,7 @@ def split_segments(X, max_length, *, end_length=None, graded=None):
     # Pieces a block of segments at a time: a dozen temporaries per piece would otherwise
     # cost gigabytes on logs of millions of beams.
     first = np.cumsum(n_pieces) - n_pieces
-    for block in _blocks(source.size):
+    for block in _row_blocks(source.size, _PIECE_BLOCK):
         seg = source[block]
         # Index of each piece counted from its segment's end: 0 .. n_pieces - 1.
         p = n_pieces[seg] - 1 - (np.arange(block.start, block.stop) - first[seg])
@@ -675,6 +675,6 @@ def _check_piece_length(value, name, allow_none=False):
     return value
 
 
-def _blocks(n):
-    """Slices of at most ``_PIECE_BLOCK`` of ``n`` rows (none when ``n`` is 0)."""
-    return (slice(lo, min(lo + _PIECE_BLOCK, n)) for lo in range(0, n, _PIECE_BLOCK))
+def _row_blocks(n, size):
+    """Slices of at most ``size`` of ``n`` rows (none when ``n`` is 0)."""
+    return (slice(lo, min(lo + size, n)) for lo in range(0, n, size))
