@@ -107,3 +107,23 @@ def test_keys_taken_in_blocks_equal_the_keys_taken_at_once(monkeypatch):
     in_blocks = thinning._flat_piece_keys(pieces, rows, 0.2, kept)
     np.testing.assert_array_equal(in_blocks, at_once)
     assert thinning._flat_piece_keys(pieces, rows[:0], 0.2).shape == (0,)
+
+
+def test_keys_taken_in_blocks_fall_back_when_spans_overflow(monkeypatch):
+    import skoccmap._thinning as thinning
+
+    # Cells of 1e-14 m over a kilometre: the spans' product exceeds 63 bits.
+    pieces = np.array(
+        [
+            [0.0, 0.0, 0.5, 0.0],
+            [1e3, 1e3, 1e3, 1e3 + 0.5],
+            [0.0, 0.0, 0.5, 0.0],
+            [5.0, 5.0, 5.0, 5.5],
+        ]
+    )
+    rows = np.arange(4)
+    at_once = thinning._flat_keys(piece_keys(pieces, 1e-14))
+    monkeypatch.setattr(thinning, "_KEY_BLOCK", 3)
+    in_blocks = thinning._flat_piece_keys(pieces, rows, 1e-14)
+    np.testing.assert_array_equal(in_blocks, at_once)
+    assert in_blocks[0] == in_blocks[2] and np.unique(in_blocks).size == 3
