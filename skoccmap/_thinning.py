@@ -97,10 +97,9 @@ def thin_free_pieces(pieces, free, *, cell_size, max_per_cell, random_state, kep
 
 
 def _flat_piece_keys(pieces, rows, cell_size, kept=None):
-    """``_flat_keys(piece_keys(...))`` of ``kept`` followed by ``pieces[rows]``, a block
-    of rows at a time: the keys' temporaries, tens of bytes per piece, would otherwise
-    cost gigabytes on logs of millions of beams. Two passes: the columns' ranges, then
-    the keys."""
+    """:func:`_flat_keys` of the :func:`piece_keys` of ``kept`` followed by
+    ``pieces[rows]``, a block of rows at a time: the keys' temporaries, tens of bytes per
+    piece, would otherwise cost gigabytes on logs of millions of beams."""
     kept = np.empty((0, pieces.shape[1])) if kept is None else kept
 
     def blocks():
@@ -109,27 +108,7 @@ def _flat_piece_keys(pieces, rows, cell_size, kept=None):
         for block in _row_blocks(rows.size, _KEY_BLOCK):
             yield piece_keys(pieces[rows[block]], cell_size)
 
-    n_keys = len(kept) + rows.size
-    if n_keys == 0:
-        return np.zeros(0, dtype=np.int64)
-    low = np.min([keys.min(axis=0) for keys in blocks()], axis=0)
-    span = np.max([keys.max(axis=0) for keys in blocks()], axis=0) - low + 1
-    # Python integers: a product of int64 spans would wrap around and hide the overflow.
-    if math.prod(int(v) for v in span) >= 2**63:
-        return _flat_keys(np.vstack(list(blocks())))
-    flat = np.empty(n_keys, dtype=np.int64)
-    at = 0
-    for keys in blocks():
-        flat[at : at + keys.shape[0]] = _mixed_radix(keys - low, span)
-        at += keys.shape[0]
-    return flat
-
-
-def _mixed_radix(offsets, span):
-    flat = np.zeros(offsets.shape[0], dtype=np.int64)
-    for column, size in zip(offsets.T, span, strict=True):
-        flat = flat * size + column
-    return flat
+    return _flattened(blocks, len(kept) + rows.size)
 
 
 def _flat_keys(keys):
@@ -139,11 +118,32 @@ def _flat_keys(keys):
     than ``np.unique(axis=0)`` on millions of rows. Falls back to the latter when the
     ranges overflow 63 bits.
     """
-    if keys.shape[0] == 0:
+    return _flattened(lambda: iter([keys]), keys.shape[0])
+
+
+def _flattened(blocks, n_keys):
+    """:func:`_flat_keys` of the ``n_keys`` rows that ``blocks()`` yields block by block,
+    in two passes over the blocks: the columns' ranges, then the keys."""
+    if n_keys == 0:
         return np.zeros(0, dtype=np.int64)
-    low = keys.min(axis=0)
-    span = keys.max(axis=0) - low + 1
+    ranges = [(keys.min(axis=0), keys.max(axis=0)) for keys in blocks()]
+    low = np.min([lo for lo, _ in ranges], axis=0)
+    span = np.max([hi for _, hi in ranges], axis=0) - low + 1
     # Python integers: a product of int64 spans would wrap around and hide the overflow.
     if math.prod(int(v) for v in span) >= 2**63:
+        keys = np.vstack(list(blocks()))
         return np.unique(keys, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
-    return _mixed_radix(keys - low, span)
+    flat = np.empty(n_keys, dtype=np.int64)
+    at = 0
+    for keys in blocks():
+        flat[at : at + len(keys)] = _mixed_radix(keys - low, span)
+        at += len(keys)
+    return flat
+
+
+def _mixed_radix(offsets, span):
+    """One integer per row of non-negative ``offsets``, digit ``j`` in base ``span[j]``."""
+    flat = np.zeros(offsets.shape[0], dtype=np.int64)
+    for column, size in zip(offsets.T, span, strict=True):
+        flat = flat * size + column
+    return flat
