@@ -676,5 +676,6 @@ def _check_piece_length(value, name, allow_none=False):
 
 
 def _row_blocks(n, size):
-    """Slices of at most ``size`` of ``n`` rows (none when ``n`` is 0)."""
+    """Slices of at most ``size`` of ``n`` rows (none when ``n`` is 0, which
+    :func:`sklearn.utils.gen_batches` rejects)."""
     return (slice(lo, min(lo + size, n)) for lo in range(0, n, size))
