@@ -845,24 +845,26 @@ def _tile_pairs(tiles, A, D, chunk):
 
 
 # Side (scaled units) of the cells that group points for the cut-off test, and the pairs
-# evaluated at once on the point paths (temporaries of a few hundred kB stay in cache).
+# evaluated at once on the point paths. A chunk is a few dozen arrays of this many
+# elements: large enough that numpy's per-call overhead, which holds the GIL, stays small
+# next to the loops, which release it (a mixture's experts predict in threads), and small
+# enough that the temporaries stay a few MB.
 _TILE = 2.0
-_POINT_CHUNK = 1 << 15
+_POINT_CHUNK = 1 << 16
 
 
-def _points_against(P, Ys, cols, gradient, block_size):
+def _points_against(P, Ys, cols, gradient, chunk):
     """Kernel values of points ``P`` against segment rows ``Ys[cols]`` within the cut-off.
 
     The columns are split into points, short and long segments, each with its closed form.
-    Yields (point index, index into cols, k, grad) chunks; pairs beyond ``_CUTOFF`` are left
-    out (their kernel value is exactly 0).
+    Yields (point index, index into cols, k, grad) chunks of about ``chunk`` pairs; pairs
+    beyond ``_CUTOFF`` are left out (their kernel value is exactly 0).
     """
     dim = P.shape[1]
     A = Ys[cols, :dim]
     D = Ys[cols, dim:] - A
     length = np.sqrt(_dot(D, D))
     tiles = _point_tiles(P, _TILE)
-    chunk = min(block_size, _POINT_CHUNK)
     kinds = (
         (length == 0.0, lambda w, j: _point_point_values(w, gradient)),
         ((length > 0.0) & (length < _SHORT), lambda w, j: _point_short_values(w, D[j], gradient)),
@@ -904,8 +906,9 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
     anisotropic : bool, default=False
         Gradient per dimension (shape (n, n, n_dims)) instead of one column.
     block_size : int, optional
-        Pairs per block; by default a sixteenth of the output size (at least 4096, at most
-        262144), so that temporaries stay within about the output's size.
+        Pairs per block. By default, on the segment-segment path a sixteenth of the output
+        size (at least 4096, at most 262144), so that temporaries stay within about the
+        output's size, and ``_POINT_CHUNK`` on the paths with a point.
     _fast : bool, default=True
         Private. False evaluates every pair through the general path (dense bounding-circle
         pre-cut, segment-segment quadrature for point-segment pairs): the reference for tests
@@ -936,6 +939,7 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
     n_grad = dim if anisotropic else 1
     K = np.zeros((n, m))
     G = np.zeros((n, m, n_grad)) if eval_gradient else None
+    point_chunk = _POINT_CHUNK if block_size is None else min(block_size, _POINT_CHUNK)
     if block_size is None:
         block_size = int(np.clip(n * m // 16, 4096, 1 << 18))
 
@@ -958,7 +962,7 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
     # segments), then segment rows of X against the point columns of Y.
     if x_pts.size:
         cols = np.arange(m) if not symmetric else np.r_[x_pts, x_segs]
-        for pi, cj, k, g in _points_against(Xs[x_pts, :dim], Ys, cols, gradient, block_size):
+        for pi, cj, k, g in _points_against(Xs[x_pts, :dim], Ys, cols, gradient, point_chunk):
             rr, cc = x_pts[pi], cols[cj]
             if symmetric:
                 upper = (cc > rr) | ~x_point[cc]
@@ -966,7 +970,7 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
                 g = None if g is None else g[upper]
             put(rr, cc, k, g)
     if not symmetric and y_pts.size and x_segs.size:
-        for pj, ci, k, g in _points_against(Ys[y_pts, :dim], Xs, x_segs, gradient, block_size):
+        for pj, ci, k, g in _points_against(Ys[y_pts, :dim], Xs, x_segs, gradient, point_chunk):
             put(x_segs[ci], y_pts[pj], k, g)
 
     # Segment-segment pairs: bounding circles, then the general quadrature.
