@@ -415,8 +415,9 @@ def test_gradient_shape_is_checked():
         ep_log_marginal_likelihood_gradient(np.zeros((2, 2, 1)), res.posterior)
 
 
+@pytest.mark.parametrize("n_columns", [7, 200])
 @pytest.mark.parametrize("n", [1, 40, 64, 150])
-def test_blocked_lower_solve_matches_lapack(n):
+def test_blocked_lower_solve_matches_lapack(n, n_columns):
     from scipy.linalg import solve_triangular
 
     from skoccmap.ep import _solve_lower
@@ -425,6 +426,8 @@ def test_blocked_lower_solve_matches_lapack(n):
     # A Cholesky factor of I + A A^T, as EP's B = I + S^1/2 K S^1/2 has.
     A = rng.normal(size=(n, n))
     L = np.linalg.cholesky(np.eye(n) + A @ A.T)
-    B = rng.normal(size=(n, 7))
+    B = rng.normal(size=(n, n_columns))
     expected = solve_triangular(L, B, lower=True)
+    # Only the lower triangle is read, as with solve_triangular.
+    L[np.triu_indices(n, 1)] = rng.normal(size=n * (n - 1) // 2)
     np.testing.assert_allclose(_solve_lower(L, B.copy()), expected, rtol=1e-10, atol=1e-12)
