@@ -448,7 +448,11 @@ class ExpertReach:
             if tree is None:
                 return
             q = query_index[pairs]
-            near = cKDTree(mids[q]).sparse_distance_matrix(
+            # A tree per expert and chunk, used once: sliding-midpoint splits and no
+            # shrunk node boxes build in half the time of the default's median splits
+            # (which dominated the gate), for the same pairs.
+            queries_tree = cKDTree(mids[q], balanced_tree=False, compact_nodes=False)
+            near = queries_tree.sparse_distance_matrix(
                 tree, cut + half[q].max(), output_type="ndarray"
             )
             d = near["v"] - half[q][near["i"]]
