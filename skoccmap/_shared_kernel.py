@@ -14,6 +14,7 @@ learned length scale does not follow the density of the scans.
 import warnings
 
 import numpy as np
+from joblib import effective_n_jobs
 from scipy.spatial import cKDTree
 from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
@@ -32,14 +33,26 @@ def _fit_fixed(expert, X, y):
     return clone(expert).set_params(optimizer=None).fit(X, y)
 
 
+def _evidence_terms(fitted, theta):
+    """Log evidence and its gradient of each fitted expert at ``theta``."""
+    return [est.log_marginal_likelihood(theta, eval_gradient=True) for est in fitted]
+
+
 def _negative_sum(theta, fitted, n_jobs):
-    """Minus the summed log evidence of the fitted experts at ``theta``, and its gradient."""
+    """Minus the summed log evidence of the fitted experts at ``theta``, and its gradient.
+
+    The experts are split into one group per worker process. Threads ran no faster than
+    one: EP's site updates are many small numpy and BLAS calls that hold the GIL. The
+    terms are summed in the experts' order, so the result does not depend on ``n_jobs``.
+    """
+    groups = np.array_split(np.arange(len(fitted)), min(effective_n_jobs(n_jobs), len(fitted)))
     try:
-        terms = Parallel(n_jobs=n_jobs, prefer="threads")(
-            delayed(est.log_marginal_likelihood)(theta, eval_gradient=True) for est in fitted
+        parts = Parallel(n_jobs=n_jobs)(
+            delayed(_evidence_terms)([fitted[k] for k in group], theta) for group in groups
         )
     except np.linalg.LinAlgError:
         return np.inf, np.zeros_like(theta)
+    terms = [term for part in parts for term in part]
     value = sum(t[0] for t in terms)
     grad = np.sum([t[1] for t in terms], axis=0)
     if not (np.isfinite(value) and np.all(np.isfinite(grad))):
@@ -108,8 +121,8 @@ def learn_shared_kernel(expert, pieces, *, n_jobs=None):
     pieces : list of (X, y)
         Training data of the experts, each with both classes.
     n_jobs : int, default=None
-        The experts are fitted in parallel processes; the evidence terms of each optimiser
-        step are computed in as many threads.
+        The experts are fitted, and the evidence terms of each optimiser step computed, in
+        as many processes.
 
     Returns
     -------

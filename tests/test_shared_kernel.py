@@ -40,6 +40,16 @@ def test_sum_of_pieces_is_a_stationary_point_of_the_summed_evidence():
         assert not np.allclose(expert.fit(X, y).kernel_.theta, shared.theta, atol=1e-2)
 
 
+def test_learned_kernel_does_not_depend_on_n_jobs():
+    # The evidence terms are computed in worker processes and summed in the pieces' order.
+    expert = EPGaussianProcessClassifier(C(1.0, (1e-2, 1e2)) * RBF(1.0, (1e-2, 1e2)))
+    pieces = [_piece(seed) for seed in range(5)]
+    one = learn_shared_kernel(expert, pieces, n_jobs=1)
+    two = learn_shared_kernel(expert, pieces, n_jobs=2)
+    np.testing.assert_array_equal(one.theta, two.theta)
+    assert not np.allclose(one.theta, expert.kernel.theta)
+
+
 def test_fixed_optimizer_keeps_the_kernel():
     kernel = C(2.0) * RBF(0.7)
     expert = EPGaussianProcessClassifier(kernel, optimizer=None)
