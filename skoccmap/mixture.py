@@ -500,14 +500,23 @@ def _piece_gates(expert_cluster, n_clusters, pieces, piece_expert, clusters=None
 
 
 class _PieceGate:
-    """Gaussian responsibilities of the pieces of one split cluster (a fixed GMM)."""
+    """Gaussian responsibilities of the pieces of one split cluster (a fixed GMM).
+
+    An expert without pieces (its hits all left out as transient) weighs nothing; if no
+    expert of the cluster has pieces, they share it equally.
+    """
 
     def __init__(self, pieces_points):
         self.means_, self.chols_, self.log_weights_ = [], [], []
         n_total = sum(len(p) for p in pieces_points)
         for pts in pieces_points:
-            mean = pts.mean(axis=0)
             dim = pts.shape[1]
+            if len(pts) == 0:
+                self.means_.append(np.zeros(dim))
+                self.chols_.append(np.eye(dim))
+                self.log_weights_.append(-np.inf if n_total else 0.0)
+                continue
+            mean = pts.mean(axis=0)
             cov = np.atleast_2d(np.cov(pts, rowvar=False)) if len(pts) > 1 else np.eye(dim)
             ridge = _GATING_RIDGE * max(np.trace(cov) / dim, 1e-12) + 1e-12
             chol = np.linalg.cholesky(cov + ridge * np.eye(dim))

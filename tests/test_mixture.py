@@ -263,6 +263,24 @@ def test_piece_gates_favour_each_hits_own_piece(paper):
     assert agreement > 0.5 > 5 * chance, (agreement, chance)
 
 
+def test_piece_gate_of_an_expert_without_pieces_weighs_nothing():
+    # An online update can leave an expert of a split cluster without pieces (its hits all
+    # transient): its share is 0, not NaN, and the others still sum to one.
+    from skoccmap.mixture import _PieceGate
+
+    rng = np.random.default_rng(0)
+    groups = [rng.normal(size=(20, 2)), np.empty((0, 2)), rng.normal(3.0, size=(5, 2))]
+    points = rng.normal(1.0, 2.0, size=(50, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        share = _PieceGate(groups).predict_proba(points)
+        alone = _PieceGate([groups[0], groups[2]]).predict_proba(points)
+        none = _PieceGate([np.empty((0, 2))] * 2).predict_proba(points)
+    np.testing.assert_array_equal(share[:, 1], 0.0)
+    np.testing.assert_allclose(share[:, [0, 2]], alone, rtol=1e-12)
+    np.testing.assert_allclose(none, 0.5)
+
+
 def test_split_pieces_keep_each_hit_with_its_beams(paper):
     # Pieces are cut through the hits; beams follow their hit, so no piece is left with
     # one class (a wall without the beams that saw it, or free space without its wall).
