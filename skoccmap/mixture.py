@@ -1095,7 +1095,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         points sampled along beams); rows become zero-length segments before they reach
         the experts, and every free point joins the cluster of its nearest hit.
     n_jobs : int, default=None
-        Experts fitted in parallel with :class:`sklearn.utils.parallel.Parallel`; honours
+        Experts fitted, and the terms of the shared hyperparameters' evidence computed, in
+        parallel with :class:`sklearn.utils.parallel.Parallel`; honours
         ``joblib.parallel_config`` (e.g. ``backend="dask"``). Prediction runs the experts
         of each query chunk in as many threads. ``None`` means 1 unless in a joblib
         context.
