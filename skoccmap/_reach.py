@@ -27,6 +27,9 @@ _BLOCK = 1.0 / 4.0
 _MAX_DIM = 3
 # ExpertReach.coverage ignores cells further than this many widths (weight < exp(-4.5)).
 _COVERAGE_CUT = 3.0
+# ExpertReach.coverage searches all cells at once for up to this many queries, and each
+# candidate expert's cells apart for more (see there).
+_COVERAGE_ALL_CELLS = 2048
 # Sample points, or (cell, block) pairs, handled at once while the index is built.
 _BATCH = 1 << 21
 # The grid of cells is never finer than this many samples per segment on average, nor than
@@ -433,15 +436,26 @@ class ExpertReach:
         or the reach: a kernel density of the area the expert's training segments cover,
         smooth in the query. It counts where the data are, not how many rows lie there:
         repeated beams through a cell add nothing, as they add little to a GP's posterior.
-        Zero for every pair when the reach is infinite (no cells are indexed). The experts
-        are taken in ``n_jobs`` threads (the k-d tree searches release the GIL); each
-        writes its own pairs, so the result does not depend on ``n_jobs``.
+        Zero for every pair when the reach is infinite (no cells are indexed).
+
+        Up to ``_COVERAGE_ALL_CELLS`` queries are searched against the tree of all cells
+        at once: a query has a hundred or more candidate experts on a dense log, and a
+        search per expert cost a single query about 20 ms. More queries are searched
+        against each candidate expert's own cells (a tree of its queries per expert,
+        faster per pair for large batches), the experts in ``n_jobs`` threads (the k-d tree
+        searches release the GIL); each writes its own pairs, so the result does not
+        depend on ``n_jobs``. Both find the same cells.
         """
         cover = np.zeros(query_index.size)
         if not np.isfinite(self.reach) or query_index.size == 0:
             return cover
         mids, half = self._mids_and_half_lengths(queries)
         cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
+        asked = np.unique(query_index)
+        if asked.size <= _COVERAGE_ALL_CELLS:
+            return self._coverage_all_cells(
+                mids, half, asked, query_index, expert_index, cut, width
+            )
 
         def cover_of(k, pairs):
             tree = self._expert_trees[k]
@@ -464,6 +478,26 @@ class ExpertReach:
             delayed(cover_of)(k, pairs) for k, pairs in self._pairs_by_expert(expert_index)
         )
         return cover
+
+    def _coverage_all_cells(self, mids, half, asked, query_index, expert_index, cut, width):
+        """:meth:`coverage` of the queries ``asked`` from one search of all cells."""
+        queries_tree = cKDTree(mids[asked], balanced_tree=False, compact_nodes=False)
+        near = queries_tree.sparse_distance_matrix(
+            self.tree, cut + half[asked].max(), output_type="ndarray"
+        )
+        query = asked[near["i"]]
+        d = near["v"] - half[query]
+        inside = d <= cut
+        query, d = query[inside], d[inside]
+        # The pair of each (query, expert) found: cells within the cut of a query belong
+        # to its candidates, but a pair not asked for is dropped all the same.
+        pair_key = query_index.astype(np.int64) * self.n_experts + expert_index
+        order = np.argsort(pair_key, kind="stable")
+        key = query.astype(np.int64) * self.n_experts + self.cell_expert[near["j"][inside]]
+        pos = np.searchsorted(pair_key[order], key).clip(max=order.size - 1)
+        found = pair_key[order][pos] == key
+        weight = np.exp(-0.5 * (np.maximum(d[found], 0.0) / width) ** 2)
+        return np.bincount(order[pos[found]], weights=weight, minlength=query_index.size)
 
     def _block_codes(self, mids):
         """Table code of the block of each point (-1 too far from the origin to code)."""

@@ -5,6 +5,7 @@ import pytest
 from sklearn.gaussian_process.kernels import RBF, DotProduct
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
+from skoccmap import _reach
 from skoccmap._reach import ExpertReach, _unique_rows, kernel_reach
 from skoccmap.kernels import IntegralKernel
 
@@ -240,8 +241,11 @@ def test_the_grid_follows_the_reach_where_the_reach_is_long_enough():
     assert index.scale == 1.5 and index.cell == pytest.approx(1.5 / 8)
 
 
+@pytest.mark.parametrize("all_cells", [True, False], ids=["all-cells", "per-expert"])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim):
+def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim, all_cells, monkeypatch):
+    # Few queries search all cells at once, many each expert's cells: the same coverage.
+    monkeypatch.setattr(_reach, "_COVERAGE_ALL_CELLS", 10**9 if all_cells else 0)
     segments, expert, n_experts = _random_experts(dim, seed=20 + dim)
     index = ExpertReach(segments, expert, n_experts, reach=2.0)
     rng = np.random.default_rng(30 + dim)
@@ -264,6 +268,7 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim):
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-300)
     assert np.any(got > 0) and np.any(got == 0)
     # Experts taken in threads write their own pairs: the same coverage, bit for bit.
+    # (One search of all cells takes no threads.)
     threaded = np.empty(query.size)
     threaded[shuffle] = index.coverage(queries, query[shuffle], cand[shuffle], width, n_jobs=2)
     np.testing.assert_array_equal(threaded, got)
