@@ -858,13 +858,15 @@ def _points_against(P, Ys, cols, gradient, chunk):
 
     The columns are split into points, short and long segments, each with its closed form.
     Yields (point index, index into cols, k, grad) chunks of about ``chunk`` pairs; pairs
-    beyond ``_CUTOFF`` are left out (their kernel value is exactly 0).
+    beyond ``_CUTOFF`` are left out (their kernel value is exactly 0). When all the pairs
+    fit in one chunk (a few queries against an expert) they are evaluated without tiling
+    the points, whose cut-off test then costs more than it saves.
     """
     dim = P.shape[1]
     A = Ys[cols, :dim]
     D = Ys[cols, dim:] - A
     length = np.sqrt(_dot(D, D))
-    tiles = _point_tiles(P, _TILE)
+    tiles = None if len(P) * len(cols) <= chunk else _point_tiles(P, _TILE)
     kinds = (
         (length == 0.0, lambda w, j: _point_point_values(w, gradient)),
         ((length > 0.0) & (length < _SHORT), lambda w, j: _point_short_values(w, D[j], gradient)),
@@ -874,8 +876,11 @@ def _points_against(P, Ys, cols, gradient, chunk):
         sub = np.flatnonzero(mask)
         if sub.size == 0:
             continue
-        for pi, cj in _tile_pairs(tiles, A[sub], D[sub], chunk):
-            cj = sub[cj]
+        if tiles is None:
+            pairs = [(np.repeat(np.arange(len(P)), sub.size), np.tile(sub, len(P)))]
+        else:
+            pairs = ((pi, sub[cj]) for pi, cj in _tile_pairs(tiles, A[sub], D[sub], chunk))
+        for pi, cj in pairs:
             k, grad, dist2 = values(P.take(pi, axis=0) - A.take(cj, axis=0), cj)
             keep = dist2 <= _CUTOFF**2
             if not np.all(keep):

@@ -295,6 +295,23 @@ def test_blocks_do_not_change_the_result():
     assert_close(KXX, integral_kernel(X, length_scale=0.8), rtol=1e-9, atol=1e-14)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_few_points_untiled_equal_tiled(dim):
+    # A few query points against an expert's rows fit in one chunk and skip the tiling of
+    # the points; tiled in chunks of 16 pairs, every value is the same to the bit, the
+    # pairs beyond the cut-off (8 length scales, in a box 40 m wide) exactly 0 in both.
+    rng = np.random.default_rng(50 + dim)
+    Y = _random_segments(rng, 60, dim, box=40.0, max_length=3.0, point_fraction=0.3)
+    Y[:5, dim:] = Y[:5, :dim] + 0.01  # short segments: Gauss-Legendre
+    near = Y[rng.choice(60, 5, replace=False), :dim] + rng.normal(0.0, 0.3, (5, dim))
+    points = np.vstack([near, rng.uniform(0, 40.0, (3, dim))])
+    P = np.hstack([points, points])
+    whole = integral_kernel(P, Y, length_scale=0.7)
+    tiled = integral_kernel(P, Y, length_scale=0.7, block_size=16)
+    np.testing.assert_array_equal(whole, tiled)
+    assert np.any(whole == 0.0) and np.any(whole > 1e-3)
+
+
 def test_point_pairs_are_the_rbf_kernel():
     rng = np.random.default_rng(4)
     P = rng.normal(size=(30, 3))
