@@ -16,7 +16,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process.kernels import RBF, CompoundKernel, Kernel
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 from sklearn.multiclass import OneVsOneClassifier, OneVsRestClassifier
-from sklearn.utils import check_random_state, gen_batches
+from sklearn.utils import check_random_state
 from sklearn.utils._param_validation import Interval, StrOptions
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.optimize import _check_optimize_result
@@ -32,6 +32,7 @@ from .ep import (
     ep_posterior,
     expectation_propagation,
 )
+from .observations import _row_blocks
 
 # Test points per block in predictions: bounds the (block, n_train) cross-covariance to ~32 MB.
 _PREDICT_BLOCK_ELEMENTS = 2**22
@@ -825,7 +826,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         var = np.empty(X.shape[0])
         block = max(1, _PREDICT_BLOCK_ELEMENTS // max(n_train, 1))
         posterior = _unpacked(self._posterior, self._posterior_lower)
-        for rows in gen_batches(X.shape[0], block):
+        # Not gen_batches: its parameter validation cost a mixture's expert 0.1 ms a call.
+        for rows in _row_blocks(X.shape[0], block):
             K_star = self.kernel_(X[rows], self.X_train_)
             k_diag = self.kernel_.diag(X[rows]) if prior_variance is None else prior_variance[rows]
             mean[rows], var[rows] = ep_latent_predictive(K_star, k_diag, posterior)

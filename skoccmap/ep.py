@@ -613,24 +613,27 @@ def _solve_lower(L, B):
     block by the rows solved before it is a matrix product, which releases the GIL. SciPy's
     triangular solves and inverses hold it, so a block's own triangle is inverted (a
     ``_TRIANGULAR_BLOCK``-sized ``dtrtri``, whatever the number of columns of ``B``) and
-    applied by a matrix product where ``B`` has more columns than the block has rows, and
-    solved directly otherwise. Experts that predict in threads (a mixture's map) then run
-    in parallel for nearly all of the solve. Only the lower triangle of ``L`` is read.
+    applied by a matrix product. Experts that predict in threads (a mixture's map) then
+    run in parallel for nearly all of the solve. ``B`` with at most ``_TRIANGULAR_BLOCK``
+    columns (a few queries) is solved by one ``solve_triangular``: the blocks' calls would
+    cost more than they free. Only the lower triangle of ``L`` is read.
     """
     n = L.shape[0]
+    if B.shape[1] <= _TRIANGULAR_BLOCK:
+        # A few columns: one call, short enough to hold the GIL.
+        return solve_triangular(L, B, lower=True, overwrite_b=True, check_finite=False)
     for lo in range(0, n, _TRIANGULAR_BLOCK):
         hi = min(lo + _TRIANGULAR_BLOCK, n)
         if lo:
             B[lo:hi] -= L[lo:hi, :lo] @ B[:lo]
         diagonal = L[lo:hi, lo:hi]
-        if B.shape[1] > hi - lo:
-            # The factor of EP's B = I + S^1/2 K S^1/2 has a diagonal of at least 1:
-            # its blocks are invertible and no worse conditioned than L.
-            inverse, info = dtrtri(np.tril(diagonal), lower=1)
-            if info == 0:
-                B[lo:hi] = inverse @ B[lo:hi]
-                continue
-        B[lo:hi] = solve_triangular(diagonal, B[lo:hi], lower=True, check_finite=False)
+        # The factor of EP's B = I + S^1/2 K S^1/2 has a diagonal of at least 1: its
+        # blocks are invertible and no worse conditioned than L.
+        inverse, info = dtrtri(np.tril(diagonal), lower=1)
+        if info == 0:
+            B[lo:hi] = inverse @ B[lo:hi]
+        else:
+            B[lo:hi] = solve_triangular(diagonal, B[lo:hi], lower=True, check_finite=False)
     return B
 
 

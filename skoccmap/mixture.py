@@ -117,6 +117,13 @@ _COVERAGE_TOLERANCE = float(np.exp(-1.0 / 8.0))
 # relative to the best-covered expert's share for the coverage gate, absolute otherwise.
 _AUTO_GATING_THRESHOLD = {"coverage": 0.5, "clusterer": 1e-3, "gpc": 1e-3}
 
+# Prediction runs the experts of a chunk in threads only from this many (query, expert)
+# pairs on, and this many per expert on average: starting the threads costs
+# milliseconds, and an expert's call on a few queries is mostly numpy's per-call
+# overhead, which holds the GIL (scattered queries ran slower in two threads than in one).
+_THREADED_PAIRS = 2048
+_THREADED_PAIRS_PER_EXPERT = 32
+
 # Hits a free piece may join under piece_assignment="nearest_hit", nearest first: with
 # dense scans the nearest ones fill up (see _nearest_with_room).
 _NEAREST_HITS = 32
@@ -2478,8 +2485,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         # Threads, not processes: shipping all experts to workers per chunk costs more than
         # the kernels, which spend their time in numpy calls that release the GIL.
-        Parallel(n_jobs=self.n_jobs, require="sharedmem")(
-            delayed(predict_expert)(k) for k in np.flatnonzero(np.diff(bounds))
+        consulted = np.flatnonzero(np.diff(bounds))
+        threaded = query.size >= max(_THREADED_PAIRS, _THREADED_PAIRS_PER_EXPERT * consulted.size)
+        Parallel(n_jobs=self.n_jobs if threaded else 1, require="sharedmem")(
+            delayed(predict_expert)(k) for k in consulted
         )
         proba = np.full(Xc.shape[0], 0.5)
         mean = np.zeros(Xc.shape[0])
