@@ -27,8 +27,10 @@ markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_pap
   out (offset 5); the mixture and the counting grid (0.1 m) trained on every 1st (unless
   ``--skip-full-log``), 10th and 40th remaining scan; AUC on held-out hits against points drawn
   along the held-out beams (as ``skoccmap.metrics.heldout_auc``); fit s, predict us/point
-  on the test points, and the time of the whole 0.1 m map over the training hits
-  (``OccupancyGrid.from_estimator``, probability and variance).
+  on the test points, the time of the whole 0.1 m map over the training hits
+  (``OccupancyGrid.from_estimator``, probability and variance), and the median time of
+  ``predict_proba`` on 1 and on 100 test points drawn at random (a robot asking about a
+  few places; five draws each).
   The single GP and scikit-learn's GPC are not run on B3: they are cubic in n, and every
   40th scan already gives ~7k observations (~30k points for the GPC).
 - **B4**, map quality: ``benchmarks/bench_quality.py`` run as a subprocess (simulated worlds
@@ -247,6 +249,15 @@ def query_cost(model, points):
     }
 
 
+def few_queries_ms(model, points, n, repeats=5, seed=0):
+    """Median milliseconds of ``predict_proba`` on ``n`` held-out points drawn at random
+    (a robot asking about a few places), over ``repeats`` draws."""
+    rng = np.random.default_rng(seed)
+    draws = [rng.choice(len(points), n, replace=False) for _ in range(repeats)]
+    seconds = [timed(model.predict_proba, as_segments(points[d]))[1] for d in draws]
+    return 1e3 * float(np.median(seconds))
+
+
 def run_b3(args):
     from skoccmap.datasets import load_carmen
 
@@ -287,6 +298,8 @@ def run_b3(args):
                 map_cells=int(grid.probability.size),
                 map_s=map_s,
                 auc=auc,
+                one_point_ms=few_queries_ms(model, points, 1),
+                hundred_points_ms=few_queries_ms(model, points, 100),
             )
             if hasattr(model, "n_experts_"):
                 row.update(query_cost(model, points))
@@ -304,6 +317,7 @@ def run_b3(args):
             "predict us/point",
             "experts / query",
             "query / one expert",
+            "1 / 100 points ms",
             "AUC",
         ],
         [
@@ -322,6 +336,7 @@ def run_b3(args):
                     else None,
                     ".1f",
                 ),
+                f"{r['one_point_ms']:.1f} / {r['hundred_points_ms']:.1f}",
                 f"{r['auc']:.4f}",
             )
             for r in rows
