@@ -30,6 +30,10 @@ _COVERAGE_CUT = 3.0
 # ExpertReach.coverage searches all cells at once for up to this many queries, and each
 # candidate expert's cells apart for more (see there).
 _COVERAGE_ALL_CELLS = 2048
+# Building the tree of all cells costs about as much as searching the cells of one
+# expert apart per this many cells (ad hoc, Intel log: 0.2 s for 682k cells, against
+# 0.1 ms per expert searched apart).
+_CELLS_PER_EXPERT_SEARCH = 200
 # Sample points, or (cell, block) pairs, handled at once while the index is built.
 _BATCH = 1 << 21
 # The grid of cells is never finer than this many samples per segment on average, nor than
@@ -330,12 +334,28 @@ class ExpertReach:
         of a few experts (:meth:`updated`) should not cost a tree over the whole map."""
         if getattr(self, "_tree", None) is None:
             cells = np.concatenate(self._cells + [np.empty((0, self.dim), dtype=np.int64)])
-            self._tree = cKDTree(self.origin + (cells + 0.5) * self.cell)
+            self._tree = cKDTree(
+                self.origin + (cells + 0.5) * self.cell, balanced_tree=False, compact_nodes=False
+            )
         return self._tree
+
+    def _search_all_cells(self, expert_index):
+        """Whether :meth:`coverage` should search the tree of all cells for a few queries.
+
+        Once built, that tree is the faster; building it costs as much as searching
+        about ``n_cells / _CELLS_PER_EXPERT_SEARCH`` experts' cells apart, which a map
+        that changes with every update may never repay. So it is built once the searches
+        made apart since the index was made have cost as much: at most twice the time of
+        the better choice made in hindsight.
+        """
+        if getattr(self, "_tree", None) is not None:
+            return True
+        self._searched = getattr(self, "_searched", 0) + np.unique(expert_index).size
+        return self._searched * _CELLS_PER_EXPERT_SEARCH >= self.cell_expert.size
 
     def _assemble(self):
         """The expert of each cell and the CSR table block code -> candidate experts."""
-        self._tree = None
+        self._tree, self._searched = None, 0
         counts = [len(c) for c in self._cells]
         self.cell_expert = np.repeat(np.arange(self.n_experts), counts)
         codes = np.concatenate(self._blocks + [np.empty(0, dtype=np.int64)])
@@ -440,11 +460,12 @@ class ExpertReach:
 
         Up to ``_COVERAGE_ALL_CELLS`` queries are searched against the tree of all cells
         at once: a query has a hundred or more candidate experts on a dense log, and a
-        search per expert cost a single query about 20 ms. More queries are searched
-        against each candidate expert's own cells (a tree of its queries per expert,
-        faster per pair for large batches), the experts in ``n_jobs`` threads (the k-d tree
-        searches release the GIL); each writes its own pairs, so the result does not
-        depend on ``n_jobs``. Both find the same cells.
+        search per expert cost a single query about 20 ms (the tree is built once the
+        searches apart have cost as much, see :meth:`_search_all_cells`). More queries
+        are searched against each candidate expert's own cells (a tree of its queries per
+        expert, faster per pair for large batches), the experts in ``n_jobs`` threads (the
+        k-d tree searches release the GIL); each writes its own pairs, so the result does
+        not depend on ``n_jobs``. Both find the same cells.
         """
         cover = np.zeros(query_index.size)
         if not np.isfinite(self.reach) or query_index.size == 0:
@@ -452,7 +473,7 @@ class ExpertReach:
         mids, half = self._mids_and_half_lengths(queries)
         cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
         asked = np.unique(query_index)
-        if asked.size <= _COVERAGE_ALL_CELLS:
+        if asked.size <= _COVERAGE_ALL_CELLS and self._search_all_cells(expert_index):
             return self._coverage_all_cells(
                 mids, half, asked, query_index, expert_index, cut, width
             )

@@ -246,6 +246,7 @@ def test_the_grid_follows_the_reach_where_the_reach_is_long_enough():
 def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim, all_cells, monkeypatch):
     # Few queries search all cells at once, many each expert's cells: the same coverage.
     monkeypatch.setattr(_reach, "_COVERAGE_ALL_CELLS", 10**9 if all_cells else 0)
+    monkeypatch.setattr(_reach, "_CELLS_PER_EXPERT_SEARCH", 10**9)
     segments, expert, n_experts = _random_experts(dim, seed=20 + dim)
     index = ExpertReach(segments, expert, n_experts, reach=2.0)
     rng = np.random.default_rng(30 + dim)
@@ -272,6 +273,29 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim, all_c
     threaded = np.empty(query.size)
     threaded[shuffle] = index.coverage(queries, query[shuffle], cand[shuffle], width, n_jobs=2)
     np.testing.assert_array_equal(threaded, got)
+
+
+def test_tree_of_all_cells_is_built_once_searches_apart_cost_as_much(monkeypatch):
+    # Ski rental: a few queries search each expert's cells apart until that has cost as
+    # much as building the tree of all cells, then the tree; the coverage is the same.
+    segments, expert, n_experts = _random_experts(2, seed=40)
+    index = ExpertReach(segments, expert, n_experts, reach=2.0)
+    n_cells = index.cell_expert.size
+    rng = np.random.default_rng(41)
+    points = rng.uniform(0, 10, (30, 2))
+    queries = np.hstack([points, points])
+    query, cand = index.candidates(queries)
+    per_call = np.unique(cand).size
+    # Three calls' searches apart pay for the tree.
+    monkeypatch.setattr(_reach, "_CELLS_PER_EXPERT_SEARCH", int(np.ceil(n_cells / (3 * per_call))))
+    covers, built = [], []
+    for _ in range(4):
+        covers.append(index.coverage(queries, query, cand, 0.4))
+        built.append(index._tree is not None)
+    assert built == [False, False, True, True]
+    for cover in covers[1:]:
+        np.testing.assert_allclose(cover, covers[0], rtol=1e-12, atol=1e-300)
+    assert np.any(covers[0] > 0)
 
 
 def test_coverage_grows_with_the_data_near_the_query():
