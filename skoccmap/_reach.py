@@ -12,7 +12,7 @@ from scipy.ndimage import binary_dilation
 from scipy.spatial import cKDTree
 from sklearn.utils.parallel import Parallel, delayed
 
-__all__ = ["ExpertReach", "kernel_reach"]
+__all__ = ["ExpertReach", "kernel_reach", "threads_pay"]
 
 # Distances (in units of the data's extent) at which the kernel is probed for its reach.
 _PROBE = np.geomspace(1e-6, 10.0, 600)
@@ -32,8 +32,12 @@ _COVERAGE_CUT = 3.0
 _COVERAGE_ALL_CELLS = 2048
 # Building the tree of all cells costs about as much as searching the cells of one
 # expert apart per this many cells (ad hoc, Intel log: 0.2 s for 682k cells, against
-# 0.1 ms per expert searched apart).
-_CELLS_PER_EXPERT_SEARCH = 200
+# 0.13-0.2 ms per expert searched apart for a single query).
+_CELLS_PER_EXPERT_SEARCH = 500
+# Work on (query, expert) pairs goes to threads only from this many pairs, and this many
+# per expert on average (see threads_pay).
+_THREADED_PAIRS = 2048
+_THREADED_PAIRS_PER_EXPERT = 32
 # Sample points, or (cell, block) pairs, handled at once while the index is built.
 _BATCH = 1 << 21
 # The grid of cells is never finer than this many samples per segment on average, nor than
@@ -47,6 +51,14 @@ _MIN_SCALE_FRACTION = 2.0**-16
 # blocks of the origin (about 2.6e5 reaches) are indexed.
 _CODE_BITS = 21
 _CODE_OFFSET = 1 << (_CODE_BITS - 1)
+
+
+def threads_pay(n_pairs, n_experts):
+    """Whether work on ``n_pairs`` (query, expert) pairs of ``n_experts`` experts, one task
+    per expert, should run in threads: starting them costs milliseconds, and a task on a
+    few queries is mostly numpy's per-call overhead, which holds the GIL (scattered
+    queries ran slower in two threads than in one)."""
+    return n_pairs >= max(_THREADED_PAIRS, _THREADED_PAIRS_PER_EXPERT * n_experts)
 
 
 def kernel_reach(kernel, dim, tolerance, extent):
@@ -495,8 +507,10 @@ class ExpertReach:
             weight = np.exp(-0.5 * (np.maximum(d[inside], 0.0) / width) ** 2)
             cover[pairs] = np.bincount(near["i"][inside], weights=weight, minlength=q.size)
 
-        Parallel(n_jobs=n_jobs, require="sharedmem")(
-            delayed(cover_of)(k, pairs) for k, pairs in self._pairs_by_expert(expert_index)
+        by_expert = list(self._pairs_by_expert(expert_index))
+        threaded = threads_pay(query_index.size, len(by_expert))
+        Parallel(n_jobs=n_jobs if threaded else 1, require="sharedmem")(
+            delayed(cover_of)(k, pairs) for k, pairs in by_expert
         )
         return cover
 

@@ -26,7 +26,7 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ._reach import ExpertReach, _extent, kernel_reach
+from ._reach import ExpertReach, _extent, kernel_reach, threads_pay
 from ._shared_kernel import (
     learn_shared_kernel,
     warn_at_bounds,
@@ -116,13 +116,6 @@ _COVERAGE_TOLERANCE = float(np.exp(-1.0 / 8.0))
 # gating_threshold="auto", by gate (see the parameter's docstring for the measurements):
 # relative to the best-covered expert's share for the coverage gate, absolute otherwise.
 _AUTO_GATING_THRESHOLD = {"coverage": 0.5, "clusterer": 1e-3, "gpc": 1e-3}
-
-# Prediction runs the experts of a chunk in threads only from this many (query, expert)
-# pairs on, and this many per expert on average: starting the threads costs
-# milliseconds, and an expert's call on a few queries is mostly numpy's per-call
-# overhead, which holds the GIL (scattered queries ran slower in two threads than in one).
-_THREADED_PAIRS = 2048
-_THREADED_PAIRS_PER_EXPERT = 32
 
 # Hits a free piece may join under piece_assignment="nearest_hit", nearest first: with
 # dense scans the nearest ones fill up (see _nearest_with_room).
@@ -2486,7 +2479,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # Threads, not processes: shipping all experts to workers per chunk costs more than
         # the kernels, which spend their time in numpy calls that release the GIL.
         consulted = np.flatnonzero(np.diff(bounds))
-        threaded = query.size >= max(_THREADED_PAIRS, _THREADED_PAIRS_PER_EXPERT * consulted.size)
+        threaded = threads_pay(query.size, consulted.size)
         Parallel(n_jobs=self.n_jobs if threaded else 1, require="sharedmem")(
             delayed(predict_expert)(k) for k in consulted
         )
