@@ -34,6 +34,10 @@ _COVERAGE_ALL_CELLS = 2048
 # expert apart per this many cells (ad hoc, Intel log: 0.2 s for 682k cells, against
 # 0.13-0.2 ms per expert searched apart for a single query).
 _CELLS_PER_EXPERT_SEARCH = 500
+# Coverage weights are summed in whole units of this: sums of integers are exact in
+# float64 (up to 2**21 cells per pair), so a coverage does not depend on the order in
+# which its cells are found, and both searches (and every n_jobs) give the same bits.
+_COVER_UNIT = 2.0**-32
 # Work on (query, expert) pairs goes to threads only from this many pairs, and this many
 # per expert on average (see threads_pay).
 _THREADED_PAIRS = 2048
@@ -51,6 +55,11 @@ _MIN_SCALE_FRACTION = 2.0**-16
 # blocks of the origin (about 2.6e5 reaches) are indexed.
 _CODE_BITS = 21
 _CODE_OFFSET = 1 << (_CODE_BITS - 1)
+
+
+def _cell_weights(d, width):
+    """Gaussian weights of cells at distances ``d``, in whole units of ``_COVER_UNIT``."""
+    return np.rint(np.exp(-0.5 * (np.maximum(d, 0.0) / width) ** 2) / _COVER_UNIT)
 
 
 def threads_pay(n_pairs, n_experts):
@@ -476,8 +485,9 @@ class ExpertReach:
         searches apart have cost as much, see :meth:`_search_all_cells`). More queries
         are searched against each candidate expert's own cells (a tree of its queries per
         expert, faster per pair for large batches), the experts in ``n_jobs`` threads (the
-        k-d tree searches release the GIL); each writes its own pairs, so the result does
-        not depend on ``n_jobs``. Both find the same cells.
+        k-d tree searches release the GIL). Both find the same cells, and the weights are
+        summed exactly (in whole units of ``_COVER_UNIT``, 2**-32), so the coverage is the
+        same to the bit whichever search ran, in whatever order, and for any ``n_jobs``.
         """
         cover = np.zeros(query_index.size)
         if not np.isfinite(self.reach) or query_index.size == 0:
@@ -504,7 +514,7 @@ class ExpertReach:
             )
             d = near["v"] - half[q][near["i"]]
             inside = d <= cut
-            weight = np.exp(-0.5 * (np.maximum(d[inside], 0.0) / width) ** 2)
+            weight = _cell_weights(d[inside], width)
             cover[pairs] = np.bincount(near["i"][inside], weights=weight, minlength=q.size)
 
         by_expert = list(self._pairs_by_expert(expert_index))
@@ -512,7 +522,7 @@ class ExpertReach:
         Parallel(n_jobs=n_jobs if threaded else 1, require="sharedmem")(
             delayed(cover_of)(k, pairs) for k, pairs in by_expert
         )
-        return cover
+        return cover * _COVER_UNIT
 
     def _coverage_all_cells(self, mids, half, asked, query_index, expert_index, cut, width):
         """:meth:`coverage` of the queries ``asked`` from one search of all cells."""
@@ -531,8 +541,9 @@ class ExpertReach:
         key = query.astype(np.int64) * self.n_experts + self.cell_expert[near["j"][inside]]
         pos = np.searchsorted(pair_key[order], key).clip(max=order.size - 1)
         found = pair_key[order][pos] == key
-        weight = np.exp(-0.5 * (np.maximum(d[found], 0.0) / width) ** 2)
-        return np.bincount(order[pos[found]], weights=weight, minlength=query_index.size)
+        weight = _cell_weights(d[found], width)
+        cover = np.bincount(order[pos[found]], weights=weight, minlength=query_index.size)
+        return cover * _COVER_UNIT
 
     def _block_codes(self, mids):
         """Table code of the block of each point (-1 too far from the origin to code)."""
