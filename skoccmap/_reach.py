@@ -494,11 +494,8 @@ class ExpertReach:
             return cover
         mids, half = self._mids_and_half_lengths(queries)
         cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
-        asked = np.unique(query_index)
-        if asked.size <= _COVERAGE_ALL_CELLS and self._search_all_cells(expert_index):
-            return self._coverage_all_cells(
-                mids, half, asked, query_index, expert_index, cut, width
-            )
+        if len(queries) <= _COVERAGE_ALL_CELLS and self._search_all_cells(expert_index):
+            return self._coverage_all_cells(mids, half, query_index, expert_index, cut, width)
 
         def cover_of(k, pairs):
             tree = self._expert_trees[k]
@@ -524,8 +521,9 @@ class ExpertReach:
         )
         return cover * _COVER_UNIT
 
-    def _coverage_all_cells(self, mids, half, asked, query_index, expert_index, cut, width):
-        """:meth:`coverage` of the queries ``asked`` from one search of all cells."""
+    def _coverage_all_cells(self, mids, half, query_index, expert_index, cut, width):
+        """:meth:`coverage` from one search of all cells."""
+        asked = np.unique(query_index)
         queries_tree = cKDTree(mids[asked], balanced_tree=False, compact_nodes=False)
         near = queries_tree.sparse_distance_matrix(
             self.tree, cut + half[asked].max(), output_type="ndarray"
@@ -538,9 +536,10 @@ class ExpertReach:
         # to its candidates, but a pair not asked for is dropped all the same.
         pair_key = query_index.astype(np.int64) * self.n_experts + expert_index
         order = np.argsort(pair_key, kind="stable")
+        sorted_key = pair_key[order]
         key = query.astype(np.int64) * self.n_experts + self.cell_expert[near["j"][inside]]
-        pos = np.searchsorted(pair_key[order], key).clip(max=order.size - 1)
-        found = pair_key[order][pos] == key
+        pos = np.searchsorted(sorted_key, key).clip(max=order.size - 1)
+        found = sorted_key[pos] == key
         weight = _cell_weights(d[found], width)
         cover = np.bincount(order[pos[found]], weights=weight, minlength=query_index.size)
         return cover * _COVER_UNIT

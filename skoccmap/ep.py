@@ -607,7 +607,7 @@ def _whitened_cross(posterior, K_cross):
 
 
 def _solve_lower(L, B):
-    """``L^-1 B`` for a lower-triangular ``L`` (``B`` is overwritten), by blocks of rows.
+    """``L^-1 B`` for a lower-triangular ``L`` (``B`` may be overwritten), by blocks of rows.
 
     Forward substitution a block of ``_TRIANGULAR_BLOCK`` rows at a time: the update of a
     block by the rows solved before it is a matrix product, which releases the GIL. SciPy's
