@@ -2479,10 +2479,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # Threads, not processes: shipping all experts to workers per chunk costs more than
         # the kernels, which spend their time in numpy calls that release the GIL.
         consulted = np.flatnonzero(np.diff(bounds))
-        threaded = threads_pay(query.size, consulted.size)
-        Parallel(n_jobs=self.n_jobs if threaded else 1, require="sharedmem")(
-            delayed(predict_expert)(k) for k in consulted
-        )
+        if threads_pay(query.size, consulted.size):
+            Parallel(n_jobs=self.n_jobs, require="sharedmem")(
+                delayed(predict_expert)(k) for k in consulted
+            )
+        else:
+            # Without joblib: its bookkeeping per task (configuration, warning filters)
+            # cost a few-query prediction as much as the experts' own work.
+            for k in consulted:
+                predict_expert(k)
         proba = np.full(Xc.shape[0], 0.5)
         mean = np.zeros(Xc.shape[0])
         variance = np.empty(Xc.shape[0])

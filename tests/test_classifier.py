@@ -720,3 +720,20 @@ def test_absorbed_refuses_unknown_labels_and_multi_class():
     multi.fit(X, np.arange(30) % 3)
     with pytest.raises(ValueError, match="binary"):
         multi._absorbed(X[:2], [0, 0])
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 130])
+def test_packed_factor_unpacks_to_its_lower_triangle_with_zeros_above(n):
+    # The factor an expert keeps is packed (half the memory) and unpacked at every
+    # prediction; the upper triangle must be exact zeros, not left-over memory.
+    from skoccmap.classifier import _from_lower_triangle, _lower_triangle
+
+    rng = np.random.default_rng(n)
+    lower = np.tril(rng.normal(size=(n, n)))
+    full = lower + np.triu(rng.normal(size=(n, n)), 1)  # garbage above, not packed
+    for _ in range(3):  # fresh arrays each time: no memory reused by chance
+        unpacked = _from_lower_triangle(_lower_triangle(full))
+        assert unpacked.flags.c_contiguous
+        np.testing.assert_array_equal(unpacked, lower)
+        symmetric = _from_lower_triangle(_lower_triangle(full), symmetric=True)
+        np.testing.assert_array_equal(symmetric, lower + np.tril(lower, -1).T)
