@@ -889,6 +889,52 @@ def _points_against(P, Ys, cols, gradient, chunk):
             yield pi, cj, k, grad
 
 
+def point_row_pairs(points, rows, point_index, row_index, *, length_scale=1.0):
+    """Integral kernel of points against segment rows, for a list of (point, row) pairs.
+
+    Each value is the one :func:`integral_kernel` gives the pair (a zero-length row of X
+    against a row of Y), to the bit: the same scaling, closed forms and cut-off, applied
+    to the listed pairs only. Several experts' cross-covariances at a few queries are then
+    one vectorised evaluation instead of one kernel call each, whose fixed costs dominate
+    at that size.
+
+    Parameters
+    ----------
+    points : ndarray of shape (n_points, n_dims)
+        Points in the original units.
+    rows : ndarray of shape (n_rows, 2 * n_dims)
+        Segment rows in the original units.
+    point_index, row_index : ndarray of int of shape (n_pairs,)
+        The pairs.
+    length_scale : float or ndarray of shape (n_dims,)
+
+    Returns
+    -------
+    k : ndarray of shape (n_pairs,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from skoccmap._integrals import integral_kernel, point_row_pairs
+    >>> rows = np.array([[0.0, 0.0, 2.0, 0.0], [1.0, 1.0, 1.0, 1.0]])
+    >>> points = np.array([[0.5, 0.2]])
+    >>> k = point_row_pairs(points, rows, np.array([0, 0]), np.array([0, 1]))
+    >>> bool(np.array_equal(k, integral_kernel(np.hstack([points, points]), rows)[0]))
+    True
+    """
+    dim = points.shape[1]
+    scale = np.broadcast_to(np.asarray(length_scale, dtype=float), (dim,))
+    # As integral_kernel scales its rows: X / [scale, scale], then starts and directions.
+    scaled_points = np.hstack([points, points]) / np.concatenate([scale, scale])
+    scaled_rows = rows / np.concatenate([scale, scale])
+    starts = scaled_rows[:, :dim]
+    directions = scaled_rows[:, dim:] - starts
+    w = scaled_points[:, :dim].take(point_index, axis=0) - starts.take(row_index, axis=0)
+    k, _, dist2 = _point_segment(w, directions.take(row_index, axis=0), None)
+    k[dist2 > _CUTOFF**2] = 0.0
+    return k
+
+
 def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotropic=False,
                     block_size=None, _fast=True):
     """Integral kernel matrix between segment rows, in blocks.

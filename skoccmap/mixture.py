@@ -20,12 +20,14 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtri
 from sklearn import get_config
 from sklearn.base import BaseEstimator, ClassifierMixin, _fit_context, clone
+from sklearn.gaussian_process.kernels import ConstantKernel, Product
 from sklearn.utils import check_random_state, gen_batches
 from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from ._integrals import _POINT_CHUNK, point_row_pairs
 from ._reach import ExpertReach, _extent, kernel_reach, threads_pay
 from ._shared_kernel import (
     learn_shared_kernel,
@@ -37,6 +39,7 @@ from ._thinning import thin_free_pieces
 from ._transient import CellCounts
 from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
+from .kernels import IntegralKernel
 from .observations import HIT, NO_RETURN, RETURN, split_segments
 
 __all__ = ["MixtureGPOccupancyMap"]
@@ -688,6 +691,22 @@ def _warn_once_each(expert_warnings, n_experts):
                 kinds[key] = (first, count + 1)
     for (category, _), (message, count) in kinds.items():
         warnings.warn(f"{count} of {n_experts} expert(s): {message}", category, stacklevel=3)
+
+
+def _is_binary_ep(expert):
+    return type(expert) is EPGaussianProcessClassifier and expert.n_classes_ == 2
+
+
+def _integral_parts(kernel):
+    """``(c, k)`` for a kernel that is an :class:`IntegralKernel` ``k`` (``c`` None) or a
+    product of one with a ``ConstantKernel`` ``c``; None for any other kernel."""
+    if type(kernel) is IntegralKernel:
+        return None, kernel
+    if type(kernel) is Product:
+        for c, k in ((kernel.k1, kernel.k2), (kernel.k2, kernel.k1)):
+            if type(c) is ConstantKernel and type(k) is IntegralKernel:
+                return c, k
+    return None
 
 
 def _prior_variance(expert, X):
@@ -2462,15 +2481,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if self.shared_kernel_ is not None:
             shared_prior = np.asarray(self.shared_kernel_.diag(Xc), dtype=np.float64)
 
-        def predict_expert(k):
+        def predict_expert(k, cross=None):
             # Each task writes its own slice of the pairs: results do not depend on n_jobs.
             part = slice(bounds[k], bounds[k + 1])
             rows = Xc[query[part]]
             model = self.experts_[k]
             k_diag = None if shared_prior is None else shared_prior[query[part]]
-            if type(model) is EPGaussianProcessClassifier and model.n_classes_ == 2:
+            if _is_binary_ep(model):
                 # The mixture validated the queries: the expert's own checks only cost.
-                means[part], variances[part] = model._latent(rows, k_diag)
+                means[part], variances[part] = model._latent(rows, k_diag, cross)
             else:
                 means[part], variances[part] = model.latent_mean_and_variance(rows)
             if needs_prior:
@@ -2486,8 +2505,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         else:
             # Without joblib: its bookkeeping per task (configuration, warning filters)
             # cost a few-query prediction as much as the experts' own work.
-            for k in consulted:
-                predict_expert(k)
+            for k, cross in self._cross_covariances(Xc, query, bounds, consulted):
+                predict_expert(k, cross)
         proba = np.full(Xc.shape[0], 0.5)
         mean = np.zeros(Xc.shape[0])
         variance = np.empty(Xc.shape[0])
@@ -2512,6 +2531,57 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 else self._unreached_prior_variance(Xc[alone])
             )
         return proba, mean, variance
+
+    def _cross_covariances(self, Xc, query, bounds, consulted):
+        """``(k, K_star)`` for each consulted expert: its cross-covariances at its queries,
+        evaluated for groups of experts at once, or None (then the expert computes them).
+
+        A few queries give each expert one or two rows, and an integral kernel call of
+        that size is mostly fixed costs. Where the experts share an integral kernel (the
+        default) and the queries are points, :func:`point_row_pairs` evaluates groups of
+        experts' (query, training row) pairs, ``_POINT_CHUNK`` pairs at a time, with the
+        values of the experts' own calls to the bit.
+        """
+        parts = None if self.shared_kernel_ is None else _integral_parts(self.shared_kernel_)
+        d = Xc.shape[1] // 2
+        if parts is None or not np.array_equal(Xc[:, :d], Xc[:, d:]):
+            yield from ((k, None) for k in consulted)
+            return
+        constant, integral = parts
+        length_scale = integral._checked_length_scale(d)
+        group, n_pairs = [], 0
+        for position, k in enumerate(consulted):
+            model = self.experts_[k]
+            if _is_binary_ep(model):
+                group.append(k)
+                n_pairs += (bounds[k + 1] - bounds[k]) * model.X_train_.shape[0]
+            else:
+                yield k, None
+            if group and (n_pairs >= _POINT_CHUNK or position == consulted.size - 1):
+                yield from self._group_cross(Xc[:, :d], query, bounds, group, length_scale,
+                                             constant)
+                group, n_pairs = [], 0
+
+    def _group_cross(self, points, query, bounds, group, length_scale, constant):
+        train = [self.experts_[k].X_train_ for k in group]
+        group = np.asarray(group)
+        n_queries = bounds[group + 1] - bounds[group]
+        n_rows = np.array([t.shape[0] for t in train])
+        size = n_queries * n_rows
+        ends = np.cumsum(size)
+        # Pair p of expert e: its query within // n_rows, its row within % n_rows.
+        owner = np.repeat(np.arange(group.size), size)
+        within = np.arange(ends[-1]) - (ends - size)[owner]
+        point = query[bounds[group][owner] + within // n_rows[owner]]
+        row = (np.cumsum(n_rows) - n_rows)[owner] + within % n_rows[owner]
+        values = point_row_pairs(
+            points, np.concatenate(train), point, row, length_scale=length_scale
+        )
+        if constant is not None:
+            # As the product kernel multiplies: the constant's matrix times the integrals.
+            values = np.full(values.shape, constant.constant_value) * values
+        for e, block in enumerate(np.split(values, ends[:-1])):
+            yield int(group[e]), block.reshape(n_queries[e], n_rows[e])
 
     def _unreached_prior_variance(self, X):
         """Prior latent variance where no expert reaches, without shared hyperparameters

@@ -17,6 +17,7 @@ from skoccmap.ep import (
     ep_append_sites,
     ep_latent_joint_predictive,
     ep_latent_predictive,
+    ep_latent_predictive_packed,
     ep_log_marginal_likelihood,
     ep_log_marginal_likelihood_gradient,
     ep_posterior,
@@ -158,6 +159,33 @@ def test_joint_predictive_matches_dense_computation(tau):
     np.testing.assert_allclose(m_star, W.T @ mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(cov, K_ss - K_star @ W + W.T @ Sigma @ W, rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(cov, cov.T)
+
+
+def test_packed_predictive_matches_dense_computation():
+    # The factor's packed lower triangle, solved a test point at a time, against the
+    # marginal of the dense joint predictive (R&W eq. 3.61 from the posterior).
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((40, 40))
+    K = A @ A.T / 40 + 0.5 * np.eye(40)
+    tau, nu = rng.uniform(0.0, 3.0, 40), rng.standard_normal(40)
+    tau[:3] = [0.0, 1e-14, 50.0]
+    posterior = ep_posterior(K, tau, nu)
+    mean, Sigma = _dense_posterior(K, tau, nu)
+    B = rng.standard_normal((5, 40))
+    K_star, k_diag = B @ A.T / 40, np.einsum("ij,ij->i", B, B) / 40 + 0.5
+    lower = posterior.L[np.tri(40, dtype=bool)]
+    m_star, var = ep_latent_predictive_packed(K_star, k_diag, posterior._replace(L=None), lower)
+    W = np.linalg.solve(K, K_star.T)
+    np.testing.assert_allclose(m_star, W.T @ mean, rtol=1e-9, atol=1e-12)
+    dense_var = k_diag - np.einsum("ij,ji->i", K_star, W) + np.einsum("ji,jk,ki->i", W, Sigma, W)
+    np.testing.assert_allclose(var, dense_var, rtol=1e-9, atol=1e-12)
+    # ... and the unpacked path's numbers, to rounding.
+    np.testing.assert_allclose(
+        np.column_stack([m_star, var]),
+        np.column_stack(ep_latent_predictive(K_star, k_diag, posterior)),
+        rtol=1e-12,
+        atol=1e-14,
+    )
 
 
 def test_appended_sites_reach_the_whole_fixed_point_and_its_posterior():

@@ -520,3 +520,24 @@ def test_pair_upper_bound_bounds_the_integral(dim):
             - s2[i, :dim], axis=1))
         for i in range(500)
     ], atol=1e-3)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("anisotropic", [False, True])
+def test_point_row_pairs_equal_the_kernel_matrix(dim, anisotropic):
+    # Listed pairs of points and rows (points, short and long segments, some beyond the
+    # cut-off) take the values of the whole matrix, to the bit, in any order.
+    from skoccmap._integrals import point_row_pairs
+
+    rng = np.random.default_rng(60 + dim + 2 * anisotropic)
+    Y = _random_segments(rng, 50, dim, box=30.0, max_length=3.0, point_fraction=0.3)
+    Y[:5, dim:] = Y[:5, :dim] + 0.01
+    points = np.vstack([Y[rng.choice(50, 6), :dim] + rng.normal(0, 0.3, (6, dim)),
+                        rng.uniform(0, 30.0, (4, dim))])
+    scale = rng.uniform(0.4, 1.5, dim) if anisotropic else 0.7
+    whole = integral_kernel(np.hstack([points, points]), Y, length_scale=scale)
+    p, r = np.nonzero(np.ones_like(whole, dtype=bool))
+    order = rng.permutation(p.size)
+    values = point_row_pairs(points, Y, p[order], r[order], length_scale=scale)
+    np.testing.assert_array_equal(values, whole[p[order], r[order]])
+    assert np.any(whole == 0.0) and np.any(whole > 1e-3)

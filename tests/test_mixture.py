@@ -1008,3 +1008,47 @@ def test_a_length_scale_far_below_the_beams_fits_in_bounded_memory():
     away = hits.copy()
     away[:, [0, 3]] += 1.0
     np.testing.assert_allclose(model.predict_proba(away)[:, 1], 0.5)
+
+
+def _consulted_bounds(model, Q):
+    query, expert, _ = model._consulted(Q)
+    return query, np.searchsorted(expert, np.arange(model.n_experts_ + 1))
+
+
+def test_few_queries_take_the_experts_cross_covariances_at_once(default_model, grid):
+    # Few point queries: the experts' cross-covariances are evaluated together, each equal
+    # to the expert's own kernel call to the bit, every consulted expert once.
+    _, Q = grid
+    Xc = Q[::97][:12]
+    query, bounds = _consulted_bounds(default_model, Xc)
+    consulted = np.flatnonzero(np.diff(bounds))
+    seen = []
+    for k, cross in default_model._cross_covariances(Xc, query, bounds, consulted):
+        seen.append(k)
+        expert = default_model.experts_[k]
+        if not hasattr(expert, "X_train_"):
+            assert cross is None
+            continue
+        rows = Xc[query[bounds[k]:bounds[k + 1]]]
+        np.testing.assert_array_equal(cross, expert.kernel_(rows, expert.X_train_))
+    assert sorted(seen) == consulted.tolist()
+    # Segments (not points) are left to each expert.
+    segments = Xc.copy()
+    segments[:, 2] += 0.3
+    query, bounds = _consulted_bounds(default_model, segments)
+    consulted = np.flatnonzero(np.diff(bounds))
+    pairs = list(default_model._cross_covariances(segments, query, bounds, consulted))
+    assert [k for k, _ in pairs] == consulted.tolist()
+    assert all(cross is None for _, cross in pairs)
+
+
+def test_few_queries_predict_as_a_whole_map_does(default_model, grid):
+    # One query at a time (cross-covariances together, packed factors) against the same
+    # queries inside the whole map (one kernel call and blocked solve per expert).
+    _, Q = grid
+    whole = default_model._merged(Q)
+    picked = np.arange(0, Q.shape[0], max(Q.shape[0] // 25, 1))
+    for i in picked:
+        one = default_model._merged(Q[i:i + 1])
+        for part, full in zip(one, whole, strict=True):
+            np.testing.assert_allclose(part[0], full[i], rtol=1e-10, atol=1e-13)
