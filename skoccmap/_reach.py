@@ -31,9 +31,9 @@ _COVERAGE_CUT = 3.0
 # candidate expert's cells apart for more (see there).
 _COVERAGE_ALL_CELLS = 2048
 # Building the tree of all cells costs about as much as searching the cells of one
-# expert apart per this many cells (ad hoc, Intel log: 0.2 s for 682k cells, against
-# 0.13-0.2 ms per expert searched apart for a single query).
-_CELLS_PER_EXPERT_SEARCH = 500
+# expert apart per this many cells (ad hoc, Intel log with every scan: 0.09 s for 682k
+# cells, against 25 us per expert searched apart for a single query).
+_CELLS_PER_EXPERT_SEARCH = 200
 # Coverage weights are summed in whole units of this: sums of integers are exact in
 # float64 (up to 2**21 cells per pair), so a coverage does not depend on the order in
 # which its cells are found, and both searches (and every n_jobs) give the same bits.
@@ -515,10 +515,14 @@ class ExpertReach:
             cover[pairs] = np.bincount(near["i"][inside], weights=weight, minlength=q.size)
 
         by_expert = list(self._pairs_by_expert(expert_index))
-        threaded = threads_pay(query_index.size, len(by_expert))
-        Parallel(n_jobs=n_jobs if threaded else 1, require="sharedmem")(
-            delayed(cover_of)(k, pairs) for k, pairs in by_expert
-        )
+        if threads_pay(query_index.size, len(by_expert)):
+            Parallel(n_jobs=n_jobs, require="sharedmem")(
+                delayed(cover_of)(k, pairs) for k, pairs in by_expert
+            )
+        else:
+            # Without joblib, whose bookkeeping per task cost more than a small search.
+            for k, pairs in by_expert:
+                cover_of(k, pairs)
         return cover * _COVER_UNIT
 
     def _coverage_all_cells(self, mids, half, query_index, expert_index, cut, width):
