@@ -295,14 +295,17 @@ def _short_pairs(s1, s2, dim, gradient):
 
 def _point_point_values(w, gradient):
     """Point kernel from differences ``w`` (n, n_dims): (k, grad, dist2)."""
+    if gradient is None:
+        # The same sums as ``(w * w).sum(axis=1)``, in the same order, in half the time:
+        # numpy's reduction over a row of two or three is slow.
+        dist2 = _dot(w, w)
+        return np.exp(-0.5 * dist2), None, dist2
     ww = w * w
     dist2 = ww.sum(axis=1)
     k = np.exp(-0.5 * dist2)
     if gradient == "aniso":
         return k, ww * k[:, None], dist2
-    if gradient == "iso":
-        return k, (dist2 * k)[:, None], dist2
-    return k, None, dist2
+    return k, (dist2 * k)[:, None], dist2
 
 
 def _point_short_values(w, d, gradient):
