@@ -2540,7 +2540,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         that size is mostly fixed costs. Where the experts share an integral kernel (the
         default) and the queries are points, :func:`point_row_pairs` evaluates groups of
         experts' (query, training row) pairs, ``_POINT_CHUNK`` pairs at a time, with the
-        values of the experts' own calls to the bit.
+        values of the experts' own calls to the bit (every binary EP expert holds the
+        shared kernel: ``fit`` and every re-learn refit them all with it).
         """
         parts = None if self.shared_kernel_ is None else _integral_parts(self.shared_kernel_)
         d = Xc.shape[1] // 2
