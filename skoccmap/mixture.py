@@ -2389,15 +2389,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             return self.gating_threshold
         return _AUTO_GATING_THRESHOLD[self._gate()]
 
-    def _coverage_gates(self, Xc, query, expert):
+    def _coverage_gates(self, Xc, query, expert, return_covered=False):
         """``gating="coverage"``: each candidate's share of the coverage of the query
         (:meth:`ExpertReach.coverage` with width ``coverage_width_``); equal weights where
-        no candidate covers it."""
+        no candidate covers it. ``return_covered``: also whether each pair's coverage is
+        positive (its expert has cells within the coverage's cut of the query)."""
         cover = self._reach_index.coverage(
             Xc, query, expert, self.coverage_width_, n_jobs=self.n_jobs
         )
         total = np.bincount(query, weights=cover, minlength=Xc.shape[0])[query]
-        return np.where(total > 0, cover / np.where(total > 0, total, 1.0), 1.0)
+        weights = np.where(total > 0, cover / np.where(total > 0, total, 1.0), 1.0)
+        return (weights, cover > 0) if return_covered else weights
 
     def _consulted(self, Xc):
         """The experts each query consults: (query, expert, weight) sorted by expert.
@@ -2415,17 +2417,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if query.size == 0:
             return query, expert, np.empty(0)
         coverage = self._gate() == "coverage"
+        # Pairs known to be within reach without a search: those the coverage gate covers
+        # (it counts cells within its cut, at most the reach, of the query).
         if coverage:
-            weights = self._coverage_gates(Xc, query, expert)
+            weights, covered = self._coverage_gates(Xc, query, expert, return_covered=True)
         else:
             weights = self._pair_gates(_midpoints(Xc), query, expert)
+            covered = np.zeros(query.size, dtype=bool)
         largest = _query_max(query, weights)
         # The coverage gate's threshold is relative to the best-covered expert: where
         # dozens of experts overlap, each holds a small share, and all of them hold data.
         bound = self._gating_threshold() * (largest if coverage else 1.0)
         keep = (weights == largest) | (weights >= bound)
-        near = np.zeros(query.size, dtype=bool)
-        near[keep] = index.within_reach(Xc, query[keep], expert[keep])
+        near = keep & covered
+        search = keep & ~near
+        near[search] = index.within_reach(Xc, query[search], expert[search])
         lost = np.ones(Xc.shape[0], dtype=bool)
         lost[query[near]] = False
         retry = lost[query]

@@ -1052,3 +1052,21 @@ def test_few_queries_predict_as_a_whole_map_does(default_model, grid):
         one = default_model._merged(Q[i:i + 1])
         for part, full in zip(one, whole, strict=True):
             np.testing.assert_allclose(part[0], full[i], rtol=1e-10, atol=1e-13)
+
+
+@pytest.mark.parametrize("shrink", [1.0, 0.2])
+def test_pairs_the_coverage_gate_weighs_are_within_reach(default_model, grid, shrink):
+    # _consulted takes a pair with positive coverage as within reach without searching:
+    # the coverage counts cells within its cut, which is at most the reach (also a reach
+    # shorter than the coverage's own cut of three widths).
+    import copy
+
+    _, Q = grid
+    index = copy.copy(default_model._reach_index)
+    index.reach = shrink * index.reach
+    assert (shrink == 1.0) or index.reach < 3 * default_model.coverage_width_
+    query, expert = index.candidates(Q)
+    cover = index.coverage(Q, query, expert, default_model.coverage_width_)
+    weighed = cover > 0
+    assert weighed.sum() > Q.shape[0] and not weighed.all()
+    assert index.within_reach(Q, query[weighed], expert[weighed]).all()
