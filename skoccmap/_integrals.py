@@ -927,12 +927,12 @@ def point_row_pairs(points, rows, point_index, row_index, *, length_scale=1.0):
     """
     dim = points.shape[1]
     scale = np.broadcast_to(np.asarray(length_scale, dtype=float), (dim,))
-    # As integral_kernel scales its rows: X / [scale, scale], then starts and directions.
-    scaled_points = np.hstack([points, points]) / np.concatenate([scale, scale])
+    # As integral_kernel scales its rows (each coordinate divided by its length scale),
+    # then takes starts and directions: the same operations on the same numbers.
     scaled_rows = rows / np.concatenate([scale, scale])
     starts = scaled_rows[:, :dim]
     directions = scaled_rows[:, dim:] - starts
-    w = scaled_points[:, :dim].take(point_index, axis=0) - starts.take(row_index, axis=0)
+    w = (points / scale).take(point_index, axis=0) - starts.take(row_index, axis=0)
     k, _, dist2 = _point_segment(w, directions.take(row_index, axis=0), None)
     k[dist2 > _CUTOFF**2] = 0.0
     return k

@@ -840,18 +840,19 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         var = np.empty(X.shape[0])
         block = max(1, _PREDICT_BLOCK_ELEMENTS // max(n_train, 1))
         lower = self._posterior_lower
-        if lower is not None and X.shape[0] <= _PACKED_SOLVE_QUERIES:
-            # A few queries: solved on the packed factor, which is not unpacked.
-            K_star = self.kernel_(X, self.X_train_) if cross is None else cross
-            k_diag = self.kernel_.diag(X) if prior_variance is None else prior_variance
-            mean, var = ep_latent_predictive_packed(K_star, k_diag, self._posterior, lower)
-            return mean, np.maximum(var, _VAR_FLOOR)
-        posterior = _unpacked(self._posterior, lower)
+        # A few queries are solved on the packed factor, which is then not unpacked.
+        packed = lower is not None and X.shape[0] <= _PACKED_SOLVE_QUERIES
+        posterior = self._posterior if packed else _unpacked(self._posterior, lower)
         # Not gen_batches: its parameter validation cost a mixture's expert 0.1 ms a call.
         for rows in _row_blocks(X.shape[0], block):
             K_star = self.kernel_(X[rows], self.X_train_) if cross is None else cross[rows]
             k_diag = self.kernel_.diag(X[rows]) if prior_variance is None else prior_variance[rows]
-            mean[rows], var[rows] = ep_latent_predictive(K_star, k_diag, posterior)
+            if packed:
+                mean[rows], var[rows] = ep_latent_predictive_packed(
+                    K_star, k_diag, posterior, lower
+                )
+            else:
+                mean[rows], var[rows] = ep_latent_predictive(K_star, k_diag, posterior)
         return mean, np.maximum(var, _VAR_FLOOR)
 
     def predict_var(self, X):

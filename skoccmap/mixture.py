@@ -2585,8 +2585,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             points, np.concatenate(train), point, row, length_scale=length_scale
         )
         if constant is not None:
-            # As the product kernel multiplies: the constant's matrix times the integrals.
-            values = np.full(values.shape, constant.constant_value) * values
+            # The product kernel's entries: the constant times the integral, exactly.
+            values *= constant.constant_value
         for e, block in enumerate(np.split(values, ends[:-1])):
             yield int(group[e]), block.reshape(n_queries[e], n_rows[e])
 
