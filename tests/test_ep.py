@@ -161,18 +161,6 @@ def test_joint_predictive_matches_dense_computation(tau):
     np.testing.assert_array_equal(cov, cov.T)
 
 
-@pytest.mark.parametrize("n", [1, 63, 64, 65, 150])
-def test_inverse_column_norms_are_the_diagonal_of_the_inverse(n):
-    rng = np.random.default_rng(n)
-    A = rng.normal(size=(n, n))
-    B = np.eye(n) + A @ A.T / n
-    L = np.linalg.cholesky(B)
-    # Garbage above the diagonal must not be read.
-    L_upper_garbage = L + np.triu(rng.normal(size=(n, n)), 1)
-    norms = ep_module._inverse_column_norms(np.asfortranarray(L_upper_garbage))
-    np.testing.assert_allclose(norms, np.diag(np.linalg.inv(B)), rtol=1e-12)
-
-
 def test_packed_predictive_matches_dense_computation():
     # The factor's packed lower triangle, solved a test point at a time, against the
     # marginal of the dense joint predictive (R&W eq. 3.61 from the posterior).
