@@ -46,7 +46,7 @@ class _LearnOnly(mixture.MixtureGPOccupancyMap):
     def _fit_experts(self, X, y, labels, expert, rng):
         rows = mixture._groups(labels, self.expert_cluster_.size)
         start = time.perf_counter()
-        self._learn_shared(X, y, rows, expert, rng)
+        self._learn_shared(rows, expert, rng)
         raise _Learned(time.perf_counter() - start)
 
 

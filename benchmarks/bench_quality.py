@@ -19,7 +19,8 @@ with the tuning seeds).
    Methods: the mixture with its defaults; the mixture with every hit kept
    (``min_hit_frequency=None``, all else default); the mixture with whole beams
    as in the paper
-   (``max_beam_length=None``, ``beam_end_length=None``, all else default); the frequency
+   (``max_beam_length=None``, ``beam_end_length=None``, ``hyperparameter_beam_length=None``,
+   all else default); the frequency
    grid and the clamped log-odds grid updated per scan (OctoMap), each at 0.1 m and 0.2 m
    (both reported, chosen before any result); the Hilbert map.
 2. **Real logs**, Intel (report log) and ACES (tuning log), on the Hilbert-maps protocol
@@ -170,9 +171,13 @@ class Method:
     per_scan: bool = False  # fit(X, y, scan_index=...)
 
 
-# The paper's beams: every beam one observation, all else default, so that the two mixture
-# rows compare beam pieces against whole beams.
-WHOLE_BEAMS = {"max_beam_length": None, "beam_end_length": None}
+# The paper's beams: every beam one observation (the shared kernel learned on them too),
+# all else default, so that the two mixture rows compare beam pieces against whole beams.
+WHOLE_BEAMS = {
+    "max_beam_length": None,
+    "beam_end_length": None,
+    "hyperparameter_beam_length": None,
+}
 
 
 def _hilbert(seed, n_jobs):

@@ -34,7 +34,10 @@ data = make_office_scans(noise_std=0.02, random_state=0)
 env = data.environment
 models = {
     "whole beams (the paper)": MixtureGPOccupancyMap(
-        max_beam_length=None, beam_end_length=None, random_state=0
+        max_beam_length=None,
+        beam_end_length=None,
+        hyperparameter_beam_length=None,
+        random_state=0,
     ),
     "beam pieces (defaults)": MixtureGPOccupancyMap(random_state=0),
     "frequency grid, 0.2 m": FrequencyGridMap(resolution=0.2),

@@ -133,6 +133,7 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                 combiner=method,
                 max_beam_length=None,
                 beam_end_length=None,
+                hyperparameter_beam_length=None,
                 piece_assignment="beam",
                 max_pieces_per_cell=None,
                 min_hit_frequency=None,

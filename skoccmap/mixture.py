@@ -854,7 +854,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         m / 0.5 m give office ECE 0.061 / 0.050 / 0.038 / 0.032 and ACES held-out AUC 0.918
         / 0.911 / 0.951 / 0.948 (whole beams 0.901); 0.5 m pieces find fewer walls (office
         0.974 against 0.983, paper's world 0.886 against 0.900) and need 1.5 times the
-        experts of 1 m on ACES (231 against 157).
+        experts of 1 m on ACES (231 against 157). (Each bound learned its own length scale
+        in these numbers; the shared kernel is now learned on the cut of
+        ``hyperparameter_beam_length`` whatever the bound.)
     beam_end_length : float or None, default=0.35
         Beams with a return are cut into pieces that halve in length towards their hit,
         down to this length (metres), before the ``max_beam_length`` pieces: the
@@ -1005,6 +1007,23 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         93.5 / 90.5 %. The windows' shorter length scale extrapolates less into space the
         training scans barely saw, which costs held-out AUC on sparse scans: ``None`` stays
         the default.
+    hyperparameter_beam_length : float or None, default=1.0
+        The shared hyperparameters (``share_hyperparameters=True``) are learned on the
+        beams cut at this length (metres), as ``max_beam_length`` cuts them (with the same
+        ``beam_end_length`` and thinning), whatever bound the experts use. The EP evidence
+        of cut beams depends on how finely they are cut: each piece is one more constraint
+        on the latent function, and a longer length scale ties more constraints together,
+        so finer pieces learn longer length scales (on the tuning log, ACES every 10th
+        scan, bounds of 0.5 / 1 / 2 m learned 1.51 / 1.13 / 0.76 m). Learned on one cut,
+        the kernel no longer follows the bound, and the length scale of the finer cut ranked
+        held-out points better with either bound there: 2 m pieces scored 0.9611 with the
+        length scale learned on 1 m pieces (1.245 m) against 0.9475 with their own (0.936
+        m), and 1 m pieces 0.9683 against 0.9587 (``benchmarks/README.md``; ad hoc, seed
+        100). The default equals ``max_beam_length``'s, so a default fit learns on the
+        experts' own pieces; with another bound, the learning pieces are cut and kept
+        beside the experts' (and updated by :meth:`partial_fit`). ``None`` learns on the
+        experts' own pieces, whatever they are (the paper's model, which learns on whole
+        beams).
     hyperparameter_growth : float or None, default=2.0
         :meth:`partial_fit` re-learns the shared hyperparameters, and refits every expert
         with them (as :meth:`refit_hyperparameters` does), whenever the training rows
@@ -1242,6 +1261,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "nearest_hit_radius": [Interval(Real, 0, None, closed="left")],
         "share_hyperparameters": ["boolean"],
         "hyperparameter_window": [Interval(Real, 0, None, closed="neither"), None],
+        "hyperparameter_beam_length": [Interval(Real, 0, None, closed="neither"), None],
         "hyperparameter_growth": [Interval(Real, 1, None, closed="neither"), None],
         "refit_fraction": [Interval(Real, 0, None, closed="left")],
         "gating_threshold": [Interval(Real, 0, 1, closed="left"), StrOptions({"auto"})],
@@ -1273,6 +1293,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         nearest_hit_radius=2.0,
         share_hyperparameters=True,
         hyperparameter_window=None,
+        hyperparameter_beam_length=1.0,
         hyperparameter_growth=2.0,
         refit_fraction=0.5,
         gating_threshold="auto",
@@ -1300,6 +1321,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.nearest_hit_radius = nearest_hit_radius
         self.share_hyperparameters = share_hyperparameters
         self.hyperparameter_window = hyperparameter_window
+        self.hyperparameter_beam_length = hyperparameter_beam_length
         self.hyperparameter_growth = hyperparameter_growth
         self.refit_fraction = refit_fraction
         self.gating_threshold = gating_threshold
@@ -1390,6 +1412,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._pieces, self._piece_y = pieces, y_enc[source]
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
         self._piece_beam_hit = row_hit[source]
+        self._learning = None
+        if self._cuts_own_learning_pieces(expert):
+            self._learning = self._learning_pieces(
+                X, self.observation_kind_, y_enc, row_hit, self.transient_hits_, rng
+            )
         self.experts_ = self._fit_experts(pieces, self._piece_y, piece_expert, expert, rng)
         _log(
             self.verbose,
@@ -1632,7 +1659,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         expert = self._make_expert()
         # The kept kernel matrices are of the old hyperparameters.
         self._kernel_cache = {}
-        base = self._learn_shared(self._pieces, self._piece_y, rows, expert, self._rng)
+        base = self._learn_shared(rows, expert, self._rng)
         self._expert_base = base
         self._learned_rows = self._pieces.shape[0]
         everyone = np.arange(self.n_experts_)
@@ -1776,6 +1803,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         new_piece_hit = self._piece_hits(
             pieces, y_enc[source], anchor[source], all_hits, transient_hit
         )
+        learning = self._learning
+        if learning is not None:
+            new = self._learning_pieces(
+                X, kinds, y_enc, anchor, transient, rng, kept=learning[0][learning[1] != 1]
+            )
+            learning = tuple(np.concatenate(pair) for pair in zip(learning, new, strict=True))
         all_pieces = np.vstack([self._pieces, pieces])
         piece_y = np.concatenate([self._piece_y, y_enc[source]])
         piece_hit = np.concatenate([self._piece_hit, new_piece_hit])
@@ -1872,6 +1905,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._pieces, self._piece_y = all_pieces, piece_y
         self._piece_expert, self._piece_hit = piece_expert, piece_hit
         self._piece_beam_hit = piece_beam_hit
+        self._learning = learning
         self._piece_settled = piece_settled
         if relearn:
             self._relearn_shared(rows, old_experts, old_rows, origin)
@@ -2196,14 +2230,19 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """
         if self.piece_assignment == "beam":
             return expert_rows
+        return self._hit_groups(self._piece_beam_hit)
+
+    def _hit_groups(self, beam_hit):
+        """Pieces grouped by the expert of their beam's hit, the clusters split to
+        ``max_expert_size`` by these pieces (the experts of the paper's rule)."""
         hit_group, group_cluster = _split_hits(
             self._hits,
             self.expert_cluster_[self._hit_expert],
             self.n_clusters_,
-            self._piece_beam_hit,
+            beam_hit,
             self.max_expert_size,
         )
-        return _groups(hit_group[self._piece_beam_hit], group_cluster.size)
+        return _groups(hit_group[beam_hit], group_cluster.size)
 
     def _fit_experts(self, X, y, labels, expert, rng):
         n_experts = self.expert_cluster_.size
@@ -2222,7 +2261,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self.shared_kernel_ = None
         base = expert
         if self.share_hyperparameters:
-            base = self._learn_shared(X, y, rows, expert, rng)
+            base = self._learn_shared(rows, expert, rng)
 
         self._expert_base = base
         _log(self.verbose, f"fitting {n_experts} expert(s) with n_jobs={self.n_jobs}")
@@ -2242,8 +2281,36 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self._cache_kernels(experts, [lower for _, _, lower in results], experts)
         return experts
 
-    def _learn_shared(self, X, y, rows, expert, rng):
+    def _cuts_own_learning_pieces(self, expert):
+        """Whether the shared kernel is learned on pieces of its own cut
+        (``hyperparameter_beam_length`` differs from ``max_beam_length``)."""
+        if not self.share_hyperparameters or self.hyperparameter_beam_length is None:
+            return False
+        if self.hyperparameter_beam_length == self.max_beam_length:
+            return False
+        params = expert.get_params() if hasattr(expert, "get_params") else {}
+        kernel = params.get("kernel")
+        return params.get("optimizer") is not None and kernel is not None and kernel.n_dims > 0
+
+    def _learning_pieces(self, X, kinds, y_enc, row_hit, transient, rng, kept=None):
+        """Rows ``X`` cut at ``hyperparameter_beam_length`` and thinned as the experts'
+        pieces are: ``(pieces, labels, beam hit of each piece)``. ``kept``: free learning
+        pieces of earlier batches, for the thinning's count."""
+        pieces, source = _beam_pieces(
+            X, kinds, self.hyperparameter_beam_length, self.beam_end_length
+        )
+        pieces, source = self._thinned(pieces, source, y_enc, rng, transient, kept=kept)
+        return pieces, y_enc[source], row_hit[source]
+
+    def _learning_groups(self, rows):
+        """Groups (the paper's rule) of the pieces the shared kernel is learned on."""
+        if self._learning is None:
+            return self._hyperparameter_groups(rows)
+        return self._hit_groups(self._learning[2])
+
+    def _learn_shared(self, rows, expert, rng):
         """The expert with the shared kernel, fixed (or ``expert`` if no piece can learn)."""
+        X, y = (self._pieces, self._piece_y) if self._learning is None else self._learning[:2]
         params = expert.get_params()
         if "kernel" not in params or "optimizer" not in params:
             raise ValueError(
@@ -2254,7 +2321,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             # Experts' pieces (as the paper's rule groups them), a random subset of them:
             # each term is one expert's fit, so a few dozen fix a handful of
             # hyperparameters at a bounded cost however large the map.
-            groups = self._hyperparameter_groups(rows)
+            groups = self._learning_groups(rows)
             two_class = [r for r in groups if 0 < y[r].sum() < r.size]
             chosen = rng.choice(len(two_class), min(len(two_class), _SHARED_PIECES), replace=False)
             windows = [two_class[k] for k in np.sort(chosen)]
@@ -2565,8 +2632,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             else:
                 yield k, None
             if group and (n_pairs >= _POINT_CHUNK or position == consulted.size - 1):
-                yield from self._group_cross(Xc[:, :d], query, bounds, group, length_scale,
-                                             constant)
+                yield from self._group_cross(
+                    Xc[:, :d], query, bounds, group, length_scale, constant
+                )
                 group, n_pairs = [], 0
 
     def _group_cross(self, points, query, bounds, group, length_scale, constant):

@@ -490,6 +490,41 @@ def test_hyperparameter_window_learns_on_windows(paper, monkeypatch):
     assert not np.allclose(default.shared_kernel_.theta, model.shared_kernel_.theta, atol=1e-3)
 
 
+def test_shared_kernel_is_learned_on_its_own_beam_cut(paper):
+    # The evidence of cut beams depends on how finely they are cut, so the shared kernel is
+    # learned on beams cut at hyperparameter_beam_length whatever the experts' bound: 2 m
+    # pieces learn exactly what 1 m pieces learn (the clusters, and so the learning
+    # groups, are the same; the paper's data give fewer groups than the learner draws).
+    expert = GaussianProcessClassifier(C(4.0, "fixed") * RBF(1.0))
+    one = _mixture(expert=expert, share_hyperparameters=True, max_beam_length=1.0)
+    one.fit(paper.X, paper.y)
+    assert one._learning is None  # the experts' own pieces
+    two = _mixture(expert=expert, share_hyperparameters=True, max_beam_length=2.0)
+    two.fit(paper.X, paper.y)
+    pieces, y, _ = two._learning
+    assert pieces.shape[0] == one._pieces.shape[0] > two._pieces.shape[0]
+    np.testing.assert_array_equal(pieces, one._pieces)
+    np.testing.assert_array_equal(y, one._piece_y)
+    np.testing.assert_allclose(two.shared_kernel_.theta, one.shared_kernel_.theta, rtol=1e-10)
+    own = _mixture(
+        expert=expert,
+        share_hyperparameters=True,
+        max_beam_length=2.0,
+        hyperparameter_beam_length=None,
+    ).fit(paper.X, paper.y)
+    assert own._learning is None
+    assert not np.allclose(own.shared_kernel_.theta, one.shared_kernel_.theta, atol=1e-3)
+    # partial_fit keeps the learning cut up to date: a re-learn on all rows learns what
+    # the 1 m pieces of the same batches learn.
+    half = paper.X.shape[0] // 2
+    for model in (one, two):
+        model.fit(paper.X[:half], paper.y[:half])
+        model.partial_fit(paper.X[half:], paper.y[half:])
+        model.refit_hyperparameters()
+    np.testing.assert_array_equal(two._learning[0], one._pieces)
+    np.testing.assert_allclose(two.shared_kernel_.theta, one.shared_kernel_.theta, rtol=1e-10)
+
+
 def test_share_hyperparameters_needs_kernel_param(paper):
     model = _mixture(expert=_NoKernelExpert(), share_hyperparameters=True)
     with pytest.raises(ValueError, match="share_hyperparameters"):
