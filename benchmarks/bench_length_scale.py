@@ -8,7 +8,8 @@ Run standalone::
 
 For every combination of the number of experts whose summed evidence learns the shared
 hyperparameters (``--pieces``, the estimator's ``_SHARED_PIECES``), of
-``max_pieces_per_cell`` (``--caps``), of ``max_beam_length`` (``--max-beam-lengths``,
+``max_pieces_per_cell`` (``--caps``), of ``max_beam_length`` and
+``hyperparameter_beam_length`` alike (``--max-beam-lengths``: the cut learned on,
 default 1 m) and of the training sparsity (``--every``: ACES on the
 Hilbert-maps protocol, seed 100, trained on every scan and on every 10th remaining scan),
 :class:`skoccmap.MixtureGPOccupancyMap` is fitted up to the learned kernel (clustering,
@@ -54,7 +55,11 @@ def learned_length_scale(data, *, pieces, cap, beam, state, n_jobs):
     """Length scale (m) learned on ``data`` and the learning's seconds."""
     saved, mixture._SHARED_PIECES = mixture._SHARED_PIECES, pieces
     model = _LearnOnly(
-        max_pieces_per_cell=cap, max_beam_length=beam, random_state=state, n_jobs=n_jobs
+        max_pieces_per_cell=cap,
+        max_beam_length=beam,
+        hyperparameter_beam_length=beam,
+        random_state=state,
+        n_jobs=n_jobs,
     )
     try:
         with warnings.catch_warnings():

@@ -1008,22 +1008,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         training scans barely saw, which costs held-out AUC on sparse scans: ``None`` stays
         the default.
     hyperparameter_beam_length : float or None, default=1.0
-        The shared hyperparameters (``share_hyperparameters=True``) are learned on the
-        beams cut at this length (metres), as ``max_beam_length`` cuts them (with the same
+        The shared hyperparameters (``share_hyperparameters=True``) are learned on the beams
+        cut at this length (metres), as ``max_beam_length`` cuts them (with the same
         ``beam_end_length`` and thinning), whatever bound the experts use. The EP evidence
         of cut beams depends on how finely they are cut: each piece is one more constraint
-        on the latent function, and a longer length scale ties more constraints together,
-        so finer pieces learn longer length scales (on the tuning log, ACES every 10th
-        scan, bounds of 0.5 / 1 / 2 m learned 1.51 / 1.13 / 0.76 m). Learned on one cut,
-        the kernel no longer follows the bound, and the length scale of the finer cut ranked
-        held-out points better with either bound there: 2 m pieces scored 0.9611 with the
-        length scale learned on 1 m pieces (1.245 m) against 0.9475 with their own (0.936
-        m), and 1 m pieces 0.9683 against 0.9587 (``benchmarks/README.md``; ad hoc, seed
-        100). The default equals ``max_beam_length``'s, so a default fit learns on the
-        experts' own pieces; with another bound, the learning pieces are cut and kept
-        beside the experts' (and updated by :meth:`partial_fit`). ``None`` learns on the
-        experts' own pieces, whatever they are (the paper's model, which learns on whole
-        beams).
+        on the latent function, and a longer length scale ties more constraints together, so
+        finer pieces learn longer length scales (on the tuning log, ACES every 10th scan,
+        random state 0, bounds of 0.5 / 1 / 2 m learned 1.51 / 1.13 / 0.76 m). Learned on
+        one cut, the kernel no longer follows the bound, and the length scale of the finer
+        cut ranked held-out points better with either bound there: 2 m pieces scored 0.9611
+        with the length scale learned on 1 m pieces (1.245 m) against 0.9475 with their own
+        (0.936 m), and 1 m pieces 0.9683 against 0.9587 (``benchmarks/README.md``; ad hoc,
+        seed 100). The default equals ``max_beam_length``'s, so a default fit learns on the
+        experts' own pieces; with another bound, the learning pieces are cut and kept beside
+        the experts' (and updated by :meth:`partial_fit`). ``None`` learns on the experts'
+        own pieces, whatever they are (the paper's model, which learns on whole beams).
     hyperparameter_growth : float or None, default=2.0
         :meth:`partial_fit` re-learns the shared hyperparameters, and refits every expert
         with them (as :meth:`refit_hyperparameters` does), whenever the training rows
