@@ -693,6 +693,14 @@ def _warn_once_each(expert_warnings, n_experts):
         warnings.warn(f"{count} of {n_experts} expert(s): {message}", category, stacklevel=3)
 
 
+def _learns_kernel(expert):
+    """Whether fitting ``expert`` learns kernel hyperparameters (an optimiser and a kernel
+    with free ones)."""
+    params = expert.get_params() if hasattr(expert, "get_params") else {}
+    kernel = params.get("kernel")
+    return params.get("optimizer") is not None and kernel is not None and kernel.n_dims > 0
+
+
 def _is_binary_ep(expert):
     return type(expert) is EPGaussianProcessClassifier and expert.n_classes_ == 2
 
@@ -1672,9 +1680,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """Whether an update to ``n_rows`` training rows re-learns the shared kernel."""
         if self.hyperparameter_growth is None or not self.share_hyperparameters:
             return False
-        params = self._make_expert().get_params()
-        kernel = params.get("kernel")
-        if params.get("optimizer") is None or kernel is None or kernel.n_dims == 0:
+        if not _learns_kernel(self._make_expert()):
             return False
         return n_rows >= self.hyperparameter_growth * self._learned_rows
 
@@ -2287,9 +2293,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             return False
         if self.hyperparameter_beam_length == self.max_beam_length:
             return False
-        params = expert.get_params() if hasattr(expert, "get_params") else {}
-        kernel = params.get("kernel")
-        return params.get("optimizer") is not None and kernel is not None and kernel.n_dims > 0
+        return _learns_kernel(expert)
 
     def _learning_pieces(self, X, kinds, y_enc, row_hit, transient, rng, kept=None):
         """Rows ``X`` cut at ``hyperparameter_beam_length`` and thinned as the experts'
