@@ -133,8 +133,16 @@ def add_model_arguments(parser):
         type=_length_or_none,
         default=1.0,
         help="beams are cut into pieces no longer than this, in metres ('none': no bound; "
-        "with --beam-end-length none and --max-pieces-per-cell none too, whole beams, the "
-        "paper's model; default 1)",
+        "with --beam-end-length, --max-pieces-per-cell and --hyperparameter-beam-length "
+        "none too, whole beams, the paper's model; default 1)",
+    )
+    parser.add_argument(
+        "--hyperparameter-beam-length",
+        type=_length_or_none,
+        default=1.0,
+        help="the shared kernel is learned on beams cut into pieces no longer than this, "
+        "in metres, whatever --max-beam-length is ('none': on the experts' own pieces; "
+        "default 1)",
     )
     parser.add_argument(
         "--beam-end-length",
@@ -202,6 +210,7 @@ def make_mixture(args):
         combiner=args.combiner,
         max_expert_size=args.max_expert_size,
         max_beam_length=args.max_beam_length,
+        hyperparameter_beam_length=args.hyperparameter_beam_length,
         beam_end_length=args.beam_end_length,
         max_pieces_per_cell=args.max_pieces_per_cell,
         min_hit_frequency=args.min_hit_frequency,

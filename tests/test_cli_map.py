@@ -87,12 +87,14 @@ def test_map_intel_every_10th_scan(shared_data, tmp_path, capsys):
 @pytest.mark.parametrize(
     "options, expected",
     [
-        ([], (1.0, 0.35, 4, 0.2)),
-        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4, 0.2)),
-        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None, 0.2)),
-        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2, 0.2)),
-        (["--min-hit-frequency", "none"], (1.0, 0.35, 4, None)),
-        (["--min-hit-frequency", "0.4"], (1.0, 0.35, 4, 0.4)),
+        ([], (1.0, 0.35, 4, 0.2, 1.0)),
+        (["--max-beam-length", "none", "--beam-end-length", "None"], (None, None, 4, 0.2, 1.0)),
+        (["--max-pieces-per-cell", "none"], (1.0, 0.35, None, 0.2, 1.0)),
+        (["--max-pieces-per-cell", "2"], (1.0, 0.35, 2, 0.2, 1.0)),
+        (["--min-hit-frequency", "none"], (1.0, 0.35, 4, None, 1.0)),
+        (["--min-hit-frequency", "0.4"], (1.0, 0.35, 4, 0.4, 1.0)),
+        (["--hyperparameter-beam-length", "none"], (1.0, 0.35, 4, 0.2, None)),
+        (["--hyperparameter-beam-length", "2"], (1.0, 0.35, 4, 0.2, 2.0)),
     ],
 )
 def test_beam_piece_options_reach_the_mixture(options, expected):
@@ -106,6 +108,7 @@ def test_beam_piece_options_reach_the_mixture(options, expected):
         model.beam_end_length,
         model.max_pieces_per_cell,
         model.min_hit_frequency,
+        model.hyperparameter_beam_length,
     )
     assert settings == expected
 
@@ -113,6 +116,7 @@ def test_beam_piece_options_reach_the_mixture(options, expected):
 @pytest.mark.parametrize(
     "option, value",
     [("--max-beam-length", v) for v in ["0", "-1", "long"]]
+    + [("--hyperparameter-beam-length", v) for v in ["0", "-1", "long"]]
     + [("--max-pieces-per-cell", v) for v in ["0", "1.5", "many"]]
     + [("--min-hit-frequency", v) for v in ["-0.1", "2", "often"]],
 )
