@@ -14,8 +14,9 @@ default 1 m) and of the training sparsity (``--every``: ACES on the
 Hilbert-maps protocol, seed 100, trained on every scan and on every 10th remaining scan),
 :class:`skoccmap.MixtureGPOccupancyMap` is fitted up to the learned kernel (clustering,
 beam pieces, learning; the experts are not fitted) with each ``--states`` random state.
-Prints the learned length scales with their mean, the largest over the smallest, and the
-learning's seconds, and writes ``benchmarks/results/bench_length_scale.json``.
+Prints the learned length scales with their mean, the largest over the smallest, the
+standard deviation of their logarithm (about their relative spread) and the learning's
+seconds, and writes ``benchmarks/results/bench_length_scale.json``.
 
 **Tuning data only** (ACES, as ``bench_tuning.py`` loads it): the numbers quoted for
 ``share_hyperparameters`` in the docstring of :class:`skoccmap.MixtureGPOccupancyMap` come
@@ -90,8 +91,8 @@ def main(argv=None):
     caps = [None if c.lower() == "none" else int(c) for c in args.caps]
     rows = []
     print("| experts learned on | max_pieces_per_cell | max_beam_length | training scans "
-          "| length scales (m) | mean | max / min | learning s |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|")
+          "| length scales (m) | mean | max / min | sd of log % | learning s |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
     for every in args.every:
         data = load_aces(SEED, every=every)
         if data is None:
@@ -119,6 +120,7 @@ def main(argv=None):
                 f"| {pieces} | {cap} | {beam:g} | every {every} | "
                 + " / ".join(f"{v:.2f}" for v in scales)
                 + f" | {scales.mean():.2f} | {scales.max() / scales.min():.2f} | "
+                + f"{100 * np.std(np.log(scales), ddof=1) if len(scales) > 1 else np.nan:.1f} | "
                 + f"{np.mean(row['learn_s']):.1f} |",
                 flush=True,
             )
