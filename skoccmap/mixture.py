@@ -770,12 +770,15 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ``ConstantKernel(1e3, "fixed") * IntegralKernel()``: only the length scale is
         learned. Occupancy data are nearly separable, so the EP evidence grows with the
         signal variance until the map saturates: learned within [1e-2, 1e5] on the tuning
-        data it ends at the upper bound on the office and the paper's world (1e5) and at
-        4.0e3 on ACES (``benchmarks/bench_tuning.py``). Fixed at 1e2 / 1e3 / 1e4 it gives
-        ACES held-out AUC 0.956 / 0.951 / 0.944, office ECE 0.048 / 0.038 / 0.034 and walls
-        found on the paper's world 0.83 / 0.90 / 0.95: 1e4 finds more of the sparse walls
-        at 0.007 less ACES AUC and three times the office's phantoms (0.15 % against
-        0.05 %); 1e3 is the middle, and leaves no learned value pinned at a bound.
+        data it ends at the upper bound on the office and the paper's world (1e5, with a
+        ``ConvergenceWarning``) and fits take 1.4-3.5 times as long
+        (``benchmarks/bench_tuning.py``, tuning seed 100). Fixed at 1e2 / 1e3 / 1e4 it
+        finds 79.1 / 90.3 / 96.1 % of the sparse paper's world's walls, at office ECE
+        0.058 / 0.042 / 0.035, and ranks ACES' held-out points 0.9650 / 0.9683 / 0.9660.
+        1e4 would find those walls, but the length scale it learns is 36-43 % longer
+        (ACES), so a query consults more experts (10.2 against 7.3 on ACES' every scan),
+        and on B2's world at 3 million observations it ranks the cells 0.9919 against
+        0.9949 (``benchmarks/README.md``). 1e3 ranks ACES best of the fixed values.
     gating : {"coverage", "clusterer", "gpc"}, default="coverage"
         The weight ``p(expert | x)`` of each expert within reach of a query: it chooses
         the experts consulted (see ``gating_threshold``), and weighs them under
