@@ -205,11 +205,15 @@ class OccupancyGrid:
             still marks the outside of the building unknown). ``None``, or an estimator
             without ``predict_var``: no cell is unknown.
         observed_by : Scans or None, default=None
-            The training scans: cells that none of their beams crossed (sensor to hit, or to
-            the maximum range) and that hold none of their hits are unknown as well. A
-            continuous map extrapolates into space no sensor saw -- behind a wall seen from
-            one side it stays confidently occupied for about a length scale -- which this
-            draws as unknown, as a counting grid would.
+            The training scans: cells that none of their beams crossed (sensor to hit, or,
+            without a return, to the first cell holding one of their hits) and that hold
+            none of their hits are unknown as well. A continuous map extrapolates into space
+            no sensor saw -- behind a wall seen from one side it stays confidently occupied
+            for about a length scale -- which this draws as unknown, as a counting grid
+            would. A beam without a return stops at a wall that other beams hit: on the
+            Intel lab such beams cross glass walls to the maximum range, and counted whole
+            they drew strokes of occupied cells behind the walls (their free pieces that far
+            out are metres long).
         chunk_size : int, default=65536
             At most this many query rows are built and predicted at once.
         verbose : int, default=0
@@ -605,7 +609,13 @@ def _observed_by(scans, origin, resolution, counts):
             f"observed_by must be a {len(counts)}-D skoccmap.observations.Scans, got "
             f"{type(scans).__name__}."
         )
-    return _observed_cells(scans, np.asarray(origin, float), float(resolution), counts)
+    # A beam without a return that crosses a wall other beams hit saw nothing beyond it
+    # (on the Intel lab such beams pass through glass), and the model's free evidence that
+    # far along a beam is too coarse to draw: counted whole, they drew strokes of occupied
+    # cells behind the walls.
+    return _observed_cells(
+        scans, np.asarray(origin, float), float(resolution), counts, through_hits=False
+    )
 
 
 def _read_simple_yaml(path):

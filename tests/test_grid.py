@@ -144,6 +144,22 @@ def test_cells_no_beam_observed_are_unknown():
         OccupancyGrid.from_estimator(_ProbaOnly(), extent, 1.0, observed_by=np.zeros((2, 4)))
 
 
+def test_no_return_beams_count_up_to_the_first_cell_holding_a_hit():
+    from skoccmap.datasets._simulator import _observed_cells
+    from skoccmap.observations import Scans
+
+    # A return beam hits at x = 2.5; a no-return beam beside it runs on through the hit's
+    # cell to the maximum range (x = 4.0): it saw nothing beyond that cell.
+    scans = Scans([[0.5, 0.5, 0.0]], [[2.0, np.inf]], [0.0, 0.01], max_range=3.5)
+    grid = OccupancyGrid.from_estimator(
+        _ProbaOnly(), (0.0, 5.0, 0.0, 1.0), 1.0, unknown_variance=None, observed_by=scans
+    )
+    np.testing.assert_array_equal(grid.unknown[0], [False, False, False, True, True])
+    # The simulated worlds' scoring counts whole beams (they cannot cross a wall there).
+    whole = _observed_cells(scans, np.zeros(2), 1.0, np.array([5, 1]))
+    np.testing.assert_array_equal(whole, [True, True, True, True, False])
+
+
 def test_verbose_reports_progress(capsys):
     OccupancyGrid.from_estimator(_FieldEstimator(), (0, 1, 0, 1), 0.1, chunk_size=10, verbose=1)
     err = capsys.readouterr().err

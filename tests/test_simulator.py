@@ -192,6 +192,28 @@ def test_cells_crossed_matches_box_test():
     assert_array_equal(seen, ref)
 
 
+def test_cells_crossed_stops_at_the_first_flagged_cell():
+    rng = np.random.default_rng(2)
+    lo, counts, centres = _grid((0, 4, 0, 3), 0.5, 2)
+    starts, ends = rng.uniform(0, 4, (40, 2)), rng.uniform(-1, 5, (40, 2))
+    stop = rng.random(len(centres)) < 0.15
+    stops = rng.random(40) < 0.5
+    seen = _cells_crossed(starts, ends, lo, 0.5, counts, stop=stop, stops=stops)
+    # reference: dense samples along each segment, a stopping one cut after its first
+    # flagged cell (random segments never touch a corner)
+    t = np.linspace(0, 1, 20001)
+    ref = np.zeros(len(centres), bool)
+    for a, b, stopping in zip(starts, ends, stops, strict=True):
+        idx = np.floor((a + t[:, None] * (b - a) - lo) / 0.5).astype(int)
+        ok = np.all((idx >= 0) & (idx < counts), axis=1)
+        flat = idx[ok, 0] + counts[0] * idx[ok, 1]
+        if stopping and stop[flat].any():
+            flat = flat[: np.argmax(stop[flat]) + 1]
+        ref[flat] = True
+    assert_array_equal(seen, ref)
+    assert seen.sum() < _cells_crossed(starts, ends, lo, 0.5, counts).sum()
+
+
 def test_ground_truth_grid_observed_mask():
     env = Environment2D([[3.0, -1.0, 3.0, 1.0]], wall_thickness=0.0)
     scans = simulate_scans(env, [[0.5, 0.25, 0.0]], [0.0], max_range=8.0)

@@ -75,11 +75,13 @@ def _grid(extent, resolution, n_dims):
     return lo, counts, centres
 
 
-def _cells_crossed(starts, ends, lo, resolution, counts):
+def _cells_crossed(starts, ends, lo, resolution, counts, stop=None, stops=None):
     """Flat indices of grid cells that segments pass through (exact, any dimension).
 
     A segment crosses the cell lines at parameters ``t`` where a coordinate reaches a grid line;
     between two consecutive crossings it stays inside one cell, found from the midpoint.
+    ``stop`` (one flag per cell) and ``stops`` (one per segment): the flagged segments end in
+    the first flagged cell they enter, from their start.
     """
     n_dims = len(counts)
     strides = np.cumprod(np.r_[1, counts[:-1]])  # x fastest, matching _grid's ordering
@@ -104,19 +106,49 @@ def _cells_crossed(starts, ends, lo, resolution, counts):
         mid, ids = 0.5 * (t[1:] + t[:-1])[same], ids[1:][same]
         cell = np.floor(s[ids] + mid[:, None] * (e[ids] - s[ids])).astype(int)
         # End points on a cell boundary belong to the cell above it (floor), like any point.
-        ends_cells = np.floor(np.concatenate([s, e])).astype(int)
-        cell = np.concatenate([cell, ends_cells])
+        end_cells = np.floor(e).astype(int)
+        if stop is not None:
+            cell, ids, ended = _up_to_first_stop(cell, ids, stop, stops[chunk], counts, strides)
+            end_cells = end_cells[~ended]
+        cell = np.concatenate([cell, np.floor(s).astype(int), end_cells])
         inside = np.all((cell >= 0) & (cell < counts), axis=1)
         seen[cell[inside] @ strides] = True
     return seen
 
 
-def _observed_cells(scans, lo, resolution, counts):
-    """Cells crossed by any beam (sensor to hit, or to max_range) or holding a hit."""
+def _up_to_first_stop(cell, ids, stop, stops, counts, strides):
+    """The crossed cells (sorted by segment, then along it) up to each stopping segment's
+    first ``stop`` cell, that cell included; and which segments ended there."""
+    inside = np.all((cell >= 0) & (cell < counts), axis=1)
+    flat = np.where(inside, cell @ strides, 0)
+    blocked = inside & stop[flat] & stops[ids]
+    # Blocked cells before each crossing, counted within its own segment.
+    before = np.cumsum(blocked) - blocked
+    first = np.r_[0, np.flatnonzero(ids[1:] != ids[:-1]) + 1]
+    start_count = np.repeat(before[first], np.diff(np.r_[first, ids.size]))
+    keep = before == start_count
+    ended = np.zeros(stops.size, dtype=bool)
+    ended[ids[blocked]] = True
+    return cell[keep], ids[keep], ended
+
+
+def _observed_cells(scans, lo, resolution, counts, through_hits=True):
+    """Cells crossed by any beam (sensor to hit, or to max_range) or holding a hit.
+
+    ``through_hits=False``: a beam without a return counts only up to the first cell that
+    holds a hit, that cell included.
+    """
     origins = np.repeat(scans.origins(), scans.n_beams, axis=0)
     directions = scans.directions().reshape(-1, scans.n_dims)
-    ranges = np.where(scans.returned(), scans.ranges, scans.max_range).ravel()
-    return _cells_crossed(origins, origins + ranges[:, None] * directions, lo, resolution, counts)
+    returned = scans.returned().ravel()
+    ranges = np.where(returned, scans.ranges.ravel(), scans.max_range)
+    ends = origins + ranges[:, None] * directions
+    stop = None
+    if not through_hits:
+        stop = _cells_crossed(ends[returned], ends[returned], lo, resolution, counts)
+    return _cells_crossed(
+        origins, ends, lo, resolution, counts, stop=stop, stops=None if stop is None else ~returned
+    )
 
 
 def _ground_truth_grid(environment, resolution, extent, scans):
