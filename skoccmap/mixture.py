@@ -793,7 +793,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         split cluster's experts by Gaussian gates fitted to their pieces. ``"gpc"``: a GP
         classifier over the expert labels of the training observations' midpoints (the
         paper's gate; sklearn's ``GaussianProcessClassifier`` with a fixed RBF kernel, on
-        at most 300 points). The clusterer's densities describe the hits: an expert's free
+        an equal share of 300 points from each expert, at least one each). The
+        clusterer's densities describe the hits: an expert's free
         pieces up to ``nearest_hit_radius`` from its hits (a room seen through a door, the
         corridor wall's expert) lie where its cluster's density, thin along its wall, is
         below the threshold, and queries there were sent to experts with no data near
@@ -855,7 +856,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         ended at: walls drawn thick and truly free cells marked occupied. ``None`` sets no
         bound; with ``beam_end_length=None``, ``piece_assignment="beam"`` and
         ``max_pieces_per_cell=None`` too, every beam stays whole and with its hit (with
-        ``min_hit_frequency=None`` as well, the paper's model). Chosen with
+        ``min_hit_frequency=None`` and ``hyperparameter_beam_length=None`` as well, the
+        paper's beams; :mod:`skoccmap.experiment` builds the paper's whole model). Chosen with
         ``piece_assignment="beam"`` on tuning data (``benchmarks/bench_tuning.py``: the
         office and the paper's world with noise seed 100, and the ACES log;
         ``benchmarks/bench_quality.py`` reports other seeds and Intel). Whole beams mark
