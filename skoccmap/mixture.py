@@ -793,9 +793,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         split cluster's experts by Gaussian gates fitted to their pieces. ``"gpc"``: a GP
         classifier over the expert labels of the training observations' midpoints (the
         paper's gate; sklearn's ``GaussianProcessClassifier`` with a fixed RBF kernel, on
-        an equal share of 300 points from each expert, at least one each). The
-        clusterer's densities describe the hits: an expert's free
-        pieces up to ``nearest_hit_radius`` from its hits (a room seen through a door, the
+        300 points shared equally among the experts, at least one from each). The
+        clusterer's densities describe the hits: an expert's free pieces up to
+        ``nearest_hit_radius`` from its hits (a room seen through a door, the
         corridor wall's expert) lie where its cluster's density, thin along its wall, is
         below the threshold, and queries there were sent to experts with no data near
         them (grey fans behind the doors of the dense office). On the tuning data
