@@ -375,10 +375,17 @@ def blocks_protocol(scans, *, train_every=1, block_size=HILBERT_BLOCK_SIZE, rand
 
 
 def _positive_proba(estimator, X):
-    """P(occupied) from ``predict_proba``, column of class 1 (the last one otherwise)."""
+    """P(occupied) from ``predict_proba``: the column of the larger class, as every
+    estimator of the package reads its labels (1 of {0, 1}, 2 of {1, 2}); the last column
+    without ``classes_``."""
     proba = np.asarray(estimator.predict_proba(X))
-    classes = list(getattr(estimator, "classes_", []))
-    column = classes.index(1) if 1 in classes else proba.shape[1] - 1
+    if proba.ndim != 2 or proba.shape[1] != 2:
+        raise ValueError(
+            "the estimator must predict two classes (free, occupied); predict_proba gave "
+            f"shape {proba.shape}."
+        )
+    classes = getattr(estimator, "classes_", None)
+    column = 0 if classes is not None and len(classes) == 2 and classes[0] > classes[1] else 1
     return proba[:, column]
 
 

@@ -155,6 +155,24 @@ def test_heldout_auc_uses_class_one_column(paper):
     assert heldout_auc(Reordered(paper.environment), paper.scans[:4], random_state=0) == 1.0
 
 
+def test_the_larger_class_is_occupied(paper):
+    # Labels {1, 2}: 2 is occupied, as every estimator of the package reads them.
+    class OneTwo(_TruthClassifier):
+        classes_ = np.array([1, 2])
+
+    test = paper.scans[:4]
+    assert heldout_auc(OneTwo(paper.environment), test, random_state=0) == 1.0
+    scores = map_quality(OneTwo(paper.environment), paper.environment, scans=test)
+    assert scores["auc"] == 1.0 and scores["walls_found"] == 1.0
+
+    class ThreeColumns(_TruthClassifier):
+        def predict_proba(self, X):
+            return np.full((len(X), 3), 1 / 3)
+
+    with pytest.raises(ValueError, match="two classes"):
+        heldout_auc(ThreeColumns(paper.environment), test, random_state=0)
+
+
 def test_heldout_auc_rejects_nan_and_one_class():
     class NaNClassifier:
         def predict_proba(self, X):
