@@ -6,6 +6,7 @@ when matplotlib is installed, ``<name>.png`` (probability and uncertainty panels
 """
 
 import argparse
+import math
 import sys
 import time
 import warnings
@@ -310,8 +311,8 @@ def run(args):
     try:
         if args.every_nth_scan < 1:
             raise ValueError(f"--every-nth-scan must be >= 1, got {args.every_nth_scan}")
-        if not args.resolution > 0:
-            raise ValueError(f"--resolution must be positive, got {args.resolution}")
+        if not (math.isfinite(args.resolution) and args.resolution > 0):
+            raise ValueError(f"--resolution must be a positive number, got {args.resolution}")
         if getattr(args, "online", False):
             if args.batch_scans < 1:
                 raise ValueError(f"--batch-scans must be >= 1, got {args.batch_scans}")
@@ -329,9 +330,15 @@ def run(args):
 def _run(args, unknown_variance):
     import numpy as np
 
+    from .grid import _grid_from_extent
+
     watch = Stopwatch()
     scans = watch("read log", load_scans, args)
     train = scans[:: args.every_nth_scan]
+    hits = train.hit_points()
+    if len(hits):
+        # The map's size is known before the fit: refuse a grid too large now, not after.
+        _grid_from_extent(hits, args.resolution)
     X, y, kind = watch("observations", train.to_observations)
     counts = np.bincount(kind, minlength=3)
     print(

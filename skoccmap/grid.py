@@ -11,7 +11,7 @@ origin -- the row-major layout of ROS ``OccupancyGrid.data``.
 
 import sys
 import time
-from numbers import Real
+from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,8 @@ ROS_OCCUPIED_THRESH = 0.65
 _PIXEL_OCCUPIED, _PIXEL_FREE, _PIXEL_UNKNOWN = 0, 254, 205
 # unknown_variance="auto": this fraction of the largest variance on the grid.
 _AUTO_UNKNOWN = 0.9
+# Cells of one map at most: a probability and a variance each, 0.8 GB at this bound.
+_MAX_CELLS = 50_000_000
 
 
 def _check_thresholds(free_threshold, occupied_threshold):
@@ -54,8 +56,8 @@ def _grid_from_extent(extent, resolution):
         low, high = arr[0::2], arr[1::2]
         if np.any(high <= low):
             raise ValueError(f"extent must have max > min on every axis, got {extent!r}.")
-        counts = np.ceil((high - low) / resolution - 1e-9).astype(np.int64)
-        return low, np.maximum(counts, 1)
+        counts = np.ceil((high - low) / resolution - 1e-9)
+        return low, _checked_counts(np.maximum(counts, 1), resolution)
     if arr.ndim != 2 or arr.shape[0] == 0 or arr.shape[1] not in (2, 3, 4, 6):
         raise ValueError(
             "extent data must be a non-empty array of 2-D/3-D points (m, 2|3) or segment rows "
@@ -66,8 +68,20 @@ def _grid_from_extent(extent, resolution):
     n_dims = arr.shape[1] if arr.shape[1] in (2, 3) else arr.shape[1] // 2
     coords = arr.reshape(-1, n_dims) if arr.shape[1] > n_dims else arr
     low = np.floor(coords.min(axis=0) / resolution) * resolution
-    counts = np.floor((coords.max(axis=0) - low) / resolution).astype(np.int64) + 1
-    return low, counts
+    counts = np.floor((coords.max(axis=0) - low) / resolution) + 1
+    return low, _checked_counts(counts, resolution)
+
+
+def _checked_counts(counts, resolution):
+    """Cell counts as integers; ValueError when the grid would exceed ``_MAX_CELLS``."""
+    if np.prod(counts) > _MAX_CELLS:
+        raise ValueError(
+            f"a grid of {' x '.join(f'{c:.0f}' for c in counts)} cells at resolution "
+            f"{resolution:g} is too large (at most {_MAX_CELLS:,} cells): use a coarser "
+            "resolution or a smaller extent (a reading far off the map can stretch an extent "
+            "taken from the data)."
+        )
+    return counts.astype(np.int64)
 
 
 class OccupancyGrid:
@@ -234,9 +248,15 @@ class OccupancyGrid:
         >>> grid.shape, grid.probability.round(2).tolist()
         ((2, 3), [[0.5, 0.5, 0.5], [0.4, 0.5, 0.7]])
         """
-        if not (np.isfinite(resolution) and resolution > 0):
+        if not (
+            isinstance(resolution, Real)
+            and not isinstance(resolution, bool)
+            and np.isfinite(resolution)
+            and resolution > 0
+        ):
             raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
-        if not (isinstance(chunk_size, int) and chunk_size >= 1):
+        integral = isinstance(chunk_size, Integral) and not isinstance(chunk_size, bool)
+        if not (integral and chunk_size >= 1):
             raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}.")
         if not hasattr(estimator, "predict_proba"):
             raise ValueError(f"estimator {type(estimator).__name__} has no predict_proba.")

@@ -55,7 +55,8 @@ def test_evaluate_prints_both_models(paper_log, capsys):
     "argv, message",
     [
         (["map", "{log}", "--every-nth-scan", "0"], "--every-nth-scan must be >= 1"),
-        (["map", "{log}", "--resolution", "-1"], "--resolution must be positive"),
+        (["map", "{log}", "--resolution", "-1"], "--resolution must be a positive number"),
+        (["map", "{log}", "--resolution", "inf"], "--resolution must be a positive number"),
         (["map", "{log}", "--unknown-variance", "big"], "--unknown-variance"),
         (["map", "{missing}"], "No such file"),
         (["evaluate", "{log}", "--holdout-every", "1"], "--holdout-every must be >= 2"),
@@ -66,6 +67,14 @@ def test_bad_options_exit_with_a_message(paper_log, tmp_path, capsys, argv, mess
     argv = [a.format(log=log, missing=tmp_path / "missing.log") for a in argv]
     assert main(argv) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_map_too_large_is_refused_before_the_fit(paper_log, capsys):
+    log, _ = paper_log
+    assert main(["map", str(log), "--resolution", "1e-6", "--quiet"]) == 2
+    out, err = capsys.readouterr()
+    assert "too large" in err and "use a coarser resolution" in err
+    assert "fitted" not in out
 
 
 @pytest.mark.slow

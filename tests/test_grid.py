@@ -293,8 +293,17 @@ def test_bad_from_estimator_arguments():
         OccupancyGrid.from_estimator(est, np.array([[np.nan, 0.0]]), 0.1)
     with pytest.raises(ValueError, match="resolution"):
         OccupancyGrid.from_estimator(est, (0, 1, 0, 1), -0.1)
+    for resolution in (None, "0.1", True, np.inf):
+        with pytest.raises(ValueError, match="resolution must be a positive number"):
+            OccupancyGrid.from_estimator(est, (0, 1, 0, 1), resolution)
+    with pytest.raises(ValueError, match="too large"):
+        OccupancyGrid.from_estimator(est, (0, 10, 0, 10), 1e-6)
+    with pytest.raises(ValueError, match="too large"):
+        OccupancyGrid.from_estimator(est, np.array([[0.0, 0.0], [3e9, 3e9]]), 0.1)
     with pytest.raises(ValueError, match="chunk_size"):
         OccupancyGrid.from_estimator(est, (0, 1, 0, 1), 0.1, chunk_size=0)
+    grid = OccupancyGrid.from_estimator(est, (0, 1, 0, 1), 0.5, chunk_size=np.int64(2))
+    assert grid.shape == (2, 2)
     with pytest.raises(ValueError, match="predict_proba"):
         OccupancyGrid.from_estimator(object(), (0, 1, 0, 1), 0.1)
     grid = OccupancyGrid([[0.5]], (0, 0), 1.0)
