@@ -270,7 +270,15 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         origin = np.floor(low / res) * res
         # floor(low / res) * res can round above low (0.85 / 0.05 -> 17 * 0.05 > 0.85).
         self.origin_ = np.where(origin > low, origin - res, origin)
-        self.shape_ = tuple(int(s) for s in np.floor((high - self.origin_) / res) + 1)
+        shape = np.floor((high - self.origin_) / res) + 1
+        # Cells are stored sparsely, but their flat index must fit an int64.
+        if np.prod(shape) >= 2.0**62:
+            raise ValueError(
+                f"the data span {' x '.join(f'{s:.3g}' for s in shape)} cells at resolution "
+                f"{res:g}, too many to index: use a coarser resolution, or look for a reading "
+                "far off the map."
+            )
+        self.shape_ = tuple(int(s) for s in shape)
         self.extent_ = np.column_stack(
             [self.origin_, self.origin_ + res * np.array(self.shape_)]
         ).ravel()

@@ -238,6 +238,11 @@ def test_bad_input():
         OccupancyGridMap(l_min=0.0, l_max=0.0).fit(X, [0, 1, 0, 1])
     with pytest.raises(ValueError, match="resolution"):
         OccupancyGridMap(resolution=0).fit(X, [0, 1, 0, 1])
+    # One reading far off the map: too many cells to index.
+    far = np.array([[0.0, 0.0, 1.0, 0.0], [3e9, 3e9, 3e9, 3e9]])
+    for grid in (OccupancyGridMap, FrequencyGridMap):
+        with pytest.raises(ValueError, match="far off the map"):
+            grid().fit(far, [0, 1])
     with pytest.raises(NotFittedError):
         OccupancyGridMap().predict_proba(X)
     est = OccupancyGridMap().fit(X, [0, 1, 0, 1])
