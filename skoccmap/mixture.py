@@ -1388,6 +1388,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         start = time.perf_counter()
 
         occupied = y_enc == 1
+        if self.clusterer is None and occupied.sum() < 2:
+            # Before DPGMMClusterer's own check, which names an array the user never passed.
+            raise ValueError(
+                f"{type(self).__name__} clusters the hit points (rows of the occupied class) "
+                f"and needs at least 2 of them, got {int(occupied.sum())}."
+            )
         expert = self._make_expert()
         labels, anchor = self._cluster_and_assign(X, occupied, expert, rng)
         _log(
