@@ -396,9 +396,10 @@ def _replay(args, train, unknown_variance):
         seen = train[: first + args.batch_scans]
         X, y, _ = train[first : first + args.batch_scans].to_observations()
         if not hasattr(model, "n_experts_"):
-            # The first update needs hits and beams: until then, batches pile up.
+            # The first update needs beams and two hits (to cluster): until then, batches
+            # pile up.
             X, y = np.vstack([*held[0], X]), np.concatenate([*held[1], y])
-            if y.size == 0 or y.min() == y.max():
+            if y.sum() < 2 or y.min() == y.max():
                 held = ([X], [y])
                 continue
         tic = time.perf_counter()
@@ -416,7 +417,7 @@ def _replay(args, train, unknown_variance):
             _save_png(grid, stem.with_suffix(".png"))
             print(f"wrote snapshot {stem}.npz")
     if not hasattr(model, "n_experts_"):
-        raise ValueError("no batch holds both hits and beams: nothing to map")
+        raise ValueError("the scans hold fewer than 2 hits or no beam: nothing to map")
     return model
 
 

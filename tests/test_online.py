@@ -513,6 +513,25 @@ def test_cli_online_replay_writes_snapshots(paper_log, tmp_path, capsys):
     assert "| online replay |" in stdout
 
 
+def test_cli_online_waits_for_two_hits(paper_log, tmp_path, capsys):
+    from skoccmap.cli import main
+
+    # A first scan with one hit (the others reach the 8 m sentinel): the first update waits
+    # for the next scan, as it needs two hits to cluster.
+    log, _ = paper_log
+    text = log.read_text().splitlines(keepends=True)
+    first = text[1].split()
+    n = int(first[1])
+    first[2 : 2 + n] = ["2.0"] + ["8.000000"] * (n - 1)
+    one_hit = tmp_path / "one_hit.log"
+    one_hit.write_text(" ".join(first) + "\n" + "".join(text[2:6]))
+    argv = ["map", str(one_hit), "--online", "--batch-scans", "1", "--resolution", "1.0",
+            "--n-jobs", "1", "--out", str(tmp_path / "out"), "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if re.match(r"\| \d+ \|", line)]
+    assert [int(line.split("|")[2]) for line in table] == [2, 3, 4, 5]
+
+
 def test_cli_online_bad_batch_size(paper_log, capsys):
     from skoccmap.cli import main
 
