@@ -119,17 +119,36 @@ def test_robotlaser_uses_its_own_geometry(tmp_path):
         ("FLASER 4 1.0 x 3.0 4.0 0 0 0 0 0 0 1 host 1\n", "non-numeric"),
         ("FLASER 4 1.0 -2 3.0 4.0 0 0 0 0 0 0 1 host 1\n", "negative"),
         ("FLASER 4 1.0 2 3.0 4.0 nan 0 0 0 0 0 1 host 1\n", "non-finite"),
+        # A beam count that does not match the readings: 4 readings, counts 3 and 6.
+        ("FLASER 3 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "15 fields, expected 12 or 14"),
+        ("FLASER 6 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "non-numeric pose"),
+        (_robotlaser([1.0, 2.0], [0, 0, 0], start=np.nan, resolution=0.1, max_range=8.0),
+         "start angle must be finite"),  # fmt: skip
     ],
 )
 def test_malformed_line_raises_with_line_number(tiny_log, bad_line, reason):
     text = tiny_log.read_text().splitlines(keepends=True)
     text.insert(3, bad_line)  # becomes line 4
     tiny_log.write_text("".join(text))
-    with pytest.raises(ValueError, match=rf"line 4: malformed FLASER.*{reason}"):
+    with pytest.raises(ValueError, match=rf"line 4: malformed {bad_line.split()[0]}.*{reason}"):
         load_carmen(tiny_log)
     with pytest.warns(UserWarning, match=r"skipped 1 malformed laser line\(s\): line 4"):
         scans = load_carmen(tiny_log, errors="skip")
     assert len(scans) == 3
+
+
+def test_infinite_readings_are_beams_without_a_return(tmp_path):
+    # The sentinel is inferred from the finite readings; inf (or 1e400) is no return.
+    path = tmp_path / "inf.log"
+    lines = [_flaser([1.0, 2.0, "inf", 1.5], [0, 0, 0]), _flaser([1, "1e400", 8, 1.5], [0, 0, 0])]
+    path.write_text("".join(lines))
+    scans = load_carmen(path)
+    assert scans.max_range == 8.0
+    np.testing.assert_array_equal(scans.returned(), [[1, 1, 0, 1], [1, 0, 0, 1]])
+    nan = tmp_path / "nan.log"
+    nan.write_text(_flaser(["nan"] * 4, [0, 0, 0]))
+    with pytest.raises(ValueError, match="no positive finite range reading.*pass max_range"):
+        load_carmen(nan)
 
 
 def test_bad_arguments_and_empty_logs(tiny_log, tmp_path):

@@ -100,13 +100,16 @@ def _parse_flaser(tokens, lineno):
     if len(tokens) < 2:
         raise _MalformedLine("missing the beam count")
     n = _count(tokens[1], "beam count")
-    if len(tokens) < 2 + n + _FLASER_TAIL:
+    # A beam count that does not match the readings shifts every later field: only the
+    # two layouts, with or without hostname and logger_timestamp, are read.
+    expected = (2 + n + _FLASER_TAIL, 2 + n + _FLASER_TAIL + 2)
+    if len(tokens) not in expected:
         raise _MalformedLine(
-            f"{len(tokens)} fields, expected at least {2 + n + _FLASER_TAIL} for {n} readings"
+            f"{len(tokens)} fields, expected {expected[0]} or {expected[1]} for {n} readings"
         )
     ranges = _floats(tokens[2 : 2 + n], "range reading")
-    pose = _floats(tokens[2 + n : 5 + n], "pose")
-    timestamp = _floats(tokens[8 + n : 9 + n], "timestamp")[0]
+    tail = _floats(tokens[2 + n : 2 + n + _FLASER_TAIL], "pose, odometry or timestamp")
+    pose, timestamp = tail[:3], tail[6]
     return _Reading(lineno, "FLASER", pose, ranges, flaser_angles(n), np.nan, timestamp)
 
 
@@ -130,8 +133,10 @@ def _parse_robotlaser(tokens, lineno):
         )
     pose = _floats(tokens[tail : tail + 3], "laser pose")
     timestamp = _floats(tokens[tail + 11 : tail + 12], "timestamp")[0]
-    if not (resolution > 0 and max_range > 0):
-        raise _MalformedLine("angular resolution and maximum range must be positive")
+    if not (np.isfinite(start) and np.isfinite(resolution) and resolution > 0 and max_range > 0):
+        raise _MalformedLine(
+            "start angle must be finite, angular resolution and maximum range positive"
+        )
     angles = start + resolution * np.arange(n)
     return _Reading(lineno, "ROBOTLASER1", pose, ranges, angles, max_range, timestamp)
 
@@ -176,10 +181,18 @@ def _read_lines(path, messages, errors):
     return readings, skipped
 
 
-def _infer_flaser_max_range(readings):
+def _infer_flaser_max_range(readings, path):
     # CARMEN writes the sensor's maximum range for beams without a return, so the largest
-    # reading of the log is the sentinel (81.83 m in the Intel log, 50 m in ACES).
-    return float(max(np.nanmax(r.ranges) for r in readings))
+    # reading of the log is the sentinel (81.83 m in the Intel log, 50 m in ACES). An
+    # infinite reading is a beam without a return whatever the sentinel.
+    finite = [r.ranges[np.isfinite(r.ranges)] for r in readings]
+    largest = max((f.max() for f in finite if f.size), default=None)
+    if largest is None or not largest > 0:
+        raise ValueError(
+            f"{path}: no positive finite range reading to infer the maximum range from; "
+            "pass max_range=."
+        )
+    return float(largest)
 
 
 def load_carmen(path, *, max_range=None, message=None, errors="raise"):
@@ -269,7 +282,7 @@ def _to_scans(readings, max_range, path):
         )
     if max_range is None:
         stated = [r.max_range for r in readings if np.isfinite(r.max_range)]
-        max_range = min(stated) if stated else _infer_flaser_max_range(readings)
+        max_range = min(stated) if stated else _infer_flaser_max_range(readings, path)
     ranges = np.vstack([r.ranges for r in readings])
     ranges[ranges >= max_range] = np.inf
     angles = np.vstack([r.angles for r in readings])
