@@ -444,6 +444,15 @@ def test_laser_frame_overrides_the_scans_frame(tmp_path):
     np.testing.assert_allclose(load_rosbag(path, laser_frame="laser").poses, [[1.0, 2.0, 0.5]])
 
 
+@pytest.mark.parametrize("angle_min, increment", [(-0.5, 0.0), (-0.5, np.nan), (np.inf, 0.1)])
+def test_scans_without_beam_directions_are_refused(tmp_path, angle_min, increment):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0], angle_min=angle_min, increment=increment)
+    with pytest.raises(ValueError, match=r"LaserScan on '/scan' at 0.5.* no directions"):
+        load_rosbag(bag.write(tmp_path / "b"))
+
+
 def test_bag_without_transforms_asks_for_a_pose_topic(tmp_path):
     bag = _Bag(2)
     bag.scan(0.5, [1.0, 2.0, 3.0])

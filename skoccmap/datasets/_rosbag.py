@@ -321,7 +321,13 @@ def _read_scans(reader, path, topic):
     scans = []
     for _, msg in _read(reader, _connections(reader, path, topic, [_LASER_SCAN], "scan")):
         ranges = np.asarray(msg.ranges, dtype=np.float64)
-        angles = float(msg.angle_min) + float(msg.angle_increment) * np.arange(ranges.size)
+        start, step = float(msg.angle_min), float(msg.angle_increment)
+        if not (np.isfinite(start) and np.isfinite(step) and (step != 0 or ranges.size < 2)):
+            raise ValueError(
+                f"{path}: a LaserScan on {topic!r} at {_stamp_ns(msg.header) * 1e-9:.9f} s has "
+                f"angle_min {start} and angle_increment {step}: its beams have no directions."
+            )
+        angles = start + step * np.arange(ranges.size)
         scans.append(
             _LaserMessage(
                 _stamp_ns(msg.header),
