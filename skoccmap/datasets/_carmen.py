@@ -206,8 +206,8 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
         Readings at or above ``max_range`` are beams without a return (free space up to
         ``max_range``). ``None`` infers it: ``ROBOTLASER1`` lines state the sensor's maximum
         range (the smallest stated value is used); for ``FLASER`` lines it is the largest
-        reading in the log, because CARMEN writes the maximum range for beams that return
-        nothing. Pass it explicitly for a log in which no beam reaches the maximum range,
+        finite reading in the log, because CARMEN writes the maximum range for beams that
+        return nothing (an infinite reading is a beam without a return too). Pass it explicitly for a log in which no beam reaches the maximum range,
         otherwise its longest real reading becomes a no-return beam.
     message : {"FLASER", "ROBOTLASER1"} or None, default=None
         Which laser message to read. ``None`` reads ``ROBOTLASER1`` lines when the log has any
@@ -230,7 +230,8 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
     ------
     ValueError
         If the file holds no laser message of the requested kind, a laser line is malformed
-        (with ``errors="raise"``), or the scans have different beam counts.
+        (with ``errors="raise"``; a ``FLASER`` line must hold exactly its beam count of
+        readings), or the scans have different beam counts.
 
     Examples
     --------
