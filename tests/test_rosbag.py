@@ -453,6 +453,15 @@ def test_scans_without_beam_directions_are_refused(tmp_path, angle_min, incremen
         load_rosbag(bag.write(tmp_path / "b"))
 
 
+@pytest.mark.parametrize("xyz, yaw", [((np.nan, 0.0, 0.0), 0.0), ((0.0, 0.0, 0.0), np.nan)])
+def test_a_transform_that_places_nothing_is_named(tmp_path, xyz, yaw):
+    bag = _Bag(2)
+    bag.tf(0.25, "map", "laser", xyz, yaw=yaw)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match=r"transform map -> laser at 0.25.* non-finite"):
+        load_rosbag(bag.write(tmp_path / "b"))
+
+
 def test_bag_without_transforms_asks_for_a_pose_topic(tmp_path):
     bag = _Bag(2)
     bag.scan(0.5, [1.0, 2.0, 3.0])

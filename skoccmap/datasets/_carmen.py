@@ -207,8 +207,9 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
         ``max_range``). ``None`` infers it: ``ROBOTLASER1`` lines state the sensor's maximum
         range (the smallest stated value is used); for ``FLASER`` lines it is the largest
         finite reading in the log, because CARMEN writes the maximum range for beams that
-        return nothing (an infinite reading is a beam without a return too). Pass it explicitly for a log in which no beam reaches the maximum range,
-        otherwise its longest real reading becomes a no-return beam.
+        return nothing (an infinite reading is a beam without a return too). Pass it
+        explicitly for a log in which no beam reaches the maximum range, otherwise its
+        longest real reading becomes a no-return beam.
     message : {"FLASER", "ROBOTLASER1"} or None, default=None
         Which laser message to read. ``None`` reads ``ROBOTLASER1`` lines when the log has any
         (many logs store the same scans as both, and ``ROBOTLASER1`` carries its own geometry),

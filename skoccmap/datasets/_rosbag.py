@@ -352,7 +352,19 @@ def _quaternion(q):
     return (float(q.w), float(q.x), float(q.y), float(q.z))
 
 
-def _read_tf(reader, tf_topics):
+def _checked_transform(translation, rotation, what, stamp):
+    """The pair, or ValueError naming the transform when it does not place a frame."""
+    if not (np.all(np.isfinite(translation)) and np.all(np.isfinite(rotation))) or not any(
+        rotation
+    ):
+        raise ValueError(
+            f"{what} at {stamp * 1e-9:.9f} s has a non-finite translation or a zero or "
+            f"non-finite rotation (translation {translation}, quaternion {rotation})."
+        )
+    return translation, rotation
+
+
+def _read_tf(reader, tf_topics, path):
     samples = {}
     static_topic = tf_topics[1]
     for conn, msg in _read(reader, [c for c in reader.connections if c.topic in tf_topics]):
@@ -364,9 +376,16 @@ def _read_tf(reader, tf_topics):
             stamps, trans, rots, was_static = samples.setdefault(edge, ([], [], [], static))
             if was_static and not static:
                 continue
-            stamps.append(_stamp_ns(tf.header))
-            trans.append(_vector(tf.transform.translation))
-            rots.append(_quaternion(tf.transform.rotation))
+            stamp = _stamp_ns(tf.header)
+            t, r = _checked_transform(
+                _vector(tf.transform.translation),
+                _quaternion(tf.transform.rotation),
+                f"{path}: the transform {edge[0]} -> {edge[1]}",
+                stamp,
+            )
+            stamps.append(stamp)
+            trans.append(t)
+            rots.append(r)
     return _TransformTree(samples)
 
 
@@ -374,9 +393,13 @@ def _read_pose_topic(reader, path, topic):
     stamps, trans, rots, frames, children = [], [], [], set(), set()
     for conn, msg in _read(reader, _connections(reader, path, topic, _POSE_TYPES, "pose")):
         pose = msg.pose.pose if conn.msgtype != "geometry_msgs/msg/PoseStamped" else msg.pose
-        stamps.append(_stamp_ns(msg.header))
-        trans.append(_vector(pose.position))
-        rots.append(_quaternion(pose.orientation))
+        stamp = _stamp_ns(msg.header)
+        t, r = _checked_transform(
+            _vector(pose.position), _quaternion(pose.orientation), f"{path}: {topic}", stamp
+        )
+        stamps.append(stamp)
+        trans.append(t)
+        rots.append(r)
         frames.add(_frame(msg.header.frame_id))
         children.add(_frame(getattr(msg, "child_frame_id", "")))
     if not stamps:
@@ -430,7 +453,7 @@ def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topi
             f"{path} has no transform topic ({' or '.join(tf_topics)}); "
             f"{_describe_topics(reader)}. Read poses from a topic with pose_topic=."
         )
-    tree = _read_tf(reader, tf_topics) if have_tf else _TransformTree({})
+    tree = _read_tf(reader, tf_topics, path) if have_tf else _TransformTree({})
     t = np.empty((len(scans), 3))
     q = np.empty((len(scans), 4))
     valid = np.empty(len(scans), dtype=bool)
