@@ -89,6 +89,16 @@ def test_gzip_is_detected_from_content(tiny_log, tmp_path):
         np.testing.assert_array_equal(packed.poses, plain.poses)
 
 
+def test_truncated_gzip_says_so(tiny_log, tmp_path):
+    path = tmp_path / "cut.log.gz"
+    path.write_bytes(gzip.compress(tiny_log.read_bytes())[:-6])
+    with pytest.raises(ValueError, match=r"cut.log.gz: the compressed log is damaged or trunc"):
+        load_carmen(path)
+    with pytest.warns(UserWarning, match="the compressed log ends early"):
+        scans = load_carmen(path, errors="skip")
+    np.testing.assert_array_equal(scans.ranges, load_carmen(tiny_log).ranges)
+
+
 def test_robotlaser_uses_its_own_geometry(tmp_path):
     path = tmp_path / "robot.log"
     line = _robotlaser(

@@ -17,6 +17,7 @@ side_safety turn_axis ipc_timestamp hostname logger_timestamp``
 
 import gzip
 import warnings
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -157,10 +158,26 @@ def _open_text(path):
 SKIP_HINT = "Pass errors='skip' to skip malformed lines with a warning."
 
 
+def _lines(fh, path, errors, skipped):
+    """The file's lines; a compressed log that ends early raises, or with ``errors="skip"``
+    ends there with the rest counted as skipped."""
+    lineno = 0
+    try:
+        for lineno, line in enumerate(fh, start=1):
+            yield lineno, line
+    except (EOFError, gzip.BadGzipFile, zlib.error) as exc:
+        if errors == "raise":
+            raise ValueError(
+                f"{path}: the compressed log is damaged or truncated after line {lineno} "
+                f"({exc}). {SKIP_HINT}"
+            ) from None
+        skipped.append((lineno + 1, f"the compressed log ends early ({exc})"))
+
+
 def _read_lines(path, messages, errors):
     readings, skipped = [], []
     with _open_text(path) as fh:
-        for lineno, line in enumerate(fh, start=1):
+        for lineno, line in _lines(fh, path, errors, skipped):
             tokens = line.split("#", 1)[0].split()
             if not tokens or tokens[0] not in messages:
                 continue
