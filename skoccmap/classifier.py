@@ -376,7 +376,11 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         "copy_X_train": ["boolean"],
         "random_state": ["random_state"],
         "multi_class": [StrOptions({"one_vs_rest", "one_vs_one"})],
-        "n_jobs": [Integral, None],
+        "n_jobs": [
+            Interval(Integral, None, -1, closed="right"),
+            Interval(Integral, 1, None, closed="left"),
+            None,
+        ],
     }
 
     def __init__(

@@ -1281,7 +1281,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         "return_radius": [Interval(Real, 0, None, closed="left")],
         "kernel_cache_size": [Interval(Real, 0, None, closed="left")],
         "layout": [StrOptions({"segments", "points"})],
-        "n_jobs": [Integral, None],
+        "n_jobs": [
+            Interval(Integral, None, -1, closed="right"),
+            Interval(Integral, 1, None, closed="left"),
+            None,
+        ],
         "random_state": ["random_state"],
         "verbose": ["verbose"],
     }

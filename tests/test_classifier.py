@@ -445,6 +445,13 @@ def test_bad_training_input(X, y, match):
         EPGaussianProcessClassifier().fit(X, y)
 
 
+def test_n_jobs_zero_is_refused_before_any_work():
+    X, y = _data(n=20)
+    with pytest.raises(ValueError, match="'n_jobs' parameter"):
+        EPGaussianProcessClassifier(n_jobs=0).fit(X, y)
+    EPGaussianProcessClassifier(n_jobs=-1, optimizer=None).fit(X, y)
+
+
 def test_bad_query_input():
     X, y = _data(n=20)
     clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)

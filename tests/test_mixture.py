@@ -605,6 +605,8 @@ def test_bad_input_raises_clear_errors(paper):
     one_hit = np.array([[1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.9, 0.0], [0.0, 0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="at least 2 of them, got 1"):
         MixtureGPOccupancyMap(random_state=0).fit(one_hit, [1, 0, 0])
+    with pytest.raises(ValueError, match="'n_jobs' parameter"):
+        MixtureGPOccupancyMap(n_jobs=0).fit(paper.X, paper.y)
     model.fit(paper.X, paper.y)
     with pytest.raises(ValueError, match="features"):
         model.predict(np.zeros((3, 6)))
