@@ -417,6 +417,12 @@ class Scans:
             if not -self.n_scans <= index < self.n_scans:
                 raise IndexError(f"scan index {index} out of range for {self.n_scans} scans.")
             index = [index]
+        elif isinstance(index, tuple):
+            # numpy would read scans[0, 1] as scan 0, beam 1; a Scans holds whole scans.
+            raise IndexError(
+                "Scans are indexed by scan only (an int, a slice, a 1-D integer array or a "
+                f"boolean mask), got the tuple {index!r}; read beams from .ranges."
+            )
         elif not isinstance(index, slice):
             index = np.asarray(index)
             if index.dtype == bool:

@@ -283,6 +283,8 @@ def test_scans_int_index_keeps_one_scan():
         scans[np.array([True, False])]
     with pytest.raises(IndexError):
         scans[np.array([0.5])]
+    with pytest.raises(IndexError, match="indexed by scan only"):
+        scans[0, 1]
 
 
 def test_scans_properties_and_helpers():
