@@ -352,20 +352,28 @@ def _quaternion(q):
     return (float(q.w), float(q.x), float(q.y), float(q.z))
 
 
-def _checked_transform(translation, rotation, what, stamp):
-    """The pair, or ValueError naming the transform when it does not place a frame."""
-    if not (np.all(np.isfinite(translation)) and np.all(np.isfinite(rotation))) or not any(
-        rotation
-    ):
-        raise ValueError(
-            f"{what} at {stamp * 1e-9:.9f} s has a non-finite translation or a zero or "
-            f"non-finite rotation (translation {translation}, quaternion {rotation})."
+def _places_frame(translation, rotation):
+    """Whether a transform sample places a frame: finite, with a non-zero quaternion (ROS 1's
+    default Quaternion is all zeros)."""
+    finite = np.all(np.isfinite(translation)) and np.all(np.isfinite(rotation))
+    return bool(finite and any(rotation))
+
+
+def _warn_left_out(path, left_out):
+    """One warning for the transform samples that place nothing, naming the first."""
+    if left_out:
+        what, stamp = left_out[0]
+        warnings.warn(
+            f"{path}: left out {len(left_out)} transform sample(s) with a non-finite "
+            f"translation or a zero or non-finite rotation, as tf2 would (the first: {what} "
+            f"at {stamp * 1e-9:.9f} s).",
+            UserWarning,
+            stacklevel=3,
         )
-    return translation, rotation
 
 
 def _read_tf(reader, tf_topics, path):
-    samples = {}
+    samples, left_out = {}, []
     static_topic = tf_topics[1]
     for conn, msg in _read(reader, [c for c in reader.connections if c.topic in tf_topics]):
         static = conn.topic == static_topic
@@ -377,33 +385,34 @@ def _read_tf(reader, tf_topics, path):
             if was_static and not static:
                 continue
             stamp = _stamp_ns(tf.header)
-            t, r = _checked_transform(
-                _vector(tf.transform.translation),
-                _quaternion(tf.transform.rotation),
-                f"{path}: the transform {edge[0]} -> {edge[1]}",
-                stamp,
-            )
+            t, r = _vector(tf.transform.translation), _quaternion(tf.transform.rotation)
+            if not _places_frame(t, r):
+                left_out.append((f"the transform {edge[0]} -> {edge[1]}", stamp))
+                continue
             stamps.append(stamp)
             trans.append(t)
             rots.append(r)
+    _warn_left_out(path, left_out)
     return _TransformTree(samples)
 
 
 def _read_pose_topic(reader, path, topic):
-    stamps, trans, rots, frames, children = [], [], [], set(), set()
+    stamps, trans, rots, frames, children, left_out = [], [], [], set(), set(), []
     for conn, msg in _read(reader, _connections(reader, path, topic, _POSE_TYPES, "pose")):
         pose = msg.pose.pose if conn.msgtype != "geometry_msgs/msg/PoseStamped" else msg.pose
         stamp = _stamp_ns(msg.header)
-        t, r = _checked_transform(
-            _vector(pose.position), _quaternion(pose.orientation), f"{path}: {topic}", stamp
-        )
+        t, r = _vector(pose.position), _quaternion(pose.orientation)
+        if not _places_frame(t, r):
+            left_out.append((f"the pose on {topic!r}", stamp))
+            continue
         stamps.append(stamp)
         trans.append(t)
         rots.append(r)
         frames.add(_frame(msg.header.frame_id))
         children.add(_frame(getattr(msg, "child_frame_id", "")))
+    _warn_left_out(path, left_out)
     if not stamps:
-        raise ValueError(f"{path}: pose topic {topic!r} holds no message.")
+        raise ValueError(f"{path}: pose topic {topic!r} holds no message that places a frame.")
     if len(frames) > 1 or len(children) > 1:
         raise ValueError(
             f"{path}: pose topic {topic!r} changes frames (header.frame_id {sorted(frames)}, "
