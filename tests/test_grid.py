@@ -155,6 +155,13 @@ def test_no_return_beams_count_up_to_the_first_cell_holding_a_hit():
         _ProbaOnly(), (0.0, 5.0, 0.0, 1.0), 1.0, unknown_variance=None, observed_by=scans
     )
     np.testing.assert_array_equal(grid.unknown[0], [False, False, False, True, True])
+    # A hit in the sensor's own cell (a wall beside the robot, on a coarse grid) does not
+    # stop the beams leaving that cell.
+    beside = Scans([[0.5, 0.5, 0.0]], [[0.3, np.inf]], [0.0, np.pi / 2], max_range=3.0)
+    grid = OccupancyGrid.from_estimator(
+        _ProbaOnly(), (0.0, 1.0, 0.0, 4.0), 1.0, unknown_variance=None, observed_by=beside
+    )
+    np.testing.assert_array_equal(grid.unknown[:, 0], [False, False, False, False])
     # The simulated worlds' scoring counts whole beams (they cannot cross a wall there).
     whole = _observed_cells(scans, np.zeros(2), 1.0, np.array([5, 1]))
     np.testing.assert_array_equal(whole, [True, True, True, True, False])

@@ -200,18 +200,22 @@ def test_cells_crossed_stops_at_the_first_flagged_cell():
     stops = rng.random(40) < 0.5
     seen = _cells_crossed(starts, ends, lo, 0.5, counts, stop=stop, stops=stops)
     # reference: dense samples along each segment, a stopping one cut after its first
-    # flagged cell (random segments never touch a corner)
+    # flagged cell past its start cell (random segments never touch a corner)
     t = np.linspace(0, 1, 20001)
     ref = np.zeros(len(centres), bool)
     for a, b, stopping in zip(starts, ends, stops, strict=True):
         idx = np.floor((a + t[:, None] * (b - a) - lo) / 0.5).astype(int)
         ok = np.all((idx >= 0) & (idx < counts), axis=1)
         flat = idx[ok, 0] + counts[0] * idx[ok, 1]
-        if stopping and stop[flat].any():
-            flat = flat[: np.argmax(stop[flat]) + 1]
+        later = stop[flat] & (flat != flat[0]) if flat.size and ok[0] else stop[flat]
+        if stopping and later.any():
+            flat = flat[: np.argmax(later) + 1]
         ref[flat] = True
     assert_array_equal(seen, ref)
-    assert seen.sum() < _cells_crossed(starts, ends, lo, 0.5, counts).sum()
+    # The stopping segments alone see fewer cells than they cross.
+    a, b, every = starts[stops], ends[stops], np.ones(stops.sum(), bool)
+    cut = _cells_crossed(a, b, lo, 0.5, counts, stop=stop, stops=every)
+    assert cut.sum() < _cells_crossed(a, b, lo, 0.5, counts).sum()
 
 
 def test_ground_truth_grid_observed_mask():

@@ -81,7 +81,7 @@ def _cells_crossed(starts, ends, lo, resolution, counts, stop=None, stops=None):
     A segment crosses the cell lines at parameters ``t`` where a coordinate reaches a grid line;
     between two consecutive crossings it stays inside one cell, found from the midpoint.
     ``stop`` (one flag per cell) and ``stops`` (one per segment): the flagged segments end in
-    the first flagged cell they enter, from their start.
+    the first flagged cell they enter after the cell they start in.
     """
     n_dims = len(counts)
     strides = np.cumprod(np.r_[1, counts[:-1]])  # x fastest, matching _grid's ordering
@@ -118,13 +118,16 @@ def _cells_crossed(starts, ends, lo, resolution, counts, stop=None, stops=None):
 
 def _up_to_first_stop(cell, ids, stop, stops, counts, strides):
     """The crossed cells (sorted by segment, then along it) up to each stopping segment's
-    first ``stop`` cell, that cell included; and which segments ended there."""
+    first ``stop`` cell after its start cell, that cell included; and which segments ended
+    there."""
     inside = np.all((cell >= 0) & (cell < counts), axis=1)
     flat = np.where(inside, cell @ strides, 0)
     blocked = inside & stop[flat] & stops[ids]
+    # The start cell does not stop its segment (a sensor beside a wall, on a coarse grid).
+    first = np.r_[0, np.flatnonzero(ids[1:] != ids[:-1]) + 1]
+    blocked[first] = False
     # Blocked cells before each crossing, counted within its own segment.
     before = np.cumsum(blocked) - blocked
-    first = np.r_[0, np.flatnonzero(ids[1:] != ids[:-1]) + 1]
     start_count = np.repeat(before[first], np.diff(np.r_[first, ids.size]))
     keep = before == start_count
     ended = np.zeros(stops.size, dtype=bool)
@@ -136,7 +139,7 @@ def _observed_cells(scans, lo, resolution, counts, through_hits=True):
     """Cells crossed by any beam (sensor to hit, or to max_range) or holding a hit.
 
     ``through_hits=False``: a beam without a return counts only up to the first cell that
-    holds a hit, that cell included.
+    holds a hit after the sensor's own cell, that cell included.
     """
     origins = np.repeat(scans.origins(), scans.n_beams, axis=0)
     directions = scans.directions().reshape(-1, scans.n_dims)
