@@ -221,14 +221,14 @@ class OccupancyGrid:
         observed_by : Scans or None, default=None
             The training scans: cells that none of their beams crossed (sensor to hit, or,
             without a return, to the first cell past the sensor's that holds one of their
-            hits) and that hold none of their hits are unknown as well. A continuous map extrapolates into space
-            no sensor saw -- behind a wall seen from one side it stays confidently occupied
-            for about a length scale -- which this draws as unknown, as a counting grid
-            would. A beam without a return stops at a wall that other beams hit: on the
-            Intel lab such beams cross glass walls to the maximum range, and counted whole
-            they drew strokes of occupied cells behind the walls (their free pieces that far
-            out are metres long). A beam that grazes a cell holding a hit stops there too:
-            the rule errs towards unknown.
+            hits) and that hold none of their hits are unknown as well. A continuous map
+            extrapolates into space no sensor saw -- behind a wall seen from one side it
+            stays confidently occupied for about a length scale -- which this draws as
+            unknown, as a counting grid would. A beam without a return stops at a wall that
+            other beams hit: on the Intel lab such beams cross glass walls to the maximum
+            range, and counted whole they drew strokes of occupied cells behind the walls
+            (their free pieces that far out are metres long). A beam that grazes a cell
+            holding a hit stops there too: the rule errs towards unknown.
         chunk_size : int, default=65536
             At most this many query rows are built and predicted at once.
         verbose : int, default=0
