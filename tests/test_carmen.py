@@ -94,7 +94,7 @@ def test_truncated_gzip_says_so(tiny_log, tmp_path):
     path.write_bytes(gzip.compress(tiny_log.read_bytes())[:-6])
     with pytest.raises(ValueError, match=r"cut.log.gz: the compressed log is damaged or trunc"):
         load_carmen(path)
-    with pytest.warns(UserWarning, match="the compressed log ends early"):
+    with pytest.warns(UserWarning, match="damaged or truncated after line 7.*are kept"):
         scans = load_carmen(path, errors="skip")
     np.testing.assert_array_equal(scans.ranges, load_carmen(tiny_log).ranges)
 
@@ -130,7 +130,8 @@ def test_robotlaser_uses_its_own_geometry(tmp_path):
         ("FLASER 4 1.0 -2 3.0 4.0 0 0 0 0 0 0 1 host 1\n", "negative"),
         ("FLASER 4 1.0 2 3.0 4.0 nan 0 0 0 0 0 1 host 1\n", "non-finite"),
         # A beam count that does not match the readings: 4 readings, counts 3 and 6.
-        ("FLASER 3 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "15 fields, expected 12 or 14"),
+        ("FLASER 3 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "15 fields, expected 12 to 14"),
+        ("FLASER 3 1 2 3 4 0 0 0 0 0 0 12.5 host\n", "field 13 .'12.5'. should be the host"),
         ("FLASER 6 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "non-numeric pose"),
         (_robotlaser([1.0, 2.0], [0, 0, 0], start=np.nan, resolution=0.1, max_range=8.0),
          "start angle must be finite"),  # fmt: skip
@@ -152,7 +153,8 @@ def test_infinite_readings_are_beams_without_a_return(tmp_path):
     path = tmp_path / "inf.log"
     lines = [_flaser([1.0, 2.0, "inf", 1.5], [0, 0, 0]), _flaser([1, "1e400", 8, 1.5], [0, 0, 0])]
     path.write_text("".join(lines))
-    scans = load_carmen(path)
+    with pytest.warns(UserWarning, match=r"writes inf.*longest finite reading \(8 m\)"):
+        scans = load_carmen(path)
     assert scans.max_range == 8.0
     np.testing.assert_array_equal(scans.returned(), [[1, 1, 0, 1], [1, 0, 0, 1]])
     nan = tmp_path / "nan.log"

@@ -97,16 +97,30 @@ def _count(token, what):
     return n
 
 
+def _is_number(token):
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
 def _parse_flaser(tokens, lineno):
     if len(tokens) < 2:
         raise _MalformedLine("missing the beam count")
     n = _count(tokens[1], "beam count")
-    # A beam count that does not match the readings shifts every later field: only the
-    # two layouts, with or without hostname and logger_timestamp, are read.
-    expected = (2 + n + _FLASER_TAIL, 2 + n + _FLASER_TAIL + 2)
-    if len(tokens) not in expected:
+    # A beam count that does not match the readings shifts every later field: the tail
+    # must end at ipc_timestamp, or go on with a hostname (not a number) and perhaps the
+    # logger_timestamp.
+    short = 2 + n + _FLASER_TAIL
+    if not short <= len(tokens) <= short + 2:
         raise _MalformedLine(
-            f"{len(tokens)} fields, expected {expected[0]} or {expected[1]} for {n} readings"
+            f"{len(tokens)} fields, expected {short} to {short + 2} for {n} readings"
+        )
+    if len(tokens) > short and _is_number(tokens[short]):
+        raise _MalformedLine(
+            f"field {short + 1} ({tokens[short]!r}) should be the hostname: the beam count "
+            f"{n} does not match the readings"
         )
     ranges = _floats(tokens[2 : 2 + n], "range reading")
     tail = _floats(tokens[2 + n : 2 + n + _FLASER_TAIL], "pose, odometry or timestamp")
@@ -171,7 +185,12 @@ def _lines(fh, path, errors, skipped):
                 f"{path}: the compressed log is damaged or truncated after line {lineno} "
                 f"({exc}). {SKIP_HINT}"
             ) from None
-        skipped.append((lineno + 1, f"the compressed log ends early ({exc})"))
+        warnings.warn(
+            f"{path}: the compressed log is damaged or truncated after line {lineno} ({exc}); "
+            "the scans read up to there are kept.",
+            UserWarning,
+            stacklevel=4,
+        )
 
 
 def _read_lines(path, messages, errors):
@@ -208,6 +227,14 @@ def _infer_flaser_max_range(readings, path):
         raise ValueError(
             f"{path}: no positive finite range reading to infer the maximum range from; "
             "pass max_range=."
+        )
+    if any(np.isinf(r.ranges).any() for r in readings):
+        warnings.warn(
+            f"{path}: the log writes inf for beams without a return, so the maximum range "
+            f"is taken as its longest finite reading ({largest:g} m), which becomes a beam "
+            "without a return too. Pass max_range= with the sensor's range.",
+            UserWarning,
+            stacklevel=3,
         )
     return float(largest)
 
