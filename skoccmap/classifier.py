@@ -859,6 +859,42 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
                 mean[rows], var[rows] = ep_latent_predictive(K_star, k_diag, posterior)
         return mean, np.maximum(var, _VAR_FLOOR)
 
+    def prior_variance(self, X):
+        """Prior latent variance at ``X`` (the kernel's diagonal): what :meth:`predict_var`
+        returns far from the training data.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, n_features)
+            Query points.
+
+        Returns
+        -------
+        var : ndarray of shape (n_queries,)
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from sklearn.gaussian_process.kernels import RBF, ConstantKernel
+        >>> from skoccmap import EPGaussianProcessClassifier
+        >>> X = np.linspace(0, 1, 8)[:, None]
+        >>> clf = EPGaussianProcessClassifier(ConstantKernel(4.0) * RBF(0.3), optimizer=None)
+        >>> clf = clf.fit(X, X[:, 0] > 0.5)
+        >>> clf.prior_variance([[100.0]]), bool(np.isclose(clf.predict_var([[100.0]])[0], 4.0))
+        (array([4.]), True)
+        """
+        check_is_fitted(self)
+        if self.n_classes_ > 2:
+            raise ValueError(
+                "The prior variance of the latent function f is only defined for binary "
+                f"classification, received {self.n_classes_} classes."
+            )
+        if self.kernel_.requires_vector_input:
+            X = validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
+        else:
+            X = validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
+        return np.asarray(self.kernel_.diag(X), dtype=np.float64)
+
     def predict_var(self, X):
         """Latent variance at ``X``.
 

@@ -211,10 +211,11 @@ class OccupancyGrid:
         resolution : float, default=0.1
             Cell edge length in metres.
         unknown_variance : float, "auto" or None, default="auto"
-            Cells whose variance exceeds this are unknown. ``"auto"``: 90 % of the largest
-            variance on the grid -- far from all data a GP's variance returns to its prior, the
-            largest value it takes, while cells seen by a few beams keep much of it when the
-            signal variance is large (on the Intel lab, every 10th scan, half the largest
+            Cells whose variance exceeds this are unknown. ``"auto"``: 90 % of the prior
+            variance (the estimator's ``prior_variance`` where it has one, else the largest
+            variance on the grid) -- far from all data a GP's variance returns to its prior,
+            the largest value it takes, while cells seen by a few beams keep much of it when
+            the signal variance is large (on the Intel lab, every 10th scan, half the largest
             variance hid 43 % of the cells the map calls free; 90 % hides none of them and
             still marks the outside of the building unknown). ``None``, or an estimator
             without ``predict_var``: no cell is unknown.
@@ -276,7 +277,8 @@ class OccupancyGrid:
         unknown = None
         if var is not None and unknown_variance is not None:
             auto = unknown_variance == "auto"
-            threshold = _AUTO_UNKNOWN * var.max() if auto else float(unknown_variance)
+            reference = _reference_variance(estimator, var, origin, resolution, counts)
+            threshold = _AUTO_UNKNOWN * reference if auto else float(unknown_variance)
             unknown = var > threshold
         if observed_by is not None:
             unseen = ~_observed_by(observed_by, origin, resolution, counts).reshape(shape)
@@ -618,6 +620,25 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
     if not np.all(np.isfinite(proba)):
         raise ValueError("the estimator predicted NaN or infinite probabilities.")
     return np.clip(proba, 0.0, 1.0), var
+
+
+def _reference_variance(estimator, var, origin, resolution, counts):
+    """The largest variance a cell could have: the estimator's prior variance (sampled at up
+    to 1024 cells spread over the grid) when it has ``prior_variance``, and never less than
+    the largest on the grid. On a map every cell of which some beam saw, the grid's own
+    largest variance is that of a well-observed cell."""
+    reference = float(var.max())
+    prior_variance = getattr(estimator, "prior_variance", None)
+    if prior_variance is None:
+        return reference
+    n_cells = int(np.prod(counts))
+    sample = np.unique(np.linspace(0, n_cells - 1, min(n_cells, 1024)).astype(np.int64))
+    centers = origin + resolution * (
+        np.column_stack(np.unravel_index(sample, tuple(int(c) for c in counts[::-1]))[::-1])
+        + 0.5
+    )
+    prior = prior_variance(np.concatenate([centers, centers], axis=1))
+    return max(reference, float(np.max(prior)))
 
 
 def _observed_by(scans, origin, resolution, counts):

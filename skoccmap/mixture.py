@@ -2685,6 +2685,34 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         precision = np.mean([1.0 / _prior_variance(self.experts_[k], X) for k in chosen], axis=0)
         return 1.0 / precision
 
+    def prior_variance(self, X):
+        """Prior latent variance at the query segments: what :meth:`predict_var` gives
+        where no expert reaches, the reference for "unknown" on a map.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_queries, 2 * D)
+            Query segments; a map cell is a zero-length segment.
+
+        Returns
+        -------
+        variance : ndarray of shape (n_queries,)
+
+        Examples
+        --------
+        >>> from skoccmap import MixtureGPOccupancyMap
+        >>> from skoccmap.datasets import make_paper_scans
+        >>> data = make_paper_scans(random_state=0)
+        >>> model = MixtureGPOccupancyMap(random_state=0).fit(data.X, data.y)
+        >>> far = [[1e3, 1e3, 1e3, 1e3]]
+        >>> bool(model.predict_var(far)[0] == model.prior_variance(far)[0] == 1e3)
+        True
+        """
+        X = self._validate_queries(X)
+        if self.shared_kernel_ is not None:
+            return np.asarray(self.shared_kernel_.diag(X), dtype=np.float64)
+        return self._unreached_prior_variance(X)
+
     def predict_proba(self, X):
         """Probability of each class at the query segments.
 

@@ -120,6 +120,28 @@ def test_unknown_variance_rules():
     assert no_var.variance is None and no_var.unknown is None
 
 
+def test_auto_unknown_is_relative_to_the_prior_variance():
+    # On a map whose every cell some beam saw, no cell comes near the prior variance: the
+    # grid's own largest variance (a well-observed cell's) must not set the threshold.
+    class WithPrior(_FieldEstimator):
+        def __init__(self, prior):
+            super().__init__()
+            self.prior = prior
+
+        def prior_variance(self, X):
+            return np.full(len(X), self.prior)
+
+    extent = (0.0, 4.0, 0.0, 4.0)  # variances up to hypot(3.5, 3.5) = 4.95
+    seen = OccupancyGrid.from_estimator(WithPrior(100.0), extent, 1.0)
+    assert not seen.unknown.any()
+    near = OccupancyGrid.from_estimator(WithPrior(5.0), extent, 1.0)
+    np.testing.assert_array_equal(near.unknown, near.variance > 4.5)
+    assert 0 < near.unknown.sum()
+    # A prior below the grid's largest variance never lowers the threshold.
+    low = OccupancyGrid.from_estimator(WithPrior(1.0), extent, 1.0)
+    np.testing.assert_array_equal(low.unknown, low.variance > 0.9 * low.variance.max())
+
+
 def test_cells_no_beam_observed_are_unknown():
     from skoccmap.observations import Scans
 
