@@ -68,6 +68,8 @@ def _grid_from_extent(extent, resolution):
     n_dims = arr.shape[1] if arr.shape[1] in (2, 3) else arr.shape[1] // 2
     coords = arr.reshape(-1, n_dims) if arr.shape[1] > n_dims else arr
     low = np.floor(coords.min(axis=0) / resolution) * resolution
+    # floor(m / r) * r can round above m (0.85 / 0.05 -> 17 * 0.05 > 0.85): one cell lower.
+    low = np.where(low > coords.min(axis=0), low - resolution, low)
     counts = np.floor((coords.max(axis=0) - low) / resolution) + 1
     return low, _checked_counts(counts, resolution)
 
@@ -472,7 +474,9 @@ class OccupancyGrid:
         pixels[values == 100] = _PIXEL_OCCUPIED
         pixels[values == 0] = _PIXEL_FREE
         stem = Path(stem)
-        pgm_path, yaml_path = stem.with_suffix(".pgm"), stem.with_suffix(".yaml")
+        # Appended, not with_suffix: a stem such as "intel_0.05" keeps its dot.
+        pgm_path = stem.with_name(stem.name + ".pgm")
+        yaml_path = stem.with_name(stem.name + ".yaml")
         height, width = self.shape
         with open(pgm_path, "wb") as fh:
             fh.write(f"P5\n{width} {height}\n255\n".encode("ascii"))
@@ -538,6 +542,8 @@ class OccupancyGrid:
         Parameters
         ----------
         path : str or path-like
+            ``.npz`` is appended when the name does not end with it (as numpy does);
+            :meth:`load` takes the path either way.
         """
         arrays = {
             "probability": self.probability,
@@ -557,11 +563,15 @@ class OccupancyGrid:
         Parameters
         ----------
         path : str or path-like
+            The path given to :meth:`save`, with or without its ``.npz``.
 
         Returns
         -------
         grid : OccupancyGrid
         """
+        path = Path(path)
+        if not path.exists() and path.suffix != ".npz":
+            path = path.with_name(path.name + ".npz")
         with np.load(path, allow_pickle=False) as data:
             return cls(
                 data["probability"],

@@ -275,6 +275,28 @@ def test_npz_round_trip(tmp_path):
     bare.save(tmp_path / "bare.npz")
     back = OccupancyGrid.load(tmp_path / "bare.npz")
     assert back.variance is None and back.unknown is None
+    # Without the suffix: numpy appends it on saving, and load takes the same path.
+    grid.save(tmp_path / "nosuffix")
+    assert (tmp_path / "nosuffix.npz").is_file()
+    np.testing.assert_array_equal(OccupancyGrid.load(tmp_path / "nosuffix").unknown, grid.unknown)
+
+
+def test_map_server_stem_keeps_its_dots(tmp_path):
+    grid = OccupancyGrid([[0.9, 0.1]], origin=(0.0, 0.0), resolution=0.05)
+    yaml_path, pgm_path = grid.save_map_server(tmp_path / "intel_0.05")
+    assert (yaml_path.name, pgm_path.name) == ("intel_0.05.yaml", "intel_0.05.pgm")
+    assert "image: intel_0.05.pgm" in yaml_path.read_text()
+
+
+@pytest.mark.parametrize("coordinate", [0.85, 1.7, 1.95, 0.0, -0.85])
+def test_one_point_extent_covers_the_point(coordinate):
+    # floor(0.85 / 0.05) * 0.05 rounds above 0.85: the grid must still hold the point.
+    grid = OccupancyGrid.from_estimator(
+        _FieldEstimator(), [[coordinate, 0.0]], 0.05, unknown_variance=None
+    )
+    assert grid.shape == (1, 1)
+    xmin, xmax, ymin, ymax = grid.extent
+    assert xmin <= coordinate <= xmax and ymin <= 0.0 <= ymax
 
 
 def test_3d_grid_points_and_voxels():
