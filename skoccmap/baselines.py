@@ -849,7 +849,10 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
     classes_ : ndarray of shape (2,)
         Class labels; ``classes_[1]`` is the occupied class.
     nystroem_ : sklearn.kernel_approximation.Nystroem
-        The fitted feature map; its ``components_`` are the landmarks.
+        The fitted feature map, of coordinates relative to ``center_``; its
+        ``components_`` are the landmarks.
+    center_ : ndarray of shape (n_dims,)
+        Centre of ``extent_``, subtracted from every point before the features.
     classifier_ : sklearn.linear_model.SGDClassifier
         The logistic regression on the features, fitted on labels 0 (free) and 1 (occupied).
     n_training_points_ : int
@@ -969,8 +972,13 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
                 np.maximum(starts.max(axis=0), ends.max(axis=0)),
             ]
         ).ravel()
+        # Features are computed relative to the data's centre: scikit-learn's RBF kernel
+        # takes |x|^2 + |y|^2 - 2 x.y, which at map coordinates of 1e5-1e7 m (UTM) loses
+        # the distances between nearby points.
+        self.center_ = 0.5 * (self.extent_[0::2] + self.extent_[1::2])
         rng = check_random_state(self.random_state)
         points, labels = self._training_points(starts, ends, y_idx == 1, rng)
+        points -= self.center_
         self.n_training_points_ = labels.size
 
         self.nystroem_ = Nystroem(
@@ -1049,7 +1057,7 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
         check_is_fitted(self)
         X = validate_data(self, X, reset=False, dtype=np.float64)
         starts, ends = _split_rows(X, self.layout)
-        mid = 0.5 * (starts + ends)
+        mid = 0.5 * (starts + ends) - self.center_
         return (
             self.nystroem_.transform(mid[lo : lo + _FEATURE_BATCH])
             for lo in range(0, mid.shape[0], _FEATURE_BATCH)

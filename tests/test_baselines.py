@@ -632,12 +632,35 @@ def test_hilbert_map_training_points():
     X = np.array([[2.1, 0.0, 2.1, 0.0], [0.0, 0.0, 2.0, 0.0], [0.0, 1.0, 0.0, 1.0]])
     est = HilbertMap(n_components=10, free_spacing=0.5, random_state=0).fit(X, [1, 0, 0])
     assert est.n_training_points_ == 6
-    landmarks = sorted(map(tuple, est.nystroem_.components_.round(9).tolist()))
+    landmarks = (est.nystroem_.components_ + est.center_).round(9).tolist()
+    landmarks = sorted(map(tuple, landmarks))
     expected = [(0.0, 1.0), (0.25, 0.0), (0.75, 0.0), (1.25, 0.0), (1.75, 0.0), (2.1, 0.0)]
     assert landmarks == expected
     # A spacing that does not divide the length: ceil(2 / 0.8) = 3 points.
     est = HilbertMap(n_components=10, free_spacing=0.8, random_state=0).fit(X, [1, 0, 0])
     assert est.n_training_points_ == 5
+
+
+def test_hilbert_map_does_not_depend_on_where_the_map_lies():
+    # The same scan at the origin and at UTM-sized coordinates: the same features (the
+    # kernel they approximate between query points). Uncentred, scikit-learn's RBF lost the
+    # distances between nearby points there: errors of 0.28 at 1e5 m, 1.6 at 1e7 m.
+    angles = np.linspace(-0.6, 0.6, 40)
+    ends = np.c_[5 * np.ones(40), 5 * np.tan(angles)]
+    X = np.r_[np.c_[np.zeros((40, 2)), ends], np.c_[ends, ends]]
+    y = np.r_[np.zeros(40), np.ones(40)]
+    queries = np.random.default_rng(0).uniform(0, 6, (200, 2))
+
+    def feature_kernel(offset):
+        est = HilbertMap(random_state=0, n_components=80).fit(X + offset, y)
+        features = np.vstack(list(est._batches(np.c_[queries, queries] + offset)))
+        return features @ features.T
+
+    here = feature_kernel(0.0)
+    # At 1e7 m a coordinate is rounded to about 1e-9 m, and the landmarks' inverse square
+    # root amplifies that to about 2e-6 of the kernel.
+    for offset in (1e5, 1e7):
+        np.testing.assert_allclose(feature_kernel(offset), here, atol=1e-4)
 
 
 def test_hilbert_map_max_samples_keeps_both_classes():
@@ -647,7 +670,7 @@ def test_hilbert_map_max_samples_keeps_both_classes():
     params = dict(n_components=20, max_free_length=None, random_state=0)
     est = HilbertMap(free_spacing=0.5, max_samples=20, **params).fit(X, y)
     assert est.n_training_points_ == 20
-    assert [9.0, 0.0] in est.nystroem_.components_.tolist()
+    assert [9.0, 0.0] in (est.nystroem_.components_ + est.center_).tolist()
     every = HilbertMap(max_samples=None, **params).fit(X, y)
     assert every.n_training_points_ == 1 + 40 * 100
 
