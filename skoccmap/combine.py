@@ -158,7 +158,12 @@ def _sum(pairs, values):
 
 
 def _normalized(pairs):
-    return pairs.weights / _sum(pairs, pairs.weights)[pairs.query]
+    # Scaled by each query's largest weight first: weights near the float maximum would
+    # sum to infinity.
+    largest = np.zeros(pairs.n_queries)
+    np.maximum.at(largest, pairs.query, pairs.weights)
+    scaled = pairs.weights / largest[pairs.query]
+    return scaled / _sum(pairs, scaled)[pairs.query]
 
 
 def _moe(pairs):
@@ -176,7 +181,8 @@ def _gaussian_product(pairs, betas):
 
     ``1/s^2 = sum_k beta_k / s_k^2`` and ``mu = s^2 sum_k beta_k mu_k / s_k^2``.
     """
-    inv_var = 1.0 / pairs.variances
+    # Floored as the experts' own variances are: 1 / a subnormal is infinite.
+    inv_var = 1.0 / np.maximum(pairs.variances, _VARIANCE_FLOOR)
     precision = np.maximum(_sum(pairs, betas * inv_var), 1.0 / np.finfo(np.float64).max)
     variance = 1.0 / precision
     mean = variance * _sum(pairs, betas * inv_var * pairs.means)
@@ -191,8 +197,8 @@ def _bcm(pairs, betas):
     used (with one shared prior, that prior); each expert's information gain is over its
     own prior.
     """
-    inv_var = 1.0 / pairs.variances
-    inv_prior = 1.0 / pairs.prior_variance
+    inv_var = 1.0 / np.maximum(pairs.variances, _VARIANCE_FLOOR)
+    inv_prior = 1.0 / np.maximum(pairs.prior_variance, _VARIANCE_FLOOR)
     # Roundoff can put a posterior variance a hair above the prior; clip so that no expert
     # removes information.
     gain = np.maximum(inv_var - inv_prior, 0.0)

@@ -233,6 +233,20 @@ def test_every_combiner_gives_valid_output(means, scale, weights, prior):
         assert np.all(var > 0) and np.all(np.isfinite(var)), method
 
 
+@pytest.mark.parametrize("method", ["moe", "poe", "gpoe", "bcm", "rbcm"])
+def test_extreme_finite_inputs_stay_finite(method):
+    # Weights near the float maximum merge as equal weights do; a subnormal variance is
+    # floored as the experts' own are (1 / it is infinite).
+    means, variances, prior = [[1.0, -0.5]], [[1.0, 2.0]], [[3.0, 3.0]]
+    huge = combine(means, variances, [[1e308, 1e308]], method=method, prior_variance=prior)
+    equal = combine(means, variances, [[1.0, 1.0]], method=method, prior_variance=prior)
+    np.testing.assert_allclose(huge, equal, rtol=1e-12)
+    tiny = combine(means, [[1e-320, 1.0]], method=method, prior_variance=prior)
+    assert np.all(np.isfinite(tiny.proba)) and np.all(np.isfinite(tiny.mean))
+    if method != "moe":  # the product rules follow the sure expert
+        np.testing.assert_allclose(tiny.mean, [1.0])
+
+
 def test_bad_inputs_raise_clear_errors():
     m = np.zeros((2, 2))
     v = np.ones((2, 2))
