@@ -99,16 +99,26 @@ class OccupancyMapDisplay:
         if not isinstance(grid, OccupancyGrid):
             raise ValueError(f"grid must be an OccupancyGrid, got {type(grid).__name__}.")
         probability, variance, unknown = grid.probability, grid.variance, grid.unknown
+        height = None
+        if grid.n_dims == 2 and z is not None:
+            raise ValueError(f"z selects a slice of a 3-D grid; this grid is 2-D (z={z!r}).")
         if grid.n_dims == 3:
             zmin = grid.origin[2]
+            if z is not None and not np.isfinite(z):
+                raise ValueError(f"z must be a finite height, got {z!r}.")
             k = grid.shape[0] // 2 if z is None else int((z - zmin) // grid.resolution)
             if not 0 <= k < grid.shape[0]:
                 raise ValueError(f"z={z} is outside the grid's height range {grid.extent[4:]}.")
             probability = probability[k]
             variance = None if variance is None else variance[k]
             unknown = None if unknown is None else unknown[k]
+            height = zmin + (k + 0.5) * grid.resolution
         display = cls(probability, extent=grid.extent[:4], variance=variance, unknown=unknown)
-        return display.plot(ax=ax, kind=kind, **plot_kwargs)
+        display.plot(ax=ax, kind=kind, **plot_kwargs)
+        if height is not None:
+            for panel_ax in display.axes_:
+                panel_ax.set_title(f"{panel_ax.get_title()}, slice at z = {height:.2f} m")
+        return display
 
     @classmethod
     def from_estimator(
@@ -196,6 +206,10 @@ class OccupancyMapDisplay:
             ``self``, with ``ax_``, ``axes_``, ``im_``, ``images_`` and ``figure_`` set.
         """
         plt = _import_pyplot()
+        if points is not None:
+            points = np.asarray(points, dtype=np.float64)
+            if points.ndim != 2 or points.shape[1] < 2:
+                raise ValueError(f"points must have shape (m, 2), got {points.shape}.")
         probability = np.asarray(self.probability, dtype=np.float64)
         if probability.ndim != 2:
             raise ValueError(f"probability must be 2-D (ny, nx), got shape {probability.shape}.")
@@ -239,9 +253,8 @@ class OccupancyMapDisplay:
             if colorbar:
                 panel_ax.figure.colorbar(image, ax=panel_ax, shrink=0.8, label=label)
             if points is not None:
-                pts = np.asarray(points, dtype=np.float64)
                 style = {"s": 1, "c": "tab:red", "linewidths": 0} | (point_kwargs or {})
-                panel_ax.scatter(pts[:, 0], pts[:, 1], **style)
+                panel_ax.scatter(points[:, 0], points[:, 1], **style)
             images.append(image)
         self.axes_ = np.array(axes, dtype=object)
         self.ax_ = axes[0]

@@ -93,6 +93,10 @@ def test_plot_on_constructed_display_and_errors():
         OccupancyMapDisplay.from_grid(grid, ax=ax)
     with pytest.raises(ValueError, match="OccupancyGrid"):
         OccupancyMapDisplay.from_grid(grid.probability)
+    with pytest.raises(ValueError, match="3-D grid; this grid is 2-D"):
+        OccupancyMapDisplay.from_grid(grid, z=5.0)
+    with pytest.raises(ValueError, match=r"points must have shape \(m, 2\)"):
+        disp.plot(points=[0.0, 3.0])
 
 
 def test_3d_grid_draws_a_slice():
@@ -100,8 +104,11 @@ def test_3d_grid_draws_a_slice():
     grid = OccupancyGrid(rng.uniform(size=(3, 2, 4)), (0.0, 0.0, 0.0), 1.0)
     disp = OccupancyMapDisplay.from_grid(grid, z=2.5)
     np.testing.assert_allclose(disp.im_.get_array(), grid.probability[2])
+    assert disp.ax_.get_title() == "P(occupied), slice at z = 2.50 m"
     with pytest.raises(ValueError, match="outside"):
         OccupancyMapDisplay.from_grid(grid, z=7.0)
+    with pytest.raises(ValueError, match="finite height"):
+        OccupancyMapDisplay.from_grid(grid, z=np.nan)
 
 
 def test_clear_error_without_matplotlib(monkeypatch):
