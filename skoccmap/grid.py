@@ -497,7 +497,8 @@ class OccupancyGrid:
         """Read a ``map_server`` map (YAML + PGM) the way map_server interprets it.
 
         Supports the subset this package writes and common hand-made maps: binary ``P5``
-        images with maxval 255, ``negate`` 0 or 1, ``mode`` trinary (default) or scale.
+        images (8-bit, scaled to 255 as map_server's image reader does), ``negate`` 0 or 1,
+        ``mode`` trinary (default) or scale, and an ``origin`` yaw of 0.
 
         Parameters
         ----------
@@ -508,7 +509,9 @@ class OccupancyGrid:
         grid : OccupancyGrid
             ``probability`` is the pixel's occupancy ``(255 - v) / 255`` (``v / 255`` when
             negated); ``unknown`` marks pixels map_server would load as -1, so
-            :meth:`trinary` reproduces its ``OccupancyGrid.data`` in trinary mode.
+            :meth:`trinary` reproduces its ``OccupancyGrid.data`` in trinary mode -- with
+            the YAML's ``free_thresh`` and ``occupied_thresh`` as its arguments when they
+            are not the defaults (0.196 and 0.65).
 
         Examples
         --------
@@ -526,12 +529,20 @@ class OccupancyGrid:
         for key in ("image", "resolution", "origin"):
             if key not in meta:
                 raise ValueError(f"{yaml_path}: missing key {key!r}.")
+        mode = meta.get("mode", "trinary")
+        if mode not in ("trinary", "scale"):
+            raise ValueError(f"{yaml_path}: mode {mode!r} is not supported (trinary or scale).")
+        if len(meta["origin"]) > 2 and float(meta["origin"][2]) != 0.0:
+            raise ValueError(
+                f"{yaml_path}: the origin's yaw is {meta['origin'][2]}; only axis-aligned "
+                "maps (yaw 0) are supported."
+            )
         pixels = _read_pgm(yaml_path.parent / meta["image"])[::-1]
         occ = pixels / 255.0 if int(meta.get("negate", 0)) else (255.0 - pixels) / 255.0
         occupied_thresh = float(meta.get("occupied_thresh", ROS_OCCUPIED_THRESH))
         free_thresh = float(meta.get("free_thresh", ROS_FREE_THRESH))
         unknown = ~((occ > occupied_thresh) | (occ < free_thresh))
-        if meta.get("mode", "trinary") == "scale":
+        if mode == "scale":
             unknown = np.zeros_like(unknown)
         origin = [float(v) for v in meta["origin"][:2]]
         return cls(occ, origin, float(meta["resolution"]), unknown=unknown)
@@ -704,7 +715,8 @@ def _read_pgm(path):
         fields.append(data[pos:end])
         pos = end
     magic, width, height, maxval = fields[0], *map(int, fields[1:])
-    if magic != b"P5" or maxval > 255:
+    if magic != b"P5" or not 0 < maxval <= 255:
         raise ValueError(f"{path}: only binary 8-bit PGM (P5) images are supported.")
     pixels = np.frombuffer(data, dtype=np.uint8, count=width * height, offset=pos + 1)
-    return pixels.reshape(height, width).astype(np.float64)
+    # Scaled to 0-255, as image readers deliver a PGM of a smaller maxval.
+    return pixels.reshape(height, width).astype(np.float64) * (255.0 / maxval)

@@ -251,6 +251,31 @@ def test_map_server_round_trip_reproduces_trinary_map(tmp_path):
     assert back.resolution == grid.resolution
 
 
+def test_hand_made_map_server_files(tmp_path):
+    # Pixels [0, 100, 128, 200, 230, 255] under thresholds 0.5 / 0.25, as map_server reads
+    # them: occupancy (255 - v) / 255 = 1, 0.61, 0.50, 0.22, 0.10, 0.
+    (tmp_path / "sub").mkdir()
+    pixels = bytes([0, 100, 128, 200, 230, 255])
+    (tmp_path / "sub" / "img.pgm").write_bytes(b"P5\n6 1\n255\n" + pixels)
+    meta = "image: sub/img.pgm\nresolution: 0.05\norigin: [-10, -5, 0]\nnegate: 0\n"
+    (tmp_path / "m.yaml").write_text(meta + "occupied_thresh: 0.5\nfree_thresh: 0.25\n")
+    grid = OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+    np.testing.assert_array_equal(grid.trinary(0.25, 0.5), [[100, 100, -1, 0, 0, 0]])
+    # An image of maxval 1 is scaled as image readers do: pixel 1 is white, free.
+    (tmp_path / "bits.pgm").write_bytes(b"P5\n2 1\n1\n" + bytes([0, 1]))
+    (tmp_path / "bits.yaml").write_text("image: bits.pgm\nresolution: 1\norigin: [0, 0, 0]\n")
+    np.testing.assert_array_equal(
+        OccupancyGrid.load_map_server(tmp_path / "bits.yaml").trinary(), [[100, 0]]
+    )
+    for line, message in (("mode: raw", "mode 'raw'"), ("origin: [0, 0, 1.57]", "yaw")):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text("image: bits.pgm\nresolution: 1\norigin: [0, 0, 0]\n" + line + "\n")
+        if line.startswith("origin"):
+            bad.write_text("image: bits.pgm\nresolution: 1\n" + line + "\n")
+        with pytest.raises(ValueError, match=message):
+            OccupancyGrid.load_map_server(bad)
+
+
 def test_free_thresh_025_would_lose_unknown_cells():
     # Why the YAML says 0.196: the unknown pixel 205 reads as p = 0.196 < 0.25 -> free.
     assert (255 - 205) / 255 < 0.25
