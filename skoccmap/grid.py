@@ -25,7 +25,7 @@ __all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
 ROS_FREE_THRESH = 0.196
 ROS_OCCUPIED_THRESH = 0.65
 _PIXEL_OCCUPIED, _PIXEL_FREE, _PIXEL_UNKNOWN = 0, 254, 205
-# unknown_variance="auto": this fraction of the largest variance on the grid.
+# unknown_variance="auto": this fraction of the prior variance (see _reference_variance).
 _AUTO_UNKNOWN = 0.9
 # Cells of one map at most: a probability and a variance each, 0.8 GB at this bound.
 _MAX_CELLS = 50_000_000
