@@ -44,12 +44,16 @@ def add_arguments(parser):
 
 
 def run(args):
+    from pathlib import Path
+
     from .experiment import format_tables, run_paper_experiment, save_figures, save_maps
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     try:
         if args.noise_std < 0:
             raise ValueError("--noise-std must be >= 0")
+        # Before the fits: a folder that cannot be made would fail only after them.
+        Path(args.out).mkdir(parents=True, exist_ok=True)
         result = run_paper_experiment(
             methods,
             resolution=args.resolution,
@@ -59,7 +63,7 @@ def run(args):
             n_jobs=args.n_jobs,
             verbose=0 if args.quiet else 1,
         )
-    except ValueError as exc:
+    except (ValueError, OSError) as exc:
         print(f"skoccmap demo: error: {exc}", file=sys.stderr)
         return 2
     print()

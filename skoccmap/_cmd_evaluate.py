@@ -106,10 +106,14 @@ def _check_options(args):
             raise ValueError(f"--{name.replace('_', '-')} must be >= {value}")
     if not args.grid_resolution > 0:
         raise ValueError("--grid-resolution must be positive")
+    option = "--seeds" if args.seeds is not None else "--seed"
     if args.seeds is None:
         args.seeds = [args.seed]
     if min(args.seeds) < 0:
-        raise ValueError("--seeds must be non-negative integers")
+        raise ValueError(f"{option} must be non-negative integers")
+    if len(set(args.seeds)) < len(args.seeds):
+        # A repeated seed repeats a run and would count twice in the mean.
+        raise ValueError(f"--seeds must be distinct, got {' '.join(map(str, args.seeds))}")
 
 
 def run(args):

@@ -22,6 +22,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import roc_auc_score, roc_curve
 from sklearn.utils import Bunch
 
+from .metrics import _check_both_classes
 from .observations import HIT, NO_RETURN, RETURN
 
 __all__ = [
@@ -229,6 +230,10 @@ def run_paper_experiment(
     data = make_paper_scans(noise_std=noise_std, random_state=random_state)
     environment = data.environment
     truth = environment.ground_truth_grid(resolution, scans=data.scans)
+    # Before any fit: a grid whose observed cells are all occupied (or all free) has no AUC.
+    _check_both_classes(
+        truth.occupied[truth.observed], f"observed cell of the true map at {resolution:g} m"
+    )
     _progress(
         verbose,
         f"Simulated {len(data.scans)} scans x {data.scans.n_beams} beams: {len(data.X)} "

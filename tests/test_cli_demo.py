@@ -116,6 +116,8 @@ def test_demo_without_matplotlib(tmp_path, monkeypatch):
         (["--methods", "moe,gp"], "methods"),
         (["--resolution", "-1"], "resolution"),
         (["--noise-std", "-0.1"], "noise-std"),
+        # At 5 m every observed cell touches a wall: no AUC, refused before the fits.
+        (["--methods", "moe", "--resolution", "5"], "the AUC is undefined"),
     ],
 )
 def test_demo_bad_arguments(argv, match, tmp_path):
@@ -123,6 +125,14 @@ def test_demo_bad_arguments(argv, match, tmp_path):
     assert rc == 2
     assert stderr.startswith("skoccmap demo: error:") and match in stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_demo_out_that_is_a_file(tmp_path):
+    taken = tmp_path / "taken"
+    taken.write_text("")
+    rc, stdout, stderr = run_demo(["--methods", "moe", "--out", str(taken)])
+    assert rc == 2 and stderr.startswith("skoccmap demo: error:") and "taken" in stderr
+    assert "Table 2" not in stdout  # refused before the fits
 
 
 @pytest.mark.slow

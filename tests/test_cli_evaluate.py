@@ -50,6 +50,8 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
         (["--every-nth-scan", "0"], "--train-every must be >= 1"),
         (["--holdout-every", "1"], "--holdout-every must be >= 2"),
         (["--seeds", "-1"], "--seeds must be non-negative"),
+        (["--seed", "-1"], "--seed must be non-negative"),
+        (["--seeds", "1", "1", "2"], "--seeds must be distinct, got 1 1 2"),
         (["--grid-resolution", "0"], "--grid-resolution must be positive"),
     ],
 )

@@ -386,6 +386,9 @@ def test_room_cast_hand_computed():
     dirs = [[1, 0, 0], [-1, 0, 0], [1, 0, 0], [0, 0, 1], [1, 1, 0]]
     assert_allclose(room.cast(origins, dirs), [1.0, 1.0, 3.0, 0.0, np.sqrt(2) * 1.0])
     assert_array_equal(room.cast([[1, 2.5, 0.5]], [[1, 0, 0]], max_range=0.5), [np.inf])
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(ValueError, match="max_range must be a positive finite number"):
+            room.cast([[1, 2.5, 0.5]], [[1, 0, 0]], max_range=bad)
 
 
 def test_room_cast_matches_marching():

@@ -3,6 +3,7 @@
 import numpy as np
 from sklearn.utils import Bunch
 
+from ..observations import _check_max_range
 from ._simulator import (
     _GRID_DOC,
     _SURFACE_TOL,
@@ -112,6 +113,8 @@ class Room3D:
         array([1.414214])
         """
         origins, directions = _check_rays(origins, directions, 3)
+        # As Environment2D.cast: the default (inf) stays, anything else must be a range.
+        max_range = np.inf if max_range == np.inf else _check_max_range(max_range)
         zero = np.zeros(3)
         _, ranges = _slab(origins, directions, zero[None], self.size[None])
         ranges = ranges[:, 0]
