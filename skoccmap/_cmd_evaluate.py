@@ -129,6 +129,17 @@ def _split(scans, args, seed):
     """Training scans, held-out scans and labelled test points of one seed."""
     from .metrics import blocks_protocol, heldout_points, split_scans
 
+    # The library's messages name its arguments; the command's user knows the options.
+    if args.protocol == "blocks" and len(scans) <= args.block_size:
+        raise ValueError(
+            f"--block-size {args.block_size} leaves no training scan of the log's "
+            f"{len(scans)}: use a smaller --block-size"
+        )
+    if args.protocol != "blocks" and len(scans) <= args.holdout_every // 2:
+        raise ValueError(
+            f"--holdout-every {args.holdout_every} holds out no scan of the log's "
+            f"{len(scans)}: use a smaller --holdout-every"
+        )
     if args.protocol == "blocks":
         protocol = blocks_protocol(
             scans, train_every=args.train_every, block_size=args.block_size, random_state=seed

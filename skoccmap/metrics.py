@@ -93,7 +93,7 @@ def split_scans(scans, every_nth=10, *, offset=0):
     held_out = np.arange(len(scans)) % every_nth == offset
     if held_out.all() or not held_out.any():
         raise ValueError(
-            f"holding out every {every_nth}th scan from offset {offset} of {len(scans)} scans "
+            f"holding out one scan in {every_nth} from offset {offset} of {len(scans)} scans "
             "leaves the training or the test set empty; use more scans or a smaller every_nth."
         )
     return scans[~held_out], scans[held_out]

@@ -41,7 +41,8 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
 @pytest.mark.parametrize(
     "options, message",
     [
-        (["--protocol", "blocks"], "too few"),  # 26 scans, blocks of 40
+        (["--protocol", "blocks"], "--block-size 40 leaves no training scan of the log's 26"),
+        (["--holdout-every", "60"], "--holdout-every 60 holds out no scan of the log's 26"),
         (["--protocol", "blocks", "--holdout-every", "5"], "--holdout-every does not apply"),
         (["--protocol", "blocks", "--free-per-beam", "2"], "--free-per-beam does not apply"),
         (["--block-size", "4"], "--block-size does not apply to --protocol every-nth"),
