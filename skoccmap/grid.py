@@ -599,11 +599,11 @@ class OccupancyGrid:
         )
 
 
-def _cell_centers(origin, resolution, counts, start=0, stop=None):
-    """Centres of cells ``start..stop`` in C order of an array of shape ``counts[::-1]``."""
-    n_cells = int(np.prod(counts))
-    stop = n_cells if stop is None else stop
-    flat = np.arange(start, stop)
+def _cell_centers(origin, resolution, counts, flat=None):
+    """Centres of the cells of flat indices ``flat`` (all cells when None), in C order of an
+    array of shape ``counts[::-1]``."""
+    if flat is None:
+        flat = np.arange(int(np.prod(counts)))
     index = np.unravel_index(flat, tuple(int(c) for c in counts[::-1]))[::-1]
     return origin + resolution * (np.column_stack(index) + 0.5)
 
@@ -621,7 +621,7 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
     next_report = 0.0
     for lo in range(0, n_cells, chunk_size):
         hi = min(lo + chunk_size, n_cells)
-        centers = _cell_centers(origin, resolution, counts, lo, hi)
+        centers = _cell_centers(origin, resolution, counts, np.arange(lo, hi))
         queries = np.concatenate([centers, centers], axis=1)  # zero-length segments
         if joint is not None:
             proba[lo:hi], var[lo:hi] = joint(queries)
@@ -654,10 +654,7 @@ def _reference_variance(estimator, var, origin, resolution, counts):
         return reference
     n_cells = int(np.prod(counts))
     sample = np.unique(np.linspace(0, n_cells - 1, min(n_cells, 1024)).astype(np.int64))
-    centers = origin + resolution * (
-        np.column_stack(np.unravel_index(sample, tuple(int(c) for c in counts[::-1]))[::-1])
-        + 0.5
-    )
+    centers = _cell_centers(origin, resolution, counts, sample)
     prior = prior_variance(np.concatenate([centers, centers], axis=1))
     return max(reference, float(np.max(prior)))
 
