@@ -29,6 +29,8 @@ from sklearn.utils.multiclass import check_classification_targets, type_of_targe
 from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from .grid import _snapped_origin
+
 __all__ = ["FrequencyGridMap", "HilbertMap", "OccupancyGridMap", "traverse_cells"]
 
 # Above this many cells in the bounding box the counts are accumulated sparsely (sort + unique)
@@ -267,9 +269,7 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         res = float(self.resolution)
         low = np.minimum(starts.min(axis=0), ends.min(axis=0))
         high = np.maximum(starts.max(axis=0), ends.max(axis=0))
-        origin = np.floor(low / res) * res
-        # floor(low / res) * res can round above low (0.85 / 0.05 -> 17 * 0.05 > 0.85).
-        self.origin_ = np.where(origin > low, origin - res, origin)
+        self.origin_ = _snapped_origin(low, res)
         shape = np.floor((high - self.origin_) / res) + 1
         # Cells are stored sparsely, but their flat index must fit an int64.
         if np.prod(shape) >= 2.0**62:

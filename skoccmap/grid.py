@@ -67,11 +67,16 @@ def _grid_from_extent(extent, resolution):
         raise ValueError("extent data contains NaN or infinite values.")
     n_dims = arr.shape[1] if arr.shape[1] in (2, 3) else arr.shape[1] // 2
     coords = arr.reshape(-1, n_dims) if arr.shape[1] > n_dims else arr
-    low = np.floor(coords.min(axis=0) / resolution) * resolution
-    # floor(m / r) * r can round above m (0.85 / 0.05 -> 17 * 0.05 > 0.85): one cell lower.
-    low = np.where(low > coords.min(axis=0), low - resolution, low)
+    low = _snapped_origin(coords.min(axis=0), resolution)
     counts = np.floor((coords.max(axis=0) - low) / resolution) + 1
     return low, _checked_counts(counts, resolution)
+
+
+def _snapped_origin(low, resolution):
+    """The largest multiple of ``resolution`` at or below ``low`` (per axis)."""
+    origin = np.floor(low / resolution) * resolution
+    # floor(m / r) * r can round above m (0.85 / 0.05 -> 17 * 0.05 > 0.85): one cell lower.
+    return np.where(origin > low, origin - resolution, origin)
 
 
 def _checked_counts(counts, resolution):

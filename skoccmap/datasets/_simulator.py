@@ -9,6 +9,7 @@ memory stays bounded for large scans.
 import numpy as np
 from sklearn.utils import Bunch, check_random_state
 
+from ..grid import _checked_counts
 from ..observations import Scans, _check_max_range, beam_directions
 
 __all__ = ["Environment2D", "simulate_scans"]
@@ -63,11 +64,7 @@ def _grid(extent, resolution, n_dims):
     lo, hi = extent[0::2], extent[1::2]
     if np.any(hi <= lo):
         raise ValueError(f"extent must have max > min on every axis, got {extent.tolist()}.")
-    counts = np.maximum(np.ceil((hi - lo) / resolution - 1e-9).astype(int), 1)
-    if np.prod(counts) > 50_000_000:
-        raise ValueError(
-            f"a grid of {counts.tolist()} cells is too large; use a coarser resolution."
-        )
+    counts = _checked_counts(np.maximum(np.ceil((hi - lo) / resolution - 1e-9), 1), resolution)
     axes = [lo[j] + (np.arange(counts[j]) + 0.5) * resolution for j in range(n_dims)]
     # Reversed axes with 'ij' indexing: reshape(shape) gives images indexed [y, x] ([z, y, x]).
     mesh = np.meshgrid(*axes[::-1], indexing="ij")
