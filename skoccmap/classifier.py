@@ -821,18 +821,20 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         >>> bool(mean[0] < 0 < mean[1]), bool(np.all(var < clf.kernel_.diag(X[:2])))
         (True, True)
         """
+        return self._latent(self._binary_queries(X, "the mean and variance"))
+
+    def _binary_queries(self, X, what):
+        """Validated queries of a fitted binary model; ``what`` of the latent function is
+        named in the error for more than two classes."""
         check_is_fitted(self)
         if self.n_classes_ > 2:
             raise ValueError(
-                "Returning the mean and variance of the latent function f "
-                "is only supported for binary classification, received "
-                f"{self.n_classes_} classes."
+                f"Returning {what} of the latent function f is only supported for binary "
+                f"classification, received {self.n_classes_} classes."
             )
         if self.kernel_.requires_vector_input:
-            X = validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
-        else:
-            X = validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
-        return self._latent(X)
+            return validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
+        return validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
 
     def _latent(self, X, prior_variance=None, cross=None):
         """:meth:`latent_mean_and_variance` of validated queries of a fitted binary model,
@@ -883,16 +885,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         >>> clf.prior_variance([[100.0]]), bool(np.isclose(clf.predict_var([[100.0]])[0], 4.0))
         (array([4.]), True)
         """
-        check_is_fitted(self)
-        if self.n_classes_ > 2:
-            raise ValueError(
-                "The prior variance of the latent function f is only defined for binary "
-                f"classification, received {self.n_classes_} classes."
-            )
-        if self.kernel_.requires_vector_input:
-            X = validate_data(self, X, ensure_2d=True, dtype="numeric", reset=False)
-        else:
-            X = validate_data(self, X, ensure_2d=False, dtype=None, reset=False)
+        X = self._binary_queries(X, "the prior variance")
         return np.asarray(self.kernel_.diag(X), dtype=np.float64)
 
     def predict_var(self, X):
