@@ -452,6 +452,16 @@ def test_scanner_directions():
     assert_allclose(d[2], [np.cos(np.pi / 6), 0, 0.5], atol=1e-12)
 
 
+def test_a_single_beam_points_straight_ahead():
+    # A one-beam scanner looks along its heading (2-D) or horizontally (3-D), not to the
+    # edge of its field of view.
+    assert_array_equal(make_paper_scans(n_beams=1).scans.angles, [0.0])
+    room = make_room3d_scans(n_azimuths=3, n_elevations=1).scans
+    assert_allclose(room.angles[:, 2], 0.0, atol=1e-12)
+    level = scanner_directions([0, 2 * np.pi / 3, 4 * np.pi / 3], [0.0])
+    assert_allclose(room.angles, level, atol=1e-12)
+
+
 def test_paper_scans_scale_up():
     data = make_paper_scans(n_beams=34, n_poses_per_piece=26)
     assert (len(data.scans), data.scans.n_beams) == (52, 34)

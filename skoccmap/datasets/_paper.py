@@ -11,7 +11,7 @@ import numbers
 import numpy as np
 from sklearn.utils import Bunch
 
-from ._simulator import Environment2D, simulate_scans
+from ._simulator import Environment2D, _spread, simulate_scans
 
 __all__ = ["make_paper_environment", "make_paper_scans"]
 
@@ -106,7 +106,8 @@ def make_paper_scans(
         :func:`~skoccmap.observations.scans_to_observations`.
     n_beams : int, default=17
         Beams per scan over the same 180 degrees; raise it (with ``n_poses_per_piece``) for a
-        larger data set of the same world (observations grow with their product).
+        larger data set of the same world (observations grow with their product). A single
+        beam points straight ahead.
     n_poses_per_piece : int, default=13
         Poses along each of the two trajectory pieces.
 
@@ -133,7 +134,7 @@ def make_paper_scans(
         if not isinstance(value, numbers.Integral) or value < least:
             raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
     environment = make_paper_environment()
-    angles = np.linspace(-np.pi / 2, np.pi / 2, n_beams)
+    angles = _spread(-np.pi / 2, np.pi / 2, n_beams)
     scans = simulate_scans(
         environment,
         _paper_poses(n_poses_per_piece),

@@ -11,6 +11,7 @@ from ._simulator import (
     _check_rays,
     _chunks,
     _ground_truth_grid,
+    _spread,
     simulate_scans,
 )
 
@@ -274,7 +275,7 @@ def make_room3d_scans(
     Parameters
     ----------
     n_azimuths, n_elevations : int, default=12, 4
-        Size of the scanner's angular grid.
+        Size of the scanner's angular grid. A single elevation is horizontal.
     max_range : float, default=4.0
         Sensor range in metres (long diagonals of the room give no-return beams).
     noise_std : float, default=0.0
@@ -309,7 +310,7 @@ def make_room3d_scans(
     )
     poses = np.column_stack([positions, quats])
     azimuths = np.linspace(0.0, 2 * np.pi, n_azimuths, endpoint=False)
-    elevations = np.deg2rad(np.linspace(-30.0, 30.0, n_elevations))
+    elevations = np.deg2rad(_spread(-30.0, 30.0, n_elevations))
     directions = scanner_directions(azimuths, elevations)
     scans = simulate_scans(
         room, poses, directions, max_range, noise_std=noise_std, random_state=random_state

@@ -20,6 +20,15 @@ _CHUNK_PAIRS = 1 << 18
 _SURFACE_TOL = 1e-9
 
 
+def _spread(low, high, n):
+    """``n`` values evenly from ``low`` to ``high``; a single one at the middle.
+
+    ``np.linspace`` gives one value at ``low``: a scanner with one beam would point it to the
+    edge of its field of view instead of straight ahead.
+    """
+    return np.linspace(low, high, n) if n > 1 else np.array([0.5 * (low + high)])
+
+
 def _chunks(n_rows, n_cols):
     step = max(1, _CHUNK_PAIRS // max(n_cols, 1))
     for start in range(0, n_rows, step):
