@@ -155,6 +155,11 @@ def test_occupancy_and_distance():
 def test_extent():
     env = Environment2D([[0, 0, 4, 0], [1, -2, 1, 3]], wall_thickness=0.2)
     assert_allclose(env.extent, [-0.1, 4.1, -2.1, 3.1])
+    # Zero-thickness walls in a line: the default grid holds one row of cells across them.
+    flat = Environment2D([[0, 0, 1, 0]], wall_thickness=0.0).ground_truth_grid(0.1)
+    assert flat.shape == (1, 10)
+    assert_allclose(flat.extent, [0, 1, -0.05, 0.05])
+    assert_array_equal(flat.occupied, 1)
 
 
 def test_ground_truth_grid_matches_supersampling():

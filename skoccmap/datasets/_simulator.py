@@ -57,8 +57,12 @@ def _check_rays(origins, directions, n_dims):
 # --------------------------------------------------------------------------------------------
 
 
-def _grid(extent, resolution, n_dims):
-    """Lower corner, cell counts and cell centres of a regular grid over ``extent``."""
+def _grid(extent, resolution, n_dims, own_extent=False):
+    """Lower corner, cell counts and cell centres of a regular grid over ``extent``.
+
+    ``own_extent``: the extent is an environment's own, which is flat along an axis where
+    every wall is (zero-thickness walls in a line): the grid holds one cell across there.
+    """
     try:
         resolution = float(resolution)
     except (TypeError, ValueError):
@@ -71,6 +75,9 @@ def _grid(extent, resolution, n_dims):
             f"extent must be {2 * n_dims} finite numbers (min, max per axis), got {extent}."
         )
     lo, hi = extent[0::2], extent[1::2]
+    if own_extent:
+        flat = hi == lo
+        lo, hi = np.where(flat, lo - resolution / 2, lo), np.where(flat, hi + resolution / 2, hi)
     if np.any(hi <= lo):
         raise ValueError(f"extent must have max > min on every axis, got {extent.tolist()}.")
     counts = _checked_counts(np.maximum(np.ceil((hi - lo) / resolution - 1e-9), 1), resolution)
@@ -162,8 +169,9 @@ def _observed_cells(scans, lo, resolution, counts, through_hits=True):
 
 def _ground_truth_grid(environment, resolution, extent, scans):
     n_dims = environment.n_dims
-    extent = environment.extent if extent is None else extent
-    lo, counts, centres = _grid(extent, resolution, n_dims)
+    own_extent = extent is None
+    extent = environment.extent if own_extent else extent
+    lo, counts, centres = _grid(extent, resolution, n_dims, own_extent)
     resolution = float(resolution)
     occupied = environment._cells_occupied(centres, resolution)
     observed = None
