@@ -185,6 +185,11 @@ def split_scan_blocks(scans, *, heldout_fraction=0.1, block_size=40, random_stat
     return scans[~held_out], scans[held_out]
 
 
+# Free test points heldout_points draws at most with "half_range": a billion is 16 GB of
+# 2-D points, far beyond a real log's (Intel's held-out scans give about 30 000).
+_MAX_FREE_POINTS = 1e9
+
+
 def _free_points_per_beam(n_free_per_beam, beam_range):
     """Free points to draw on each beam of the given ranges."""
     if isinstance(n_free_per_beam, str):
@@ -193,7 +198,15 @@ def _free_points_per_beam(n_free_per_beam, beam_range):
                 "n_free_per_beam must be a positive integer or 'half_range', got "
                 f"{n_free_per_beam!r}."
             )
-        return np.maximum(np.floor(beam_range / 2), 1).astype(np.int64)
+        counts = np.maximum(np.floor(beam_range / 2), 1)
+        total = counts.sum()
+        if total > _MAX_FREE_POINTS:
+            raise ValueError(
+                f"n_free_per_beam='half_range' would draw {total:.3g} free points (beams up to "
+                f"{beam_range.max():.3g} m long); give max_beam_range to leave long beams out, "
+                "or an integer n_free_per_beam."
+            )
+        return counts.astype(np.int64)
     if (
         not isinstance(n_free_per_beam, numbers.Integral)
         or isinstance(n_free_per_beam, bool)

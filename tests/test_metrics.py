@@ -364,6 +364,13 @@ def test_heldout_points_half_range_on_beams_and_uniform():
     )
     assert (labels == 0).sum() == 1000
     assert stats.kstest(points[labels == 0, 0], stats.uniform(0, 1999.9).cdf).pvalue > 1e-3
+    # A sensor whose no-return beams reach 1e20 m would need 5e19 points: refused, naming
+    # the way out, instead of overflowing.
+    far = Scans([[0.0, 0.0, 0.0]], [[np.inf, 1.0]], [0.0, 1.0], max_range=1e20)
+    with pytest.raises(ValueError, match="max_beam_range"):
+        heldout_points(far, n_free_per_beam="half_range")
+    points, labels = heldout_points(far, n_free_per_beam="half_range", max_beam_range=40.0)
+    assert (labels == 0).sum() == 1
 
 
 @pytest.mark.parametrize(
