@@ -115,6 +115,16 @@ def kernel_reach(kernel, dim, tolerance, extent):
     return float(reach)
 
 
+def _block_coordinates(points, origin, side):
+    """Integer coordinates of the blocks of side ``side`` holding ``points``.
+
+    Clipped before the cast, which would wrap around for points absurdly far from the
+    origin (a query at 1e19 m); clipped coordinates lie far outside every code's range.
+    """
+    blocks = np.floor((points - origin) / side)
+    return np.clip(blocks, -(2**62), 2**62).astype(np.int64)
+
+
 def _codes(blocks):
     """Code of each block (integer coordinates relative to the origin), -1 out of range.
 
@@ -550,14 +560,14 @@ class ExpertReach:
 
     def _block_codes(self, mids):
         """Table code of the block of each point (-1 too far from the origin to code)."""
-        return _codes(np.floor((mids - self.origin) / self.block).astype(np.int64))
+        return _codes(_block_coordinates(mids, self.origin, self.block))
 
     def spatial_order(self, queries):
         """Order of the queries block by block, so that consecutive queries are near."""
         if not np.isfinite(self.reach):
             return np.arange(len(queries))
         mids, _ = self._mids_and_half_lengths(queries)
-        blocks = np.floor((mids - self.origin) / self.block).astype(np.int64)
+        blocks = _block_coordinates(mids, self.origin, self.block)
         # Rows of blocks a few reaches tall, then blocks along each row: chunks of
         # consecutive queries stay compact.
         band = blocks[:, 1:] // 8

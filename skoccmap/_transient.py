@@ -86,9 +86,10 @@ class CellCounts:
     def _cells(self, points):
         return np.floor(points / self.cell_size).astype(np.int64)
 
-    def _check_range(self, cells):
+    def _check_range(self, points):
+        # Checked in floating point: far enough out, the cast to int64 wraps around.
         half = 1 << (self._bits - 1)
-        if cells.size and np.abs(cells).max() >= half:
+        if points.size and np.abs(np.floor(points / self.cell_size)).max() >= half:
             raise ValueError(
                 f"Coordinates beyond {half * self.cell_size:g} m of the origin cannot be "
                 "counted in cells; move the data's origin near the map."
@@ -112,8 +113,8 @@ class CellCounts:
         """
         d = self.n_dims
         starts, ends = X[:, :d], X[:, d:]
-        self._check_range(self._cells(starts))
-        self._check_range(self._cells(ends))
+        self._check_range(starts)
+        self._check_range(ends)
         keys, hits = np.unique(self._keys(self._cells(ends[occupied])), return_counts=True)
         parts = [(self.keys, self.hits, self.passes), (keys, hits, np.zeros_like(hits))]
         free = np.flatnonzero(~occupied)
@@ -135,9 +136,8 @@ class CellCounts:
 
     def counted(self, points):
         """Hits in and free rows through the cells holding ``points`` (0 where uncounted)."""
-        cells = self._cells(points)
-        self._check_range(cells)
-        keys = self._keys(cells)
+        self._check_range(points)
+        keys = self._keys(self._cells(points))
         hits = np.zeros(keys.size, dtype=np.int64)
         passes = np.zeros(keys.size, dtype=np.int64)
         if self.keys.size == 0:

@@ -1,5 +1,7 @@
 """The reach of a kernel and the spatial index of the experts (skoccmap._reach)."""
 
+import warnings
+
 import numpy as np
 import pytest
 from sklearn.gaussian_process.kernels import RBF, DotProduct
@@ -106,6 +108,19 @@ def test_candidates_of_a_query_do_not_depend_on_the_others():
     q2, c2 = index.candidates(queries[sub])
     for j, i in enumerate(sub):
         np.testing.assert_array_equal(np.sort(c2[q2 == j]), np.sort(cand[query == i]))
+
+
+def test_queries_absurdly_far_away_have_no_candidate_and_no_cast_warning():
+    segments, expert, n_experts = _random_experts(2, seed=6)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    far = np.array([[1e19, 1e19], [-1e300, 3.0], [5.0, 1e50]])
+    queries = np.vstack([np.hstack([far, far]), [[5.0, 5.0, 5.0, 5.0]]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the int64 cast used to warn (and wrap around)
+        query, cand = index.candidates(queries)
+        order = index.spatial_order(queries)
+    assert set(query.tolist()) <= {3}
+    np.testing.assert_array_equal(np.sort(order), np.arange(4))
 
 
 def test_infinite_reach_makes_every_expert_a_candidate():

@@ -53,6 +53,12 @@ def test_coordinates_too_far_to_count_are_an_error():
     X = np.array([[0.0, 0.0, 1e12, 0.0]])
     with pytest.raises(ValueError, match="cannot be counted"):
         CellCounts(0.1, 2).add(X, np.array([False]))
+    # So far out that the cast to int64 would wrap around and pass a check made after it.
+    for far in (1e50, 1e300):
+        with pytest.raises(ValueError, match="cannot be counted"):
+            CellCounts(0.1, 2).add(np.array([[far, far, far, far]]), np.array([True]))
+        with pytest.raises(ValueError, match="cannot be counted"):
+            CellCounts(0.1, 2).counted(np.array([[far, 0.0]]))
 
 
 @pytest.fixture(scope="module")
