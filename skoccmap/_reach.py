@@ -609,6 +609,9 @@ class ExpertReach:
         query_index = np.repeat(np.arange(n), count)
         first = np.cumsum(count) - count
         offset = np.arange(query_index.size) - np.repeat(first, count)
+        # Segment rows take their experts from their own lists below, not from the table
+        # (their midpoint's table entry may be past its end).
+        start[segment_rows] = 0
         expert_index = self._table_experts[np.repeat(start, count) + offset]
         for i in segment_rows:
             expert_index[first[i] : first[i] + count[i]] = lists[i]

@@ -110,6 +110,24 @@ def test_candidates_of_a_query_do_not_depend_on_the_others():
         np.testing.assert_array_equal(np.sort(c2[q2 == j]), np.sort(cand[query == i]))
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_query_segment_whose_middle_lies_beyond_every_block(dim):
+    # A long beam from inside the map: its midpoint's block code sorts past the last one
+    # in the table, which the lookup used to read past (IndexError).
+    segments, expert, n_experts = _random_experts(dim, seed=7)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    start = np.full(dim, 10.0)
+    beams = [np.r_[start, start + np.eye(dim)[0] * length] for length in (50.0, 500.0)]
+    queries = np.vstack([np.r_[start, start]] + beams)
+    query, cand = index.candidates(queries)
+    along = start + np.linspace(0, 1, 2001)[:, None] * (np.eye(dim)[0] * 50.0)
+    near = np.unique(expert[_segment_distance(along, segments).min(axis=0) <= 1.5])
+    assert set(near) <= set(cand[query == 1])
+    assert set(cand[query == 1]) <= set(cand[query == 2])
+    alone, alone_cand = index.candidates(queries[:1])
+    np.testing.assert_array_equal(cand[query == 0], alone_cand)
+
+
 def test_queries_absurdly_far_away_have_no_candidate_and_no_cast_warning():
     segments, expert, n_experts = _random_experts(2, seed=6)
     index = ExpertReach(segments, expert, n_experts, reach=1.5)
