@@ -79,21 +79,26 @@ class CellCounts:
         self.cell_size = float(cell_size)
         self.n_dims = int(n_dims)
         self._bits = 62 // self.n_dims
+        # Cell of the first point counted: keys hold coordinates relative to it, so that
+        # their bits span the map, wherever it lies (UTM eastings in 3-D included).
+        self.origin = None
         self.keys = np.empty(0, dtype=np.int64)
         self.hits = np.empty(0, dtype=np.int64)
         self.passes = np.empty(0, dtype=np.int64)
 
     def _cells(self, points):
-        return np.floor(points / self.cell_size).astype(np.int64)
-
-    def _check_range(self, points):
+        """Cells holding ``points``, relative to the origin cell."""
+        cells = np.floor(points / self.cell_size) - self.origin
         # Checked in floating point: far enough out, the cast to int64 wraps around.
         half = 1 << (self._bits - 1)
-        if points.size and np.abs(np.floor(points / self.cell_size)).max() >= half:
+        if cells.size and np.abs(cells).max() >= half:
             raise ValueError(
-                f"Coordinates beyond {half * self.cell_size:g} m of the origin cannot be "
-                "counted in cells; move the data's origin near the map."
+                f"Coordinates more than {half * self.cell_size:g} m from the first data "
+                f"counted (near {(self.origin * self.cell_size).tolist()}) cannot be counted "
+                "in cells; keep the data within that distance, or pass "
+                "min_hit_frequency=None."
             )
+        return cells.astype(np.int64)
 
     def _keys(self, cells):
         """One int64 per cell: the offset coordinates side by side, ``62 // D`` bits each."""
@@ -113,8 +118,11 @@ class CellCounts:
         """
         d = self.n_dims
         starts, ends = X[:, :d], X[:, d:]
-        self._check_range(starts)
-        self._check_range(ends)
+        if len(X) == 0:
+            return self
+        if self.origin is None:
+            self.origin = np.floor(starts[0] / self.cell_size)
+        self._cells(starts), self._cells(ends)  # range checks
         keys, hits = np.unique(self._keys(self._cells(ends[occupied])), return_counts=True)
         parts = [(self.keys, self.hits, self.passes), (keys, hits, np.zeros_like(hits))]
         free = np.flatnonzero(~occupied)
@@ -126,8 +134,11 @@ class CellCounts:
             shape = tuple(int(n) for n in high - low + 1)
             # Grid units from the absolute cell coordinates, so that every batch rounds a
             # point to the same cell.
+            low_corner = low + self.origin
             _, flat = _passed_cells(
-                starts[rows] / self.cell_size - low, ends[rows] / self.cell_size - low, shape
+                starts[rows] / self.cell_size - low_corner,
+                ends[rows] / self.cell_size - low_corner,
+                shape,
             )
             cells, passes = _occurrences(flat, shape)
             parts.append((self._keys(cells + low), np.zeros_like(passes), passes))
@@ -136,12 +147,11 @@ class CellCounts:
 
     def counted(self, points):
         """Hits in and free rows through the cells holding ``points`` (0 where uncounted)."""
-        self._check_range(points)
-        keys = self._keys(self._cells(points))
-        hits = np.zeros(keys.size, dtype=np.int64)
-        passes = np.zeros(keys.size, dtype=np.int64)
+        hits = np.zeros(len(points), dtype=np.int64)
+        passes = np.zeros(len(points), dtype=np.int64)
         if self.keys.size == 0:
             return hits, passes
+        keys = self._keys(self._cells(points))
         pos = np.searchsorted(self.keys, keys).clip(0, self.keys.size - 1)
         found = self.keys[pos] == keys
         hits[found], passes[found] = self.hits[pos[found]], self.passes[pos[found]]

@@ -56,9 +56,25 @@ def test_coordinates_too_far_to_count_are_an_error():
     # So far out that the cast to int64 would wrap around and pass a check made after it.
     for far in (1e50, 1e300):
         with pytest.raises(ValueError, match="cannot be counted"):
-            CellCounts(0.1, 2).add(np.array([[far, far, far, far]]), np.array([True]))
+            CellCounts(0.1, 2).add(np.array([[0.0, 0.0, far, far]]), np.array([False]))
+        counts = CellCounts(0.1, 2).add(np.array([[0.0, 0.0, 1.0, 1.0]]), np.array([False]))
         with pytest.raises(ValueError, match="cannot be counted"):
-            CellCounts(0.1, 2).counted(np.array([[far, 0.0]]))
+            counts.counted(np.array([[far, 0.0]]))
+
+
+@pytest.mark.parametrize("n_dims", [2, 3])
+def test_counts_do_not_depend_on_where_the_map_lies(n_dims):
+    # UTM-sized coordinates: the keys count cells from the first data's, so a 3-D map
+    # 5e6 m from the origin (20 bits an axis would reach 52 km) counts as one at the origin.
+    X, y = _random_rows(np.random.default_rng(n_dims), n_dims)
+    near = CellCounts(0.1, n_dims).add(X, y == 1)
+    shift = np.tile(np.r_[5e5, 5e6, 100.0][:n_dims], 2)
+    far = CellCounts(0.1, n_dims).add(X + shift, y == 1)
+    points = X[:, n_dims:]
+    np.testing.assert_array_equal(far.counted(points + shift[:n_dims]), near.counted(points))
+    assert near.counted(points)[0].sum() > 0
+    # Nothing counted yet: no origin, and nothing found.
+    assert CellCounts(0.1, n_dims).add(X[:0], y[:0] == 1).counted(points)[0].sum() == 0
 
 
 @pytest.fixture(scope="module")
