@@ -1,5 +1,8 @@
 """Input checks shared by the kernel, the estimators and the observation helpers."""
 
+import contextlib
+import functools
+
 import numpy as np
 
 
@@ -45,3 +48,31 @@ def check_segments(X, *, name="X", allow_empty=False):
 def segment_dim(X):
     """Spatial dimension D of segment rows with 2*D columns."""
     return X.shape[1] // 2
+
+
+@contextlib.contextmanager
+def unfitted_on_error(estimator):
+    """A fit that raises inside this block leaves ``estimator`` unfitted.
+
+    The attributes a fit sets before its error would otherwise sit beside those of an
+    earlier fit, and the estimator would predict from a mixture of the two without a word.
+    Everything but the constructor's parameters is removed.
+    """
+    try:
+        yield
+    except BaseException:
+        params = estimator.get_params(deep=False)
+        for name in [name for name in vars(estimator) if name not in params]:
+            delattr(estimator, name)
+        raise
+
+
+def fit_or_unfitted(fit):
+    """Decorate a ``fit`` method with :func:`unfitted_on_error`."""
+
+    @functools.wraps(fit)
+    def wrapper(self, *args, **kwargs):
+        with unfitted_on_error(self):
+            return fit(self, *args, **kwargs)
+
+    return wrapper

@@ -29,6 +29,7 @@ from sklearn.utils.multiclass import check_classification_targets, type_of_targe
 from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from ._validation import fit_or_unfitted
 from .grid import _snapped_origin
 
 __all__ = ["FrequencyGridMap", "HilbertMap", "OccupancyGridMap", "traverse_cells"]
@@ -500,6 +501,7 @@ class OccupancyGridMap(_CountingGridBase):
         self.layout = layout
         self.chunk_size = chunk_size
 
+    @fit_or_unfitted
     def fit(self, X, y, scan_index=None):
         """Accumulate the log-odds of the cells hit and crossed by the observations.
 
@@ -675,6 +677,7 @@ class FrequencyGridMap(_CountingGridBase):
         self.layout = layout
         self.chunk_size = chunk_size
 
+    @fit_or_unfitted
     def fit(self, X, y):
         """Count the hits in and the free beams through every cell.
 
@@ -946,6 +949,7 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
         tags.classifier_tags.poor_score = True
         return tags
 
+    @fit_or_unfitted
     def fit(self, X, y):
         """Sample training points from the rows and fit the features and the classifier.
 

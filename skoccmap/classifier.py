@@ -23,6 +23,7 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.optimize import _check_optimize_result
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from ._validation import fit_or_unfitted
 from .ep import (
     EPResult,
     ep_append_sites,
@@ -411,6 +412,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         self.n_jobs = n_jobs
 
     @_fit_context(prefer_skip_nested_validation=True)
+    @fit_or_unfitted
     def fit(self, X, y):
         """Fit the EP approximation and, unless ``optimizer=None``, the hyperparameters.
 

@@ -25,6 +25,7 @@ from ._niw import (
     posterior,
     predictive,
 )
+from ._validation import fit_or_unfitted
 
 __all__ = ["DPGMMClusterer"]
 
@@ -698,6 +699,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         return greedy_merge(*sufficient_statistics(X, labels, K), prior, self.alpha)[labels]
 
     @_fit_context(prefer_skip_nested_validation=True)
+    @fit_or_unfitted
     def fit(self, X, y=None):
         """Sample cluster assignments of ``X``.
 

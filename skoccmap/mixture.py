@@ -37,6 +37,7 @@ from ._shared_kernel import (
 )
 from ._thinning import thin_free_pieces
 from ._transient import CellCounts
+from ._validation import fit_or_unfitted, unfitted_on_error
 from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .kernels import IntegralKernel
@@ -808,7 +809,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         paper's world score the same (ECE 0.041 / 0.038 on the office). The clusterer's
         gate with no threshold (every expert within reach: 18.8 experts per query on
         ACES, 206 on ACES with every scan) scores as the coverage gate: the data were
-        there, the gate skipped them.
+        there, the gate skipped them. ``"coverage"`` and ``"clusterer"`` are read at
+        predict time, as ``combiner`` and ``gating_threshold`` are: they can be changed
+        with ``set_params`` between predictions. ``"gpc"`` is learned by :meth:`fit`, and
+        set afterwards on a model fitted without it, prediction asks for a new fit.
     combiner : {"moe", "poe", "gpoe", "bcm", "rbcm"}, default="rbcm"
         Merging rule, see :mod:`skoccmap.combine`. The robust BCM is the default by
         measurement on tuning data (``benchmarks/bench_tuning.py --only combiner``: ACES,
@@ -1144,7 +1148,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         columns, as everywhere in skoccmap (odd column counts are rejected).
         ``"points"``: every row is a point with ``D = n_columns`` coordinates (e.g. free
         points sampled along beams); rows become zero-length segments before they reach
-        the experts, and every free point joins the cluster of its nearest hit.
+        the experts, and every free point joins the cluster of its nearest hit. Changed
+        after :meth:`fit`, prediction asks for a new fit.
     n_jobs : int, default=None
         Experts fitted, and the terms of the shared hyperparameters' evidence computed, in
         parallel with :class:`sklearn.utils.parallel.Parallel`; honours
@@ -1365,6 +1370,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     # -- fit -------------------------------------------------------------------------
 
     @_fit_context(prefer_skip_nested_validation=False)
+    @fit_or_unfitted
     def fit(self, X, y):
         """Cluster, assign, fit the experts and the gate.
 
@@ -1391,6 +1397,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """``fit`` on validated segment rows and encoded labels (1 = occupied)."""
         rng = check_random_state(self.random_state)
         start = time.perf_counter()
+        self._fitted_with = {"layout": self.layout, "gating": self.gating}
 
         occupied = y_enc == 1
         if self.clusterer is None and occupied.sum() < 2:
@@ -1608,26 +1615,28 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         (4, True)
         """
         if not hasattr(self, "_pieces"):
-            X, y = validate_data(self, X, y, dtype=np.float64)
-            check_classification_targets(y)
-            present = np.unique(y)
-            if classes is None:
-                if present.size == 1:
+            # A first call that raises leaves the model unfitted, as fit does.
+            with unfitted_on_error(self):
+                X, y = validate_data(self, X, y, dtype=np.float64)
+                check_classification_targets(y)
+                present = np.unique(y)
+                if classes is None:
+                    if present.size == 1:
+                        raise ValueError(
+                            "classes must be passed on the first call to partial_fit when y "
+                            f"holds one class only ({present.tolist()})."
+                        )
+                    classes = present
+                classes = np.unique(np.asarray(classes))
+                _check_two_classes(classes)
+                _check_known_labels(y, classes)
+                if present.size != 2:
                     raise ValueError(
-                        "classes must be passed on the first call to partial_fit when y "
-                        f"holds one class only ({present.tolist()})."
+                        "The first call to partial_fit needs both classes in y: hit points to "
+                        "cluster and beams (free space)."
                     )
-                classes = present
-            classes = np.unique(np.asarray(classes))
-            _check_two_classes(classes)
-            _check_known_labels(y, classes)
-            if present.size != 2:
-                raise ValueError(
-                    "The first call to partial_fit needs both classes in y: hit points to "
-                    "cluster and beams (free space)."
-                )
-            self.classes_ = classes
-            return self._fit(_as_segment_rows(X, self.layout), np.searchsorted(classes, y))
+                self.classes_ = classes
+                return self._fit(_as_segment_rows(X, self.layout), np.searchsorted(classes, y))
         check_is_fitted(self)
         X, y = validate_data(self, X, y, reset=False, dtype=np.float64)
         check_classification_targets(y)
@@ -1637,6 +1646,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 f"first call, {self.classes_.tolist()}."
             )
         _check_known_labels(y, self.classes_)
+        self._check_fitted_with()
         self._update(_as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y))
         return self
 
@@ -2534,8 +2544,25 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     # -- prediction ------------------------------------------------------------------
 
+    def _check_fitted_with(self):
+        """``layout``, and a ``"gpc"`` gate, shape what fit builds: set since, they would
+        be read against a model built without them."""
+        fitted = getattr(self, "_fitted_with", self.get_params())  # older pickles: unchecked
+        if self.layout != fitted["layout"]:
+            name = "layout"
+        elif self.gating == "gpc" and fitted["gating"] != "gpc":
+            name = "gating"
+        else:
+            return
+        raise ValueError(
+            f"{name}={getattr(self, name)!r} was set after the model was fitted with "
+            f"{name}={fitted[name]!r}; call fit again (combiner, gating_threshold and a "
+            "gating of 'coverage' or 'clusterer' may change between predictions)."
+        )
+
     def _validate_queries(self, X):
         check_is_fitted(self)
+        self._check_fitted_with()
         X = validate_data(self, X, reset=False, dtype=np.float64)
         return _as_segment_rows(X, self.layout)
 

@@ -4,15 +4,24 @@ Each estimator joins ``ESTIMATORS`` as it lands. Expected failures, if any, go i
 ``EXPECTED_FAILED_CHECKS`` with the reason next to each entry.
 """
 
+import numpy as np
 import pytest
+from sklearn.exceptions import NotFittedError
 from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
-from skoccmap.baselines import OccupancyGridMap
+from skoccmap.baselines import FrequencyGridMap, HilbertMap, OccupancyGridMap
 from skoccmap.classifier import EPGaussianProcessClassifier
 from skoccmap.cluster import DPGMMClusterer
+from skoccmap.datasets import make_paper_scans
 from skoccmap.mixture import MixtureGPOccupancyMap
 
-ESTIMATORS = [OccupancyGridMap(), EPGaussianProcessClassifier(), DPGMMClusterer()]
+ESTIMATORS = [
+    OccupancyGridMap(),
+    FrequencyGridMap(),
+    HilbertMap(),
+    EPGaussianProcessClassifier(),
+    DPGMMClusterer(),
+]
 # Points layout: every column count is valid (segments: tests/test_mixture.py).
 ESTIMATORS.append(MixtureGPOccupancyMap(layout="points"))
 
@@ -33,3 +42,55 @@ def test_sklearn_compatible_estimator(estimator, check):
 def test_param_validation(estimator):
     # Not part of check_estimator: invalid constructor parameters must be rejected in fit.
     check_param_validation(type(estimator).__name__, estimator)
+
+
+
+@pytest.mark.parametrize(
+    "estimator",
+    [
+        OccupancyGridMap(),
+        FrequencyGridMap(),
+        HilbertMap(random_state=0),
+        EPGaussianProcessClassifier(),
+        DPGMMClusterer(random_state=0),
+        MixtureGPOccupancyMap(random_state=0),
+    ],
+    ids=lambda est: type(est).__name__,
+)
+def test_a_fit_that_raises_leaves_the_estimator_unfitted(estimator):
+    # Neither the earlier fit nor half of the new one beside half of the old.
+    data = make_paper_scans(random_state=0)
+    X, y = data.X[::3], data.y[::3]
+    estimator.fit(X, y)
+    bad = X.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError):
+        estimator.fit(bad, y)
+    with pytest.raises(NotFittedError):
+        estimator.predict(X)
+
+
+def test_a_fit_failing_after_its_first_attributes_predicts_nothing():
+    data = make_paper_scans(random_state=0)
+    X, y = data.X[::3], data.y[::3]
+    # HilbertMap set its new centre before finding no usable free row, then predicted
+    # from the old classifier around it.
+    hilbert = HilbertMap(random_state=0).fit(X, y)
+    far = [[100, 100, 150, 100], [150.1, 100, 150.1, 100], [151, 100, 151, 100]]
+    with pytest.raises(ValueError, match="max_free_length"):
+        hilbert.fit(far, [0, 1, 1])
+    with pytest.raises(NotFittedError):
+        hilbert.predict_proba(X)
+    # The mixture took the failed fit's classes, and labelled the old experts' output.
+    mixture = MixtureGPOccupancyMap(random_state=0).fit(X, y)
+    one_hit = np.r_[np.flatnonzero(y == 1)[:1], np.flatnonzero(y == 0)[:4]]
+    with pytest.raises(ValueError, match="2"):
+        mixture.fit(X[one_hit], np.where(y[one_hit] == 1, "occ", "free"))
+    with pytest.raises(NotFittedError):
+        mixture.predict(X)
+    # A fresh grid whose fit failed on its own parameters said AttributeError.
+    grid = OccupancyGridMap(l_min=0.0, l_max=0.0)
+    with pytest.raises(ValueError, match="l_min"):
+        grid.fit(X, y)
+    with pytest.raises(NotFittedError):
+        grid.predict(X)

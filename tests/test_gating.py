@@ -6,6 +6,7 @@ organised inside. Each would pass with a gate that ignored its input only by cha
 gate scores about 1 / ``n_experts_`` on the first and zero on the last two.
 """
 
+import copy
 import warnings
 
 import numpy as np
@@ -113,3 +114,22 @@ def test_moe_prediction_is_the_gate_weighted_mixture_not_a_uniform_one(fitted):
     # the uniform mixture for a uniform gate.
     assert np.mean(np.abs(proba - uniform)) > 0.04
     assert np.mean(np.abs(proba - gated)) < 0.5 * np.mean(np.abs(proba - uniform))
+
+
+def test_a_gate_set_after_fit_either_works_or_asks_for_a_fit(fitted):
+    data, model, queries = fitted
+    model = copy.deepcopy(model)
+    # From the fitted gpc gate to the clusterer's: read at predict time.
+    model.set_params(gating="clusterer")
+    proba = model.predict_proba(queries)
+    assert np.all(np.isfinite(proba))
+    model.set_params(gating="gpc")
+    # A gpc gate is learned by fit: set afterwards on a model fitted without one, it used
+    # to fail with "'NoneType' object has no attribute 'predict_proba'".
+    other = MixtureGPOccupancyMap(max_expert_size=150, random_state=0).fit(data.X, data.y)
+    other.set_params(gating="gpc")
+    with pytest.raises(ValueError, match="gating='gpc' was set after"):
+        other.predict_proba(queries)
+    other.set_params(gating="coverage", layout="points")
+    with pytest.raises(ValueError, match="layout='points' was set after"):
+        other.predict_proba(queries)
