@@ -49,7 +49,8 @@ class _LearnOnly(mixture.MixtureGPOccupancyMap):
         rows = mixture._groups(labels, self.expert_cluster_.size)
         start = time.perf_counter()
         self._learn_shared(rows, expert, rng)
-        raise _Learned(time.perf_counter() - start)
+        # Carried by the exception: a fit that raises leaves the model unfitted.
+        raise _Learned(time.perf_counter() - start, self.shared_kernel_)
 
 
 def learned_length_scale(data, *, pieces, cap, beam, state, n_jobs):
@@ -67,12 +68,12 @@ def learned_length_scale(data, *, pieces, cap, beam, state, n_jobs):
             warnings.simplefilter("ignore")
             model.fit(data.X, data.y)
     except _Learned as done:
-        seconds = done.args[0]
+        seconds, kernel = done.args
     else:  # pragma: no cover - the learner always runs with the default expert
         raise RuntimeError("the shared kernel was not learned")
     finally:
         mixture._SHARED_PIECES = saved
-    return float(model.shared_kernel_.k2.length_scale), seconds
+    return float(kernel.k2.length_scale), seconds
 
 
 def parse_args(argv=None):
