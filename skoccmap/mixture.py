@@ -59,10 +59,11 @@ _NO_RETURN_FIRST = 4
 _NO_RETURN_SCREEN = 16
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
-# Pieces (experts or windows) whose summed evidence learns the shared hyperparameters: a
-# few dozen fix one or two hyperparameters, at a cost that does not grow with the map; rows
-# per window when experts are not size-bounded.
-_SHARED_PIECES = 64
+# Pieces (experts or windows) whose summed evidence learns the shared hyperparameters, at a
+# cost that does not grow with the map: a few dozen fix one or two hyperparameters, but
+# which 64 are drawn moves the length scale by about a tenth on a dense log (see
+# share_hyperparameters); rows per window when experts are not size-bounded.
+_SHARED_PIECES = 128
 _SHARED_WINDOW_ROWS = 400
 
 
@@ -987,16 +988,21 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         to their beams).
     share_hyperparameters : bool, default=True
         Learn the expert's kernel hyperparameters once and give every expert that fitted
-        kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to 64
-        experts drawn at random (product-of-experts training of distributed GPs, Deisenroth
-        & Ng 2015), each on its own piece of the map. On the tuning data
+        kernel with ``optimizer=None``. They maximise the summed EP log evidence of up to
+        128 experts drawn at random (product-of-experts training of distributed GPs,
+        Deisenroth & Ng 2015), each on its own piece of the map. On the tuning data
         (``benchmarks/bench_length_scale.py``: ACES, random states 0-3) 32 experts with every
         piece kept learn 1.65 / 2.08 / 1.49 / 1.32 m with every scan and 1.37 / 1.08 / 1.20
         / 1.17 m with every 10th; 64 with ``max_pieces_per_cell=4`` learn 1.12 / 1.00 /
         1.00 / 1.12 m and 1.13 / 1.18 / 1.03 / 1.03 m: the cap removes the drift with the
-        density, the larger draw halves the spread. It costs most on small maps, where the
-        learning dominates the fit: B3 (Intel, every 10th scan) fits in 32 s against 19 s
-        with 32. These are the experts of the paper's
+        density, the larger draw halves the spread. 128 instead of 64 (random states 0-5)
+        move the length scale between every scan and every 10th by at most 22.6 % instead
+        of 27.3 %, and resampling the experts' evidence curves of two ACES fits at each
+        density (ad hoc) puts a move beyond 30 % at 7.7 % of draws with 64 and none of 400
+        with 128
+        (a sparse log with at most 128 experts learns on all of them), at twice the
+        learning time (19.3 against 9.9 s with every scan). It costs most on small maps,
+        where the learning dominates the fit. These are the experts of the paper's
         rule (``piece_assignment="beam"``: a cluster's walls with the whole beams that saw
         them), also when the fitted experts hold the pieces nearest to their hits
         (``"nearest_hit"``; see there). A hyperparameter that ends at a bound raises a
@@ -1009,8 +1015,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         grows from 3.8 m to 307 m on ACES.
     hyperparameter_window : float or None, default=None
         Where the shared hyperparameters are learned (``share_hyperparameters=True``).
-        ``None``: on the data of up to 64 experts (of the paper's rule) drawn at random. A
-        radius in metres: on up to 64 windows of that radius, each centred on a random hit
+        ``None``: on the data of up to 128 experts (of the paper's rule) drawn at random. A
+        radius in metres: on up to 128 windows of that radius, each centred on a random hit
         and holding at most ``max_expert_size`` rows drawn at random from the rows whose
         midpoint lies within it. A window covers the same area with the same number of rows
         however dense the scans, while an expert's data cover a smaller area as scans
@@ -1655,7 +1661,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
         :meth:`partial_fit` keeps the hyperparameters learned by the first fit, or last
         re-learned when the rows grew by ``hyperparameter_growth``; this learns them again
-        now as :meth:`fit` does (from up to 64 experts' pieces), refits all experts
+        now as :meth:`fit` does (from up to 128 experts' pieces), refits all experts
         (warm-started from their sites), and updates the reach and the spatial index.
         Clusters and pieces stay.
 
