@@ -25,7 +25,9 @@ class IntegralKernel(Kernel):
 
     Point-point and segment-point values are closed forms; segment-segment values integrate the
     inner integral analytically and the outer one by Gauss-Legendre quadrature with a node count
-    that grows with the segment length over the length scale (relative error below 1e-6).
+    that grows with the segment length over the length scale (relative error below 1e-6 for
+    segments up to about 1e5 length scales long; beyond, the perpendicular distance, a
+    difference of two squares of that size, loses digits: about 2e-4 at 1e6).
     Pairs further apart than 8 length scales are exactly 0 (the point kernel is below 1.3e-14
     there) and are never evaluated, so k(query points, training rows) costs in proportion to
     the pairs within that reach, not to the size of the matrix.
