@@ -20,7 +20,14 @@ import sys
 
 import numpy as np
 
-from ._cmd_map import LOG_HELP, Stopwatch, add_model_arguments, load_scans, make_mixture
+from ._cmd_map import (
+    LOG_HELP,
+    Stopwatch,
+    add_model_arguments,
+    check_model_arguments,
+    load_scans,
+    make_mixture,
+)
 
 # Defaults of the options that only one protocol reads (None: the option was not given).
 _EVERY_NTH_DEFAULTS = {"holdout_every": 10, "free_per_beam": 1}
@@ -119,6 +126,7 @@ def _check_options(args):
 def run(args):
     try:
         _check_options(args)
+        check_model_arguments(args)
         return _run(args)
     except (ValueError, OSError) as exc:
         print(f"skoccmap evaluate: error: {exc}", file=sys.stderr)

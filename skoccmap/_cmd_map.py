@@ -38,7 +38,7 @@ def add_arguments(parser):
         "--unknown-variance",
         default="auto",
         help="cells with a larger predictive variance are unknown; 'auto' (default): 90%% of "
-        "the largest variance on the map; 'none': no unknown cells",
+        "the model's prior variance; 'none': no unknown cells",
     )
     online = parser.add_argument_group("online mapping")
     online.add_argument(
@@ -180,7 +180,12 @@ def add_model_arguments(parser):
         help="processes fitting experts, threads predicting them (default -1: all cores)",
     )
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--quiet", action="store_true", help="no progress messages")
+    parser.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress messages from the fit and the prediction (what was read, the "
+        "timings and the files written are still printed)",
+    )
 
 
 def _or_none(convert, what, valid, bound):
@@ -227,6 +232,11 @@ def load_scans(args):
     """Read the log or bag, printing what was read; ValueError on a bad input or option."""
     from .datasets._rosbag import is_rosbag
 
+    if Path(args.log).is_dir() and not is_rosbag(args.log):
+        raise ValueError(
+            f"{args.log} is a folder but not a ROS 2 bag (no metadata.yaml, .db3 or .mcap "
+            "in it); pass a CARMEN log file or a bag"
+        )
     scans = _load_bag(args) if is_rosbag(args.log) else _load_carmen(args)
     print(
         f"{args.log}: {len(scans)} scans x {scans.n_beams} beams, max range {scans.max_range:g} m"
@@ -308,11 +318,26 @@ def _unknown_variance(text):
 
 
 def run(args):
+    created = []
     try:
         if args.every_nth_scan < 1:
             raise ValueError(f"--every-nth-scan must be >= 1, got {args.every_nth_scan}")
         if not (math.isfinite(args.resolution) and args.resolution > 0):
             raise ValueError(f"--resolution must be a positive number, got {args.resolution}")
+        if not getattr(args, "online", True):
+            given = [
+                flag
+                for flag, value, default in (
+                    ("--batch-scans", args.batch_scans, 10),
+                    ("--refit-fraction", args.refit_fraction, None),
+                    ("--snapshots", args.snapshots, None),
+                    ("--snapshot-every", args.snapshot_every, 10),
+                )
+                if value != default
+            ]
+            if given:
+                verb = "applies" if len(given) == 1 else "apply"
+                raise ValueError(f"{', '.join(given)} {verb} only with --online")
         if getattr(args, "online", False):
             if args.batch_scans < 1:
                 raise ValueError(f"--batch-scans must be >= 1, got {args.batch_scans}")
@@ -320,14 +345,58 @@ def run(args):
                 raise ValueError(f"--refit-fraction must be >= 0, got {args.refit_fraction}")
             if args.snapshot_every < 1:
                 raise ValueError(f"--snapshot-every must be >= 1, got {args.snapshot_every}")
+        check_model_arguments(args)
         unknown_variance = _unknown_variance(args.unknown_variance)
-        return _run(args, unknown_variance)
+        out = Path(args.out) if args.out else Path(f"{log_stem(args.log)}_map")
+        _output_folder(out, "--out", created)
+        if getattr(args, "snapshots", None):
+            _output_folder(Path(args.snapshots), "--snapshots", created)
+        return _run(args, unknown_variance, out)
     except (ValueError, OSError) as exc:
+        for folder in created:  # made for this run, which wrote nothing into them
+            if not any(folder.iterdir()):
+                folder.rmdir()
         print(f"skoccmap map: error: {exc}", file=sys.stderr)
         return 2
 
 
-def _run(args, unknown_variance):
+def check_model_arguments(args):
+    """The mixture's options a fit would refuse, refused before the log is read."""
+    if args.max_expert_size < 2:
+        raise ValueError(f"--max-expert-size must be >= 2, got {args.max_expert_size}")
+    if args.n_jobs == 0:
+        raise ValueError("--n-jobs must not be 0 (-1: all cores, 1: one)")
+
+
+# Suffixes the default output names drop: the log's name stays otherwise whole, so that
+# intel.2024-06-01.log and intel.2024-06-02.log get maps of their own.
+_LOG_SUFFIXES = (".gz", ".log", ".clf", ".txt", ".bag", ".db3", ".mcap")
+
+
+def log_stem(log):
+    """The log's file name without its known suffixes ("map" if nothing is left)."""
+    name = Path(log).name
+    for suffix in _LOG_SUFFIXES:
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            name = name[: -len(suffix)]
+    return name.strip(".") or "map"
+
+
+def _output_folder(folder, option, created):
+    """Create ``folder`` now, before any work that would be lost if it cannot be; a folder
+    made here is appended to ``created``."""
+    if folder.is_dir():
+        return
+    if folder.exists():
+        raise ValueError(f"{option} {folder} exists and is not a folder")
+    try:
+        folder.mkdir(parents=True)
+    except OSError as exc:
+        raise ValueError(f"{option} {folder}: cannot create the folder ({exc.strerror})") from None
+    created.append(folder)
+
+
+def _run(args, unknown_variance, out):
     import numpy as np
 
     from .grid import _grid_from_extent
@@ -352,9 +421,9 @@ def _run(args, unknown_variance):
     print(f"fitted {model.n_experts_} experts")
     grid = watch("predict grid", _grid, args, model, train, unknown_variance, not args.quiet)
     print(f"map: {grid.shape[1]} x {grid.shape[0]} cells at {grid.resolution:g} m")
-    out = Path(args.out) if args.out else Path(f"{Path(args.log).name.split('.')[0]}_map")
-    out.mkdir(parents=True, exist_ok=True)
-    stem = out / Path(args.log).name.split(".")[0]
+    stem = out / log_stem(args.log)
+    if _named(stem, ".yaml").exists():
+        print(f"skoccmap map: warning: overwriting the map in {stem}.*", file=sys.stderr)
     written = watch("write map files", _write, grid, stem)
     print(watch.table())
     for path in written:
@@ -386,8 +455,6 @@ def _replay(args, train, unknown_variance):
     if args.refit_fraction is not None:
         model.set_params(refit_fraction=args.refit_fraction)
     snapshots = Path(args.snapshots) if args.snapshots else None
-    if snapshots is not None:
-        snapshots.mkdir(parents=True, exist_ok=True)
     starts = range(0, len(train), args.batch_scans)
     held = ([], [])
     print("| batch | scans seen | observations | update s | experts touched | experts |")
@@ -413,19 +480,24 @@ def _replay(args, train, unknown_variance):
         if snapshots is not None and (b % args.snapshot_every == 0 or b == len(starts)):
             grid = _grid(args, model, seen, unknown_variance, False)
             stem = snapshots / f"batch_{b:05d}"
-            grid.save(stem.with_suffix(".npz"))
-            _save_png(grid, stem.with_suffix(".png"))
+            grid.save(_named(stem, ".npz"))
+            _save_png(grid, _named(stem, ".png"))
             print(f"wrote snapshot {stem}.npz")
     if not hasattr(model, "n_experts_"):
         raise ValueError("the scans hold fewer than 2 hits or no beam: nothing to map")
     return model
 
 
+def _named(stem, suffix):
+    """``stem`` + ``suffix``, appended: with_suffix would cut a dotted log name."""
+    return stem.with_name(stem.name + suffix)
+
+
 def _write(grid, stem):
     written = list(grid.save_map_server(stem))
-    grid.save(stem.with_suffix(".npz"))
-    written.append(stem.with_suffix(".npz"))
-    png = _save_png(grid, stem.with_suffix(".png"))
+    grid.save(_named(stem, ".npz"))
+    written.append(_named(stem, ".npz"))
+    png = _save_png(grid, _named(stem, ".png"))
     return written if png is None else written + [png]
 
 

@@ -60,13 +60,43 @@ def test_evaluate_prints_both_models(paper_log, capsys):
         (["map", "{log}", "--unknown-variance", "big"], "--unknown-variance"),
         (["map", "{missing}"], "No such file"),
         (["evaluate", "{log}", "--holdout-every", "1"], "--holdout-every must be >= 2"),
+        # Before the log is read (they used to surface after it, in the estimator's words).
+        (["map", "{log}", "--max-expert-size", "0"], "--max-expert-size must be >= 2"),
+        (["evaluate", "{log}", "--n-jobs", "0"], "--n-jobs must not be 0"),
+        # Options of the online replay were ignored without --online.
+        (["map", "{log}", "--snapshots", "{tmp}/s"], "--snapshots applies only with --online"),
+        (["map", "{log}", "--batch-scans", "3", "--refit-fraction", "0"],
+         "--batch-scans, --refit-fraction apply only with --online"),
+        # A folder that is not a bag used to say "Is a directory".
+        (["map", "{tmp}"], "is a folder but not a ROS 2 bag"),
+        # The output folder is checked before the fit, not after it.
+        (["map", "{log}", "--out", "{log}"], "exists and is not a folder"),
     ],
 )
 def test_bad_options_exit_with_a_message(paper_log, tmp_path, capsys, argv, message):
     log, _ = paper_log
-    argv = [a.format(log=log, missing=tmp_path / "missing.log") for a in argv]
+    argv = [a.format(log=log, missing=tmp_path / "missing.log", tmp=tmp_path) for a in argv]
     assert main(argv) == 2
-    assert message in capsys.readouterr().err
+    out, err = capsys.readouterr()
+    assert message in err
+    assert "fitted" not in out and "training on" not in out
+
+
+def test_map_names_its_files_after_the_whole_log_name(paper_log, tmp_path, capsys):
+    # Cut at the first dot, the maps of lab.2024-06-01.log and lab.2024-06-02.log shared a
+    # name and the second overwrote the first without a word.
+    log, _ = paper_log
+    options = ["--resolution", "1.0", "--out", str(tmp_path), "--quiet"]
+    for day in ("01", "02"):
+        dated = tmp_path / f"lab.2024-06-{day}.log"
+        dated.write_bytes(log.read_bytes())
+        assert main(["map", str(dated), *options]) == 0
+    for day in ("01", "02"):
+        for suffix in (".pgm", ".yaml", ".npz", ".png"):
+            assert (tmp_path / f"lab.2024-06-{day}{suffix}").is_file()
+    assert "overwriting" not in capsys.readouterr().err
+    assert main(["map", str(dated), *options]) == 0
+    assert "overwriting the map" in capsys.readouterr().err
 
 
 def test_a_map_too_large_is_refused_before_the_fit(paper_log, capsys):

@@ -483,6 +483,12 @@ def test_not_a_bag(tmp_path):
         load_rosbag(log)
     with pytest.raises(FileNotFoundError):
         load_rosbag(tmp_path / "missing.bag")
+    # A log renamed .bag (or a damaged bag) used to raise rosbags' own AnyReaderError.
+    for name in ("fake.bag", "fake.mcap"):
+        fake = tmp_path / name
+        fake.write_text("FLASER 2 1 1 0 0 0 0 0 0 0 h 0\n")
+        with pytest.raises(ValueError, match="cannot be read as a ROS bag"):
+            load_rosbag(fake)
 
 
 def test_missing_rosbags_says_how_to_install(monkeypatch, tmp_path):

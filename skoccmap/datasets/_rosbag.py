@@ -690,7 +690,7 @@ def load_rosbag(
            [0.5, 1.5, 3. ]])
     """
     _import_rosbags()
-    from rosbags.highlevel import AnyReader
+    from rosbags.highlevel import AnyReader, AnyReaderError
 
     if pose_topic is not None:
         pose = "topic"
@@ -701,7 +701,12 @@ def load_rosbag(
     if not (level_tolerance >= 0):
         raise ValueError(f"level_tolerance must be >= 0 radians, got {level_tolerance!r}.")
     paths = _bag_paths(path)
-    with AnyReader(paths, default_typestore=_typestore(2)) as reader:
+    reader = AnyReader(paths, default_typestore=_typestore(2))
+    try:
+        reader.open()
+    except AnyReaderError as exc:
+        raise ValueError(f"{path} cannot be read as a ROS bag: {exc}") from None
+    try:
         messages = _read_scans(reader, path, scan_topic)
         if laser_frame is not None:
             for message in messages:
@@ -709,6 +714,8 @@ def load_rosbag(
         t, q, valid, span = _poses(
             messages, reader, path, pose, _frame(map_frame), pose_topic, base_frame, tf_topics
         )
+    finally:
+        reader.close()
     max_range = _scan_max_range(messages, max_range, path)
     ranges, angles, has_beams = _rectangular(messages, max_range)
     keep = valid & has_beams
