@@ -44,8 +44,9 @@ plot_clusters(result, ax=ax)
 # %%
 # Maps and their uncertainty (the paper's Figure 4)
 # -------------------------------------------------
-# The latent variance is small along the walls the robot saw and returns to the prior far
-# from all beams; cells at more than 90 % of the largest variance are drawn as unknown.
+# The std of P(occupied), from the latent variance, is small along the walls the robot saw
+# and rises towards 0.5 far from all beams; cells whose latent variance is above 90 % of the
+# prior's are drawn as unknown, on both panels.
 fig = plt.figure(figsize=(11, 12.6), layout="constrained")
 plot_maps(result, fig=fig)
 

@@ -488,7 +488,7 @@ def plot_maps(result, fig=None):
     for row, res in zip(axes, result.methods.values(), strict=True):
         OccupancyMapDisplay.from_grid(res.grid, kind="both", ax=row)
         row[0].set_title(f"{res.label}: P(occupied)")
-        row[1].set_title(f"{res.label}: latent variance")
+        row[1].set_title(f"{res.label}: std of P(occupied)")
     return fig
 
 

@@ -39,7 +39,8 @@ class OccupancyMapDisplay:
     variance : ndarray of shape (ny, nx), default=None
         Predictive variance per cell; needed for the uncertainty panel.
     unknown : ndarray of bool of shape (ny, nx), default=None
-        Cells drawn in the ``unknown_color`` of :meth:`plot` on the probability panel.
+        Cells drawn in the ``unknown_color`` of :meth:`plot` on every panel, with a legend
+        entry "unknown" on the probability panel.
 
     Attributes
     ----------
@@ -192,7 +193,8 @@ class OccupancyMapDisplay:
         variance_cmap : str, default="viridis"
             Colour map of the std and the variance.
         unknown_color : color, default="#9ecae1"
-            Colour of unknown cells on the probability panel.
+            Colour of unknown cells, on every panel: a map's uncertainty in cells it calls
+            unknown is not a confidence to read.
         colorbar : bool, default=True
             Add a colour bar to each panel.
         points : array-like of shape (m, 2), default=None
@@ -238,10 +240,10 @@ class OccupancyMapDisplay:
                     values, limits = variance, (None, None)
                     label = "predictive variance"
                 image = panel_ax.imshow(
-                    values,
+                    self._masked(values),
                     origin="lower",
                     extent=self.extent,
-                    cmap=variance_cmap,
+                    cmap=plt.get_cmap(variance_cmap).with_extremes(bad=unknown_color),
                     vmin=limits[0],
                     vmax=limits[1],
                     interpolation="nearest",
@@ -273,13 +275,23 @@ class OccupancyMapDisplay:
             raise ValueError(f"ax must hold {n_panels} Axes for this kind, got {len(axes)}.")
         return axes
 
+    def _masked(self, values):
+        if self.unknown is None:
+            return values
+        return np.ma.masked_array(values, mask=np.asarray(self.unknown, dtype=bool))
+
     def _draw_probability(self, plt, ax, probability, cmap, unknown_color):
         colormap = plt.get_cmap(cmap).with_extremes(bad=unknown_color)
-        shown = probability
-        if self.unknown is not None:
-            shown = np.ma.masked_array(probability, mask=np.asarray(self.unknown, dtype=bool))
+        if self.unknown is not None and np.any(self.unknown):
+            from matplotlib.patches import Patch
+
+            ax.legend(
+                handles=[Patch(facecolor=unknown_color, edgecolor="0.5", label="unknown")],
+                loc="upper right",
+                fontsize="small",
+            )
         return ax.imshow(
-            shown,
+            self._masked(probability),
             origin="lower",
             extent=self.extent,
             cmap=colormap,

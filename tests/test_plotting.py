@@ -52,9 +52,16 @@ def test_from_grid_both_panels():
     np.testing.assert_allclose(shown.data, grid.probability)
     # The second panel is the std of P(occupied), on a fixed [0, 1/2] scale.
     std = probability_std(grid.probability, grid.variance)
-    np.testing.assert_allclose(disp.images_[1].get_array(), std)
+    np.testing.assert_allclose(disp.images_[1].get_array().data, std)
     assert disp.images_[1].get_clim() == (0.0, 0.5)
     assert disp.axes_[1].get_title() == "std of P(occupied)"
+    # Unknown cells are unknown on both panels (the std panel drew them as confident), and
+    # the probability panel's legend names their colour.
+    np.testing.assert_array_equal(np.ma.getmaskarray(disp.images_[1].get_array()), grid.unknown)
+    legend = disp.ax_.get_legend()
+    assert [t.get_text() for t in legend.get_texts()] == ["unknown"]
+    plain = OccupancyMapDisplay(probability=grid.probability, extent=grid.extent).plot()
+    assert plain.ax_.get_legend() is None
     # The latent variance stays available.
     disp = OccupancyMapDisplay.from_grid(grid, kind="variance")
     np.testing.assert_allclose(disp.im_.get_array(), grid.variance)
