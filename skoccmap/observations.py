@@ -412,6 +412,13 @@ class Scans:
     def __len__(self):
         return self.n_scans
 
+    def __repr__(self):
+        stamps = "" if self.timestamps is None else ", with timestamps"
+        return (
+            f"Scans({self.n_scans} scans x {self.n_beams} beams, {self.n_dims}-D, "
+            f"max_range={self.max_range:g}{stamps})"
+        )
+
     def __getitem__(self, index):
         if isinstance(index, (int, np.integer)):
             if not -self.n_scans <= index < self.n_scans:
@@ -435,6 +442,11 @@ class Scans:
                     "Scans can be indexed by an int, a slice, a 1-D integer array or a boolean "
                     f"mask, got an array of dtype {index.dtype} and shape {index.shape}."
                 )
+        if np.arange(self.n_scans)[index].size == 0:
+            raise IndexError(
+                f"the selection holds none of the {self.n_scans} scans; a Scans holds at least "
+                "one."
+            )
         per_scan = self.angles.ndim == (2 if self.n_dims == 2 else 3)
         return Scans(
             poses=self.poses[index],

@@ -285,6 +285,16 @@ def test_scans_int_index_keeps_one_scan():
         scans[np.array([0.5])]
     with pytest.raises(IndexError, match="indexed by scan only"):
         scans[0, 1]
+    # An empty selection said "poses is empty", about an argument the user never passed.
+    for empty in (slice(5, 3), slice(10, 20), np.zeros(6, dtype=bool), np.array([], int)):
+        with pytest.raises(IndexError, match="holds none of the 6 scans"):
+            scans[empty]
+
+
+def test_scans_repr_is_one_line():
+    # The dataclass repr printed every pose, range and angle: 199 lines for Intel.
+    assert repr(_scans()) == "Scans(6 scans x 5 beams, 2-D, max_range=4, with timestamps)"
+    assert repr(_scans(timestamps=False)[:2]) == "Scans(2 scans x 5 beams, 2-D, max_range=4)"
 
 
 def test_scans_properties_and_helpers():
