@@ -277,6 +277,10 @@ def _load_bag(args):
         )
     except ImportError as exc:
         raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
+    except ValueError as exc:
+        # The library's hints name its arguments; the command's user knows the options.
+        message = str(exc).replace("map_frame=", "--map-frame")
+        raise ValueError(message.replace("pose_topic=", "--pose-topic")) from None
     if scans.n_dims != 2:
         raise ValueError(
             f"{args.log}: the laser is not level (3-D poses); skoccmap map draws 2-D maps."
@@ -410,6 +414,12 @@ def _run(args, unknown_variance, out):
         _grid_from_extent(hits, args.resolution)
     X, y, kind = watch("observations", train.to_observations)
     counts = np.bincount(kind, minlength=3)
+    if counts[0] < 2:
+        raise ValueError(
+            f"{args.log}: {counts[0]} beam(s) of the {len(train)} training scans return a hit "
+            f"(the others read at or beyond the maximum range, {train.max_range:g} m); a map "
+            "needs at least 2 hits. Check --max-range."
+        )
     print(
         f"training on {len(train)} scans: {len(X)} observations ({counts[0]} hits, "
         f"{counts[1]} return beams, {counts[2]} no-return beams)"

@@ -82,6 +82,17 @@ def test_bad_options_exit_with_a_message(paper_log, tmp_path, capsys, argv, mess
     assert "fitted" not in out and "training on" not in out
 
 
+def test_a_log_without_returns_says_so(tmp_path, capsys):
+    # It used to end in scikit-learn's "Only binary classification is supported".
+    log = tmp_path / "nohits.log"
+    lines = [f"FLASER 3 8.0 8.0 8.0 {t} 0 0 {t} 0 0 {t}.0 h {t}.0\n" for t in range(3)]
+    log.write_text("".join(lines))
+    out = tmp_path / "o"
+    assert main(["map", str(log), "--max-range", "8", "--quiet", "--out", str(out)]) == 2
+    assert "0 beam(s) of the 3 training scans return a hit" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_map_names_its_files_after_the_whole_log_name(paper_log, tmp_path, capsys):
     # Cut at the first dot, the maps of lab.2024-06-01.log and lab.2024-06-02.log shared a
     # name and the second overwrote the first without a word.
