@@ -13,7 +13,9 @@ simulated office of :func:`~skoccmap.datasets.make_office_scans` when neither is
 Every 2nd of the first 300 scans is added in batches of 10 scans. Each update prints its
 time, the experts it updated and the experts of the map; three snapshots show the map
 growing as the robot drives down the lab's corridors. ``skoccmap map intel.gfs.log
---online --batch-scans 10`` does the same from the command line.
+--online --every-nth-scan 2 --batch-scans 10`` replays the whole log the same way from the
+command line (every 2nd of all 910 scans, not of the first 300; run this script from
+``examples/`` for the relative path to find the log).
 """
 
 # %%

@@ -36,8 +36,9 @@ print(format_tables(result))
 # The clusters (the paper's Figure 2)
 # -----------------------------------
 # The Dirichlet-process mixture splits the hit points into clusters; every beam with a
-# return joins the cluster of its hit, every beam without one the cluster of the return beam
-# most similar to it under the integral kernel.
+# return joins the cluster of the hit nearest its end (its own, but for a few beams at
+# corners, where a neighbouring hit is nearer), every beam without one the cluster of the
+# return beam most similar to it under the integral kernel.
 fig, ax = plt.subplots(figsize=(8, 6.8), layout="constrained")
 plot_clusters(result, ax=ax)
 
