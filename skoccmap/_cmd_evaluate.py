@@ -24,6 +24,7 @@ from ._cmd_map import (
     LOG_HELP,
     Stopwatch,
     add_model_arguments,
+    check_hits,
     check_model_arguments,
     load_scans,
     make_mixture,
@@ -176,6 +177,7 @@ def _run(args):
 
     watch = Stopwatch()
     scans = watch("read log", load_scans, args)
+    check_hits(scans, args.log, "scans")
     print(
         f"protocol {args.protocol}: training on 1 in {args.train_every} of the remaining scans, "
         f"seeds {', '.join(map(str, args.seeds))}"

@@ -279,8 +279,11 @@ def _load_bag(args):
         raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
     except ValueError as exc:
         # The library's hints name its arguments; the command's user knows the options.
-        message = str(exc).replace("map_frame=", "--map-frame")
-        raise ValueError(message.replace("pose_topic=", "--pose-topic")) from None
+        message = str(exc)
+        for name, option in (("map_frame", "--map-frame"), ("pose_topic", "--pose-topic"),
+                             ("max_range", "--max-range")):  # fmt: skip
+            message = message.replace(f"{name}=", option)
+        raise ValueError(message) from None
     if scans.n_dims != 2:
         raise ValueError(
             f"{args.log}: the laser is not level (3-D poses); skoccmap map draws 2-D maps."
@@ -357,11 +360,23 @@ def run(args):
             _output_folder(Path(args.snapshots), "--snapshots", created)
         return _run(args, unknown_variance, out)
     except (ValueError, OSError) as exc:
-        for folder in created:  # made for this run, which wrote nothing into them
-            if not any(folder.iterdir()):
+        # Made for this run, which wrote nothing into them: deepest first.
+        for folder in sorted(created, key=lambda f: len(f.parts), reverse=True):
+            if folder.is_dir() and not any(folder.iterdir()):
                 folder.rmdir()
         print(f"skoccmap map: error: {exc}", file=sys.stderr)
         return 2
+
+
+def check_hits(scans, log, what):
+    """Refuse, in the log's terms, scans with fewer than the 2 hits a map needs."""
+    n_hits = int(scans.returned().sum())
+    if n_hits < 2:
+        raise ValueError(
+            f"{log}: {n_hits} beam(s) of the {len(scans)} {what} return a hit (the others "
+            f"read at or beyond the maximum range, {scans.max_range:g} m); a map needs at "
+            "least 2 hits. Check --max-range."
+        )
 
 
 def check_model_arguments(args):
@@ -374,7 +389,7 @@ def check_model_arguments(args):
 
 # Suffixes the default output names drop: the log's name stays otherwise whole, so that
 # intel.2024-06-01.log and intel.2024-06-02.log get maps of their own.
-_LOG_SUFFIXES = (".gz", ".log", ".clf", ".txt", ".bag", ".db3", ".mcap")
+_LOG_SUFFIXES = (".gz", ".log", ".gfs", ".clf", ".txt", ".bag", ".db3", ".mcap")
 
 
 def log_stem(log):
@@ -388,16 +403,17 @@ def log_stem(log):
 
 def _output_folder(folder, option, created):
     """Create ``folder`` now, before any work that would be lost if it cannot be; a folder
-    made here is appended to ``created``."""
+    made here (and every parent made with it) is appended to ``created``."""
     if folder.is_dir():
         return
     if folder.exists():
         raise ValueError(f"{option} {folder} exists and is not a folder")
+    missing = [f for f in (folder, *folder.parents) if not f.exists()]
     try:
         folder.mkdir(parents=True)
     except OSError as exc:
         raise ValueError(f"{option} {folder}: cannot create the folder ({exc.strerror})") from None
-    created.append(folder)
+    created.extend(missing)
 
 
 def _run(args, unknown_variance, out):
@@ -412,14 +428,9 @@ def _run(args, unknown_variance, out):
     if len(hits):
         # The map's size is known before the fit: refuse a grid too large now, not after.
         _grid_from_extent(hits, args.resolution)
+    check_hits(train, args.log, "training scans")
     X, y, kind = watch("observations", train.to_observations)
     counts = np.bincount(kind, minlength=3)
-    if counts[0] < 2:
-        raise ValueError(
-            f"{args.log}: {counts[0]} beam(s) of the {len(train)} training scans return a hit "
-            f"(the others read at or beyond the maximum range, {train.max_range:g} m); a map "
-            "needs at least 2 hits. Check --max-range."
-        )
     print(
         f"training on {len(train)} scans: {len(X)} observations ({counts[0]} hits, "
         f"{counts[1]} return beams, {counts[2]} no-return beams)"

@@ -86,6 +86,11 @@ class CellCounts:
         self.hits = np.empty(0, dtype=np.int64)
         self.passes = np.empty(0, dtype=np.int64)
 
+    def __setstate__(self, state):
+        # Counts pickled before the origin cell existed keyed absolute cells.
+        state.setdefault("origin", np.zeros(state["n_dims"]) if state["keys"].size else None)
+        self.__dict__.update(state)
+
     def _cells(self, points):
         """Cells holding ``points``, relative to the origin cell."""
         cells = np.floor(points / self.cell_size) - self.origin

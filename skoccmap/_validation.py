@@ -56,13 +56,15 @@ def unfitted_on_error(estimator):
 
     The attributes a fit sets before its error would otherwise sit beside those of an
     earlier fit, and the estimator would predict from a mixture of the two without a word.
-    Everything but the constructor's parameters is removed.
+    Everything but the constructor's parameters and the metadata requests is removed.
+    Outside scikit-learn's ``_fit_context``, so that a parameter refused there does so too.
     """
     try:
         yield
     except BaseException:
-        params = estimator.get_params(deep=False)
-        for name in [name for name in vars(estimator) if name not in params]:
+        # Constructor parameters stay, and so do metadata requests (set_fit_request...).
+        kept = set(estimator.get_params(deep=False)) | {"_metadata_request"}
+        for name in [name for name in vars(estimator) if name not in kept]:
             delattr(estimator, name)
         raise
 

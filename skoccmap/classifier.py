@@ -411,8 +411,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         self.multi_class = multi_class
         self.n_jobs = n_jobs
 
-    @_fit_context(prefer_skip_nested_validation=True)
     @fit_or_unfitted
+    @_fit_context(prefer_skip_nested_validation=True)
     def fit(self, X, y):
         """Fit the EP approximation and, unless ``optimizer=None``, the hyperparameters.
 

@@ -698,8 +698,8 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         K = int(labels.max()) + 1
         return greedy_merge(*sufficient_statistics(X, labels, K), prior, self.alpha)[labels]
 
-    @_fit_context(prefer_skip_nested_validation=True)
     @fit_or_unfitted
+    @_fit_context(prefer_skip_nested_validation=True)
     def fit(self, X, y=None):
         """Sample cluster assignments of ``X``.
 

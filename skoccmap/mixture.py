@@ -1375,8 +1375,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     # -- fit -------------------------------------------------------------------------
 
-    @_fit_context(prefer_skip_nested_validation=False)
     @fit_or_unfitted
+    @_fit_context(prefer_skip_nested_validation=False)
     def fit(self, X, y):
         """Cluster, assign, fit the experts and the gate.
 
@@ -1953,6 +1953,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             self._update_index(touched, previous)
         if self.gating == "gpc":
             self.gating_ = self._fit_gpc_gate(all_pieces, piece_expert, rng)
+        # A gpc gate not refitted with this update no longer knows the experts.
+        self._fitted_with = {"layout": self.layout, "gating": self.gating}
         _log(
             self.verbose,
             f"partial_fit: {touched.size} of {n_experts} expert(s) updated "

@@ -415,7 +415,8 @@ class Scans:
     def __repr__(self):
         stamps = "" if self.timestamps is None else ", with timestamps"
         return (
-            f"Scans({self.n_scans} scans x {self.n_beams} beams, {self.n_dims}-D, "
+            f"Scans({self.n_scans} scan{'s' * (self.n_scans != 1)} x {self.n_beams} "
+            f"beam{'s' * (self.n_beams != 1)}, {self.n_dims}-D, "
             f"max_range={self.max_range:g}{stamps})"
         )
 

@@ -5,6 +5,7 @@ import pytest
 from sklearn.metrics import roc_auc_score
 
 from skoccmap import OccupancyGrid
+from skoccmap._cmd_map import log_stem
 from skoccmap.cli import main
 from skoccmap.datasets import load_carmen
 
@@ -91,6 +92,29 @@ def test_a_log_without_returns_says_so(tmp_path, capsys):
     assert main(["map", str(log), "--max-range", "8", "--quiet", "--out", str(out)]) == 2
     assert "0 beam(s) of the 3 training scans return a hit" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_a_failed_map_removes_the_folders_it_made(tmp_path, capsys):
+    # Every folder the run made, parents included; it used to leave a/ and a/b/ behind.
+    log = tmp_path / "nohits.log"
+    log.write_text("FLASER 3 8.0 8.0 8.0 0 0 0 0 0 0 0.0 h 0.0\n")
+    out, snaps = tmp_path / "a" / "b" / "c", tmp_path / "o" / "snaps"
+    argv = ["map", str(log), "--max-range", "8", "--out", str(out), "--online",
+            "--snapshots", str(snaps)]  # fmt: skip
+    assert main(argv) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["nohits.log"]
+    # evaluate refuses the same log in its terms (it ended in scikit-learn's words).
+    assert main(["evaluate", str(log), "--max-range", "8"]) == 2
+    assert "0 beam(s) of the 1 scans return a hit" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "log, stem",
+    [("intel.gfs.log", "intel"), ("aces.log.gz", "aces"), ("lab.2024-06-01.log", "lab.2024-06-01"),
+     ("run.bag", "run"), (".scan.log", "scan"), (".log", "log"), ("bagdir", "bagdir")],
+)  # fmt: skip
+def test_log_stem(log, stem):
+    assert log_stem(log) == stem
 
 
 def test_map_names_its_files_after_the_whole_log_name(paper_log, tmp_path, capsys):

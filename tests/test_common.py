@@ -6,6 +6,7 @@ Each estimator joins ``ESTIMATORS`` as it lands. Expected failures, if any, go i
 
 import numpy as np
 import pytest
+import sklearn
 from sklearn.exceptions import NotFittedError
 from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
@@ -68,6 +69,27 @@ def test_a_fit_that_raises_leaves_the_estimator_unfitted(estimator):
         estimator.fit(bad, y)
     with pytest.raises(NotFittedError):
         estimator.predict(X)
+    # A parameter refused by the validation before the fit, too.
+    estimator.fit(X, y)
+    name = next(iter(estimator.get_params()))
+    estimator.set_params(**{name: object()})
+    with pytest.raises(ValueError):
+        estimator.fit(X, y)
+    with pytest.raises(NotFittedError):
+        estimator.predict(X)
+
+
+def test_a_failed_fit_keeps_the_metadata_requests():
+    with sklearn.config_context(enable_metadata_routing=True):
+        grid = OccupancyGridMap(l_min=0.0, l_max=0.0).set_fit_request(scan_index=True)
+        with pytest.raises(ValueError, match="l_min"):
+            grid.fit(*_paper_xy())
+        assert grid.get_metadata_routing().fit.requests == {"scan_index": True}
+
+
+def _paper_xy():
+    data = make_paper_scans(random_state=0)
+    return data.X[::3], data.y[::3]
 
 
 def test_a_fit_failing_after_its_first_attributes_predicts_nothing():

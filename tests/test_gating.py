@@ -133,3 +133,10 @@ def test_a_gate_set_after_fit_either_works_or_asks_for_a_fit(fitted):
     other.set_params(gating="coverage", layout="points")
     with pytest.raises(ValueError, match="layout='points' was set after"):
         other.predict_proba(queries)
+    # A gpc gate that a partial_fit under another gate did not refit is stale: it used to
+    # give 14 of 25 experts no weight without a word.
+    model.set_params(gating="coverage")
+    model.partial_fit(data.X[:40], data.y[:40])
+    model.set_params(gating="gpc")
+    with pytest.raises(ValueError, match="gating='gpc' was set after"):
+        model.predict_proba(queries)

@@ -62,6 +62,23 @@ def test_coordinates_too_far_to_count_are_an_error():
             counts.counted(np.array([[far, 0.0]]))
 
 
+def test_counts_pickled_before_the_origin_cell_still_count():
+    # Old pickles keyed absolute cells and have no origin: they read as an origin at zero.
+    X, y = _random_rows(np.random.default_rng(4), 2)
+    counts = CellCounts(0.1, 2)
+    counts.origin = np.zeros(2)
+    counts.add(X[:300], y[:300] == 1)
+    state = counts.__dict__.copy()
+    del state["origin"]
+    old = CellCounts.__new__(CellCounts)
+    old.__setstate__(state)
+    points = X[:, 2:]
+    np.testing.assert_array_equal(old.counted(points), counts.counted(points))
+    old.add(X[300:], y[300:] == 1)  # used to raise AttributeError: no 'origin'
+    whole = CellCounts(0.1, 2).add(X, y == 1)
+    np.testing.assert_array_equal(old.counted(points), whole.counted(points))
+
+
 @pytest.mark.parametrize("n_dims", [2, 3])
 def test_counts_do_not_depend_on_where_the_map_lies(n_dims):
     # UTM-sized coordinates: the keys count cells from the first data's, so a 3-D map
