@@ -51,7 +51,7 @@ def add_arguments(parser):
     online.add_argument(
         "--batch-scans",
         type=int,
-        default=10,
+        default=None,
         metavar="N",
         help="scans (after --every-nth-scan) per online update (default 10)",
     )
@@ -74,7 +74,7 @@ def add_arguments(parser):
     online.add_argument(
         "--snapshot-every",
         type=int,
-        default=10,
+        default=None,
         metavar="K",
         help="batches between snapshots (default 10)",
     )
@@ -331,32 +331,12 @@ def run(args):
             raise ValueError(f"--every-nth-scan must be >= 1, got {args.every_nth_scan}")
         if not (math.isfinite(args.resolution) and args.resolution > 0):
             raise ValueError(f"--resolution must be a positive number, got {args.resolution}")
-        if not getattr(args, "online", True):
-            given = [
-                flag
-                for flag, value, default in (
-                    ("--batch-scans", args.batch_scans, 10),
-                    ("--refit-fraction", args.refit_fraction, None),
-                    ("--snapshots", args.snapshots, None),
-                    ("--snapshot-every", args.snapshot_every, 10),
-                )
-                if value != default
-            ]
-            if given:
-                verb = "applies" if len(given) == 1 else "apply"
-                raise ValueError(f"{', '.join(given)} {verb} only with --online")
-        if getattr(args, "online", False):
-            if args.batch_scans < 1:
-                raise ValueError(f"--batch-scans must be >= 1, got {args.batch_scans}")
-            if args.refit_fraction is not None and not args.refit_fraction >= 0:
-                raise ValueError(f"--refit-fraction must be >= 0, got {args.refit_fraction}")
-            if args.snapshot_every < 1:
-                raise ValueError(f"--snapshot-every must be >= 1, got {args.snapshot_every}")
+        _check_online_options(args)
         check_model_arguments(args)
         unknown_variance = _unknown_variance(args.unknown_variance)
         out = Path(args.out) if args.out else Path(f"{log_stem(args.log)}_map")
         _output_folder(out, "--out", created)
-        if getattr(args, "snapshots", None):
+        if args.snapshots:
             _output_folder(Path(args.snapshots), "--snapshots", created)
         return _run(args, unknown_variance, out)
     except (ValueError, OSError) as exc:
@@ -366,6 +346,38 @@ def run(args):
                 folder.rmdir()
         print(f"skoccmap map: error: {exc}", file=sys.stderr)
         return 2
+
+
+# Defaults of the options only --online reads (None: the option was not given).
+_ONLINE_DEFAULTS = {
+    "batch_scans": 10,
+    "refit_fraction": None,
+    "snapshots": None,
+    "snapshot_every": 10,
+}
+
+
+def _check_online_options(args):
+    """Fill in --online's defaults; ValueError for its options without it, or out of range."""
+    given = [
+        f"--{name.replace('_', '-')}"
+        for name in _ONLINE_DEFAULTS
+        if getattr(args, name) is not None
+    ]
+    if not args.online:
+        if given:
+            verb = "applies" if len(given) == 1 else "apply"
+            raise ValueError(f"{', '.join(given)} {verb} only with --online")
+        return
+    for name, default in _ONLINE_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, default)
+    if args.batch_scans < 1:
+        raise ValueError(f"--batch-scans must be >= 1, got {args.batch_scans}")
+    if args.refit_fraction is not None and not args.refit_fraction >= 0:
+        raise ValueError(f"--refit-fraction must be >= 0, got {args.refit_fraction}")
+    if args.snapshot_every < 1:
+        raise ValueError(f"--snapshot-every must be >= 1, got {args.snapshot_every}")
 
 
 def check_hits(scans, log, what):
@@ -435,7 +447,7 @@ def _run(args, unknown_variance, out):
         f"training on {len(train)} scans: {len(X)} observations ({counts[0]} hits, "
         f"{counts[1]} return beams, {counts[2]} no-return beams)"
     )
-    if getattr(args, "online", False):
+    if args.online:
         model = watch("online replay", _replay, args, train, unknown_variance)
     else:
         model = watch("fit mixture", make_mixture(args).fit, X, y)
