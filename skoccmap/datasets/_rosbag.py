@@ -372,6 +372,17 @@ def _warn_left_out(path, left_out):
         )
 
 
+def _kept(track, stamp, translation, rotation, what, left_out):
+    """Append a pose sample to ``track``'s (stamps, translations, rotations) lists, or note
+    it in ``left_out`` when it places no frame; whether it was kept."""
+    if not _places_frame(translation, rotation):
+        left_out.append((what, stamp))
+        return False
+    for column, value in zip(track, (stamp, translation, rotation), strict=True):
+        column.append(value)
+    return True
+
+
 def _read_tf(reader, tf_topics, path):
     samples, left_out = {}, []
     static_topic = tf_topics[1]
@@ -381,44 +392,34 @@ def _read_tf(reader, tf_topics, path):
             edge = (_frame(tf.header.frame_id), _frame(tf.child_frame_id))
             if static and not samples.get(edge, (0, 0, 0, True))[3]:
                 del samples[edge]  # a transform on /tf_static is fixed, whatever /tf said
-            stamps, trans, rots, was_static = samples.setdefault(edge, ([], [], [], static))
+            *track, was_static = samples.setdefault(edge, ([], [], [], static))
             if was_static and not static:
                 continue
-            stamp = _stamp_ns(tf.header)
             t, r = _vector(tf.transform.translation), _quaternion(tf.transform.rotation)
-            if not _places_frame(t, r):
-                left_out.append((f"the transform {edge[0]} -> {edge[1]}", stamp))
-                continue
-            stamps.append(stamp)
-            trans.append(t)
-            rots.append(r)
+            what = f"the transform {edge[0]} -> {edge[1]}"
+            _kept(track, _stamp_ns(tf.header), t, r, what, left_out)
     _warn_left_out(path, left_out)
     return _TransformTree(samples)
 
 
 def _read_pose_topic(reader, path, topic):
-    stamps, trans, rots, frames, children, left_out = [], [], [], set(), set(), []
+    track, frames, children, left_out = ([], [], []), set(), set(), []
     for conn, msg in _read(reader, _connections(reader, path, topic, _POSE_TYPES, "pose")):
         pose = msg.pose.pose if conn.msgtype != "geometry_msgs/msg/PoseStamped" else msg.pose
-        stamp = _stamp_ns(msg.header)
         t, r = _vector(pose.position), _quaternion(pose.orientation)
-        if not _places_frame(t, r):
-            left_out.append((f"the pose on {topic!r}", stamp))
+        if not _kept(track, _stamp_ns(msg.header), t, r, f"the pose on {topic!r}", left_out):
             continue
-        stamps.append(stamp)
-        trans.append(t)
-        rots.append(r)
         frames.add(_frame(msg.header.frame_id))
         children.add(_frame(getattr(msg, "child_frame_id", "")))
     _warn_left_out(path, left_out)
-    if not stamps:
+    if not track[0]:
         raise ValueError(f"{path}: pose topic {topic!r} holds no message that places a frame.")
     if len(frames) > 1 or len(children) > 1:
         raise ValueError(
             f"{path}: pose topic {topic!r} changes frames (header.frame_id {sorted(frames)}, "
             f"child_frame_id {sorted(children)})."
         )
-    return _Track.from_samples(stamps, trans, rots), children.pop()
+    return _Track.from_samples(*track), children.pop()
 
 
 def _laser_in_map(tree, map_frame, laser_frame, stamps, path):
