@@ -7,15 +7,14 @@ Online mapping of a real log: the Intel lab
 the robot recorded it. The log is the Intel Research Lab's (CARMEN format, SLAM-corrected
 poses, 180 beams per scan), which is not shipped with skoccmap: this example reads it from
 the path in the ``SKOCCMAP_INTEL_LOG`` environment variable, or from
-``../../shared/data/intel.gfs.log`` next to a checkout of the repository, and replays the
+``shared/data/intel.gfs.log`` next to a checkout of the repository, and replays the
 simulated office of :func:`~skoccmap.datasets.make_office_scans` when neither is there.
 
 Every 2nd of the first 300 scans is added in batches of 10 scans. Each update prints its
 time, the experts it updated and the experts of the map; three snapshots show the map
 growing as the robot drives down the lab's corridors. ``skoccmap map intel.gfs.log
 --online --every-nth-scan 2 --batch-scans 10`` replays the whole log the same way from the
-command line (every 2nd of all 910 scans, not of the first 300; run this script from
-``examples/`` for the relative path to find the log).
+command line (every 2nd of all 910 scans, not of the first 300).
 """
 
 # %%
@@ -31,7 +30,9 @@ from skoccmap import MixtureGPOccupancyMap, OccupancyGrid
 from skoccmap.datasets import load_carmen, make_office_scans
 from skoccmap.plotting import OccupancyMapDisplay
 
-log = Path(os.environ.get("SKOCCMAP_INTEL_LOG", "../../shared/data/intel.gfs.log"))
+# Run from examples/ (as the gallery runs it) or from the repository's root.
+near = [Path(up, "shared/data/intel.gfs.log") for up in ("../..", "..")]
+log = Path(os.environ.get("SKOCCMAP_INTEL_LOG", next((p for p in near if p.is_file()), near[0])))
 if log.is_file():
     scans = load_carmen(log)[:300:2]
     print(f"{log.name}: {len(scans)} scans")

@@ -7,6 +7,7 @@ when matplotlib is installed, ``<name>.png`` (probability and uncertainty panels
 
 import argparse
 import math
+import re
 import sys
 import time
 import warnings
@@ -110,6 +111,18 @@ def add_model_arguments(parser):
         "--map-frame",
         default="map",
         help="frame of the poses read from /tf (default map; odom maps with odometry alone)",
+    )
+    bag.add_argument(
+        "--base-frame",
+        default=None,
+        help="with --pose-topic: frame whose pose the topic gives (default: an Odometry "
+        "message's child frame; the laser's own frame for the pose messages, which name none)",
+    )
+    bag.add_argument(
+        "--laser-frame",
+        default=None,
+        help="frame of the scans (default: each scan's header frame; for bags whose scans "
+        "name none, or the wrong one)",
     )
     parser.add_argument(
         "--max-range",
@@ -273,6 +286,8 @@ def _load_bag(args):
             getattr(args, "scan_topic", "/scan"),
             pose_topic=getattr(args, "pose_topic", None),
             map_frame=getattr(args, "map_frame", "map"),
+            base_frame=getattr(args, "base_frame", None),
+            laser_frame=getattr(args, "laser_frame", None),
             max_range=args.max_range,
         )
     except ImportError as exc:
@@ -280,9 +295,10 @@ def _load_bag(args):
     except ValueError as exc:
         # The library's hints name its arguments; the command's user knows the options.
         message = str(exc)
-        for name, option in (("map_frame", "--map-frame"), ("pose_topic", "--pose-topic"),
-                             ("max_range", "--max-range")):  # fmt: skip
-            message = message.replace(f"{name}=", option)
+        for name in ("map_frame", "pose_topic", "base_frame", "laser_frame", "max_range"):
+            option = "--" + name.replace("_", "-")
+            message = re.sub(rf"\b{name}=(?=[\s.,]|$)", option, message)
+            message = re.sub(rf"\b{name}=", option + " ", message)
         raise ValueError(message) from None
     if scans.n_dims != 2:
         raise ValueError(

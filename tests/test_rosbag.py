@@ -597,3 +597,23 @@ def test_cli_bag_options_reach_the_reader(small_bag, capsys):
     argv = ["map", str(small_bag), "--scan-topic", "/front_scan", "--map-frame", "world"]
     assert main(argv) == 2
     assert "['world'] are not in them" in capsys.readouterr().err
+
+
+def test_cli_base_and_laser_frames_reach_the_reader(tmp_path, capsys):
+    # Odometry of the laser itself, and scans whose header names a frame nothing knows.
+    bag = _Bag(2)
+    bag.odometry(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.odometry(10.0, (2.0, 0.0, 0.0), 0.0)
+    for t in range(1, 10):
+        bag.scan(float(t), [1.0, 2.0, 3.0, 2.5, 1.5], frame="unnamed")
+    path = bag.write(tmp_path / "b")
+    out = tmp_path / "out"
+    argv = ["map", str(path), "--pose-topic", "/odom", "--resolution", "0.5", "--out", str(out),
+            "--quiet"]  # fmt: skip
+    assert main(argv) == 2
+    assert "Pass --base-frame 'unnamed' if the pose topic" in capsys.readouterr().err
+    assert main([*argv, "--laser-frame", "laser"]) == 2
+    assert "Pass --base-frame 'laser' if the pose topic" in capsys.readouterr().err
+    assert main([*argv, "--laser-frame", "laser", "--base-frame", "laser"]) == 0
+    assert f"{path}: 9 scans x 5 beams" in capsys.readouterr().out
+    assert (out / "b.npz").is_file()
