@@ -93,7 +93,9 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
         Maps to build.
     random_state : int, default=0
         Seed shared by all estimators; ``"moe"`` and ``"bcm"`` then cluster and fit their
-        experts identically and differ only in how they merge them.
+        experts identically and differ only in how they merge them: the mixture weighs the
+        experts its clusters' gate keeps, the committee machine multiplies every expert
+        with data within reach (``gating_threshold=0``).
     n_jobs : int or None, default=None
         Parallel expert fits of the mixtures.
     single_kernel : kernel or None, default=None
@@ -127,10 +129,13 @@ def make_models(methods=tuple(METHODS), *, random_state=0, n_jobs=None, single_k
                 )
         else:
             # The paper's model: every whole beam with its hit, every hit, both
-            # hyperparameters learned, gated by the clusters of hits.
+            # hyperparameters learned, gated by the clusters of hits. The committee
+            # machine multiplies every expert within reach, as Tresp's BCM does: a gate
+            # cutting experts out of a product leaves a seam where it cuts.
             models[method] = MixtureGPOccupancyMap(
                 expert=EPGaussianProcessClassifier(kernel=_signal_and_integral_kernel()),
                 gating="clusterer",
+                gating_threshold=0.0 if method == "bcm" else "auto",
                 combiner=method,
                 max_beam_length=None,
                 beam_end_length=None,
