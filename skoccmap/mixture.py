@@ -1098,7 +1098,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         is always kept); with ``gating="coverage"`` the threshold is relative to the
         largest weight at the query (0.5 skips the experts with less than half the data
         near the query of the best-covered one), with the other gates absolute. 0
-        consults every expert within reach. ``"auto"``: 0.5 with ``gating="coverage"``,
+        consults every expert within reach. PoE, BCM and rBCM use the gate only to
+        choose experts: under them a ``"clusterer"`` or ``"gpc"`` gate's threshold drops
+        experts that hold data near the query, and the map jumps where they drop out
+        (a seam of 0.24 in P(occupied) across the paper's world with ``combiner="bcm"``
+        and 1e-3, none with 0; :func:`skoccmap.experiment.make_models`). ``"auto"``: 0.5 with ``gating="coverage"``,
         1e-3 with the other gates. With the coverage gate, on the tuning data
         (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 / 0.02 give
         ACES held-out AUC 0.9634 / 0.9636 / 0.9635 / 0.9634 / 0.9633 with 2.3 / 4.1 / 5.2
