@@ -1103,8 +1103,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         experts that hold data near the query, and the map jumps where they drop out
         (a seam of 0.24 in P(occupied) across the paper's world with ``combiner="bcm"``
         and 1e-3, none with 0; :func:`skoccmap.experiment.make_models`). ``"auto"``: 0.5
-        with ``gating="coverage"``, 1e-3 with the other gates. With the coverage gate, on the tuning data
-        (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 / 0.02 give
+        with ``gating="coverage"``, 1e-3 with the other gates. With the coverage gate, on
+        the tuning data (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 / 0.02 give
         ACES held-out AUC 0.9634 / 0.9636 / 0.9635 / 0.9634 / 0.9633 with 2.3 / 4.1 / 5.2
         / 6.1 / 7.2 experts per query (44 / 66 / 78 / 90 / 104 us per point), trained on
         every scan 0.9775 / 0.9781 / 0.9781 / 0.9781 / 0.9781 with 13.8 / 34.4 / 47.0 /
