@@ -1094,31 +1094,30 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         reach more experts as the map grows (99 per update over the last half).
     gating_threshold : float or "auto", default="auto"
         Of the experts within reach of a query (see ``reach_tolerance``), those whose
-        gating weight there is below this are skipped (the one with the largest weight
-        is always kept); with ``gating="coverage"`` the threshold is relative to the
-        largest weight at the query (0.5 skips the experts with less than half the data
-        near the query of the best-covered one), with the other gates absolute. 0
-        consults every expert within reach. PoE, BCM and rBCM use the gate only to
-        choose experts: under them a ``"clusterer"`` or ``"gpc"`` gate's threshold drops
-        experts that hold data near the query, and the map jumps where they drop out
-        (a seam of 0.24 in P(occupied) across the paper's world with ``combiner="bcm"``
-        and 1e-3, none with 0; :func:`skoccmap.experiment.make_models`). ``"auto"``: 0.5
-        with ``gating="coverage"``, 1e-3 with the other gates. With the coverage gate, on
-        the tuning data (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 / 0.02 give
-        ACES held-out AUC 0.9634 / 0.9636 / 0.9635 / 0.9634 / 0.9633 with 2.3 / 4.1 / 5.2
-        / 6.1 / 7.2 experts per query (44 / 66 / 78 / 90 / 104 us per point), trained on
-        every scan 0.9775 / 0.9781 / 0.9781 / 0.9781 / 0.9781 with 13.8 / 34.4 / 47.0 /
-        57.8 / 70.1 experts per query (314 / 562 / 678 / 818 / 934 us per point), and the
-        same walls, free space and ECE (to 0.003) on the dense office and paper's world:
-        0.5 takes under half the time of 0.1 for 0.0006 of AUC on the densest data. An
-        absolute threshold on the coverage shares fails where dozens of experts
-        overlap, every one of them holding a few percent of the data: 0.05 kept 2.2
-        experts per query on the full Intel log (B3) and scored held-out AUC 0.893
-        against the clusterer's 0.989; relative, 0.5 keeps 21.8 and scores 0.988.
-        Higher relative thresholds lose the dense logs (ACES with every scan: 0.6 / 0.7
-        / 0.8 give 0.9770 / 0.9723 / 0.9647 with 9.8 / 6.5 / 4.0 experts per query):
-        where hundreds of poses saw a corridor its data fill many experts of equal
-        coverage.
+        gating weight there is below this are skipped (the one with the largest weight is
+        always kept); with ``gating="coverage"`` the threshold is relative to the largest
+        weight at the query (0.5 skips the experts with less than half the data near the
+        query of the best-covered one), with the other gates absolute. 0 consults every
+        expert within reach. PoE, BCM and rBCM use the gate only to choose experts: under
+        them a ``"clusterer"`` or ``"gpc"`` gate's threshold drops experts that hold data
+        near the query, and the map jumps where they drop out (a seam of 0.24 in
+        P(occupied) across the paper's world with ``combiner="bcm"`` and 1e-3, none with 0;
+        :func:`skoccmap.experiment.make_models`). ``"auto"``: 0.5 with
+        ``gating="coverage"``, 1e-3 with the other gates. With the coverage gate, on the
+        tuning data (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 /
+        0.02 give ACES held-out AUC 0.9634 / 0.9636 / 0.9635 / 0.9634 / 0.9633 with 2.3 /
+        4.1 / 5.2 / 6.1 / 7.2 experts per query (44 / 66 / 78 / 90 / 104 us per point),
+        trained on every scan 0.9775 / 0.9781 / 0.9781 / 0.9781 / 0.9781 with 13.8 / 34.4 /
+        47.0 / 57.8 / 70.1 experts per query (314 / 562 / 678 / 818 / 934 us per point),
+        and the same walls, free space and ECE (to 0.003) on the dense office and paper's
+        world: 0.5 takes under half the time of 0.1 for 0.0006 of AUC on the densest data.
+        An absolute threshold on the coverage shares fails where dozens of experts overlap,
+        every one of them holding a few percent of the data: 0.05 kept 2.2 experts per
+        query on the full Intel log (B3) and scored held-out AUC 0.893 against the
+        clusterer's 0.989; relative, 0.5 keeps 21.8 and scores 0.988. Higher relative
+        thresholds lose the dense logs (ACES with every scan: 0.6 / 0.7 / 0.8 give 0.9770 /
+        0.9723 / 0.9647 with 9.8 / 6.5 / 4.0 experts per query): where hundreds of poses
+        saw a corridor its data fill many experts of equal coverage.
     reach_tolerance : float, default=1e-2
         Sets the *reach* ``reach_``: the distance beyond which the fitted kernel between
         two points stays below ``reach_tolerance`` times its value at distance 0. An
