@@ -127,13 +127,14 @@ class CellCounts:
             return self
         if self.origin is None:
             self.origin = np.floor(starts[0] / self.cell_size)
-        self._cells(starts), self._cells(ends)  # range checks
-        keys, hits = np.unique(self._keys(self._cells(ends[occupied])), return_counts=True)
+        # Every cell is found (and range-checked) before any count changes.
+        start_cells, end_cells = self._cells(starts), self._cells(ends)
+        keys, hits = np.unique(self._keys(end_cells[occupied]), return_counts=True)
         parts = [(self.keys, self.hits, self.passes), (keys, hits, np.zeros_like(hits))]
         free = np.flatnonzero(~occupied)
         for lo in range(0, free.size, _CHUNK):
             rows = free[lo : lo + _CHUNK]
-            first, last = self._cells(starts[rows]), self._cells(ends[rows])
+            first, last = start_cells[rows], end_cells[rows]
             low = np.minimum(first.min(axis=0), last.min(axis=0))
             high = np.maximum(first.max(axis=0), last.max(axis=0))
             shape = tuple(int(n) for n in high - low + 1)

@@ -62,6 +62,17 @@ def test_coordinates_too_far_to_count_are_an_error():
             counts.counted(np.array([[far, 0.0]]))
 
 
+def test_a_row_too_far_to_count_leaves_the_counts_unchanged():
+    counts = CellCounts(0.1, 2).add(np.array([[0.0, 0.0, 1.0, 1.0]]), np.array([False]))
+    before = (counts.keys.copy(), counts.hits.copy(), counts.passes.copy())
+    # Near rows first, the far one last: nothing is counted before it is found.
+    X = np.array([[0.0, 0.0, 2.0, 0.0], [0.0, 0.0, 0.5, 0.5], [0.0, 0.0, 1e12, 0.0]])
+    with pytest.raises(ValueError, match="cannot be counted"):
+        counts.add(X, np.array([False, True, False]))
+    for kept, was in zip((counts.keys, counts.hits, counts.passes), before, strict=True):
+        np.testing.assert_array_equal(kept, was)
+
+
 def test_counts_pickled_before_the_origin_cell_still_count():
     # Old pickles keyed absolute cells and have no origin: they read as an origin at zero.
     X, y = _random_rows(np.random.default_rng(4), 2)
