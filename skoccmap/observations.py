@@ -91,6 +91,19 @@ def _check_free_margin(free_margin):
     return value
 
 
+def _check_min_range(min_range, max_range):
+    try:
+        value = float(min_range)
+    except (TypeError, ValueError):
+        raise ValueError(f"min_range must be a non-negative number, got {min_range!r}.") from None
+    if not np.isfinite(value) or value < 0 or value >= max_range:
+        raise ValueError(
+            f"min_range must be a finite number in [0, max_range = {max_range:g}), "
+            f"got {min_range!r}."
+        )
+    return value
+
+
 def _check_poses(poses):
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 2 or poses.shape[1] not in _POSE_COLUMNS:
@@ -142,13 +155,15 @@ def _check_angles(angles, n_scans, n_beams, n_dims):
         if angles.shape not in ((n_beams,), (n_scans, n_beams)):
             raise ValueError(
                 f"angles must have shape ({n_beams},) shared by all scans or ({n_scans}, "
-                f"{n_beams}) per scan for 2-D poses, got shape {angles.shape}."
+                f"{n_beams}) per scan for 2-D poses, got shape {angles.shape}; ranges has "
+                f"{n_beams} beam(s) (columns) per scan and angles needs one per beam."
             )
     else:
         if angles.shape not in ((n_beams, 3), (n_scans, n_beams, 3)):
             raise ValueError(
                 f"angles must hold unit beam directions of shape ({n_beams}, 3) or ({n_scans}, "
-                f"{n_beams}, 3) for 3-D poses, got shape {angles.shape}."
+                f"{n_beams}, 3) for 3-D poses, got shape {angles.shape}; ranges has "
+                f"{n_beams} beam(s) (columns) per scan and angles needs one per beam."
             )
     if not np.all(np.isfinite(angles)):
         raise ValueError("angles contains NaN or infinite values.")
@@ -237,7 +252,8 @@ def beam_directions(poses, angles):
 
 
 def scans_to_observations(
-    poses, ranges, angles, max_range, *, free_margin=0.05, return_scan_index=False
+    poses, ranges, angles, max_range, *, free_margin=0.05, min_range=0.0,
+    return_scan_index=False
 ):
     """Turn laser scans into labelled segment rows.
 
@@ -245,7 +261,9 @@ def scans_to_observations(
     point, ``y = 1``) and, when ``r > free_margin``, a :data:`RETURN` beam from the sensor to
     ``free_margin`` short of the hit (``y = 0``); a hit within ``free_margin`` of the sensor has
     no free part. A beam with ``r >= max_range``, ``inf`` or ``NaN`` gives a :data:`NO_RETURN`
-    beam from the sensor to ``max_range`` (``y = 0``).
+    beam from the sensor to ``max_range`` (``y = 0``). A reading of 0 or below ``min_range``
+    gives no row: many drivers write 0 for "no measurement", and neither a hit at the
+    sensor nor free space up to ``max_range`` is what the sensor saw.
 
     Rows are grouped by scan, in scan order; within a scan come its hits, then its return beams,
     then its no-return beams, each in beam order.
@@ -256,7 +274,8 @@ def scans_to_observations(
         Sensor poses: 2-D ``[x, y, theta]`` or 3-D ``[x, y, z, qw, qx, qy, qz]`` with a unit
         quaternion (scalar first) rotating the sensor frame into the world frame.
     ranges : array-like of shape (n_scans, n_beams)
-        Measured ranges in metres; ``inf``, ``NaN`` or values ``>= max_range`` mean no return.
+        Measured ranges in metres; ``inf``, ``NaN`` or values ``>= max_range`` mean no return,
+        0 or values below ``min_range`` no reading.
     angles : array-like
         2-D: beam angles in radians counter-clockwise from the heading, shape (n_beams,) shared
         by all scans or (n_scans, n_beams). 3-D: unit beam directions in the sensor frame, shape
@@ -266,6 +285,9 @@ def scans_to_observations(
     free_margin : float, default=0.05
         Gap in metres between the end of a return beam and its hit, so that free and occupied
         observations never coincide.
+    min_range : float, default=0.0
+        Readings below it (metres) are dropped, as ROS drops those below a scan's
+        ``range_min``; readings of exactly 0 are dropped whatever its value.
     return_scan_index : bool, default=False
         Whether to return the scan index of every row.
 
@@ -284,7 +306,7 @@ def scans_to_observations(
     ------
     ValueError
         For non-finite poses, negative ranges, mismatched shapes, no scans or beams,
-        ``max_range <= 0`` or ``free_margin < 0``.
+        ``max_range <= 0``, ``free_margin < 0`` or ``min_range`` outside ``[0, max_range)``.
 
     Examples
     --------
@@ -302,13 +324,15 @@ def scans_to_observations(
     """
     poses, ranges, angles, max_range = _check_scan_arrays(poses, ranges, angles, max_range)
     free_margin = _check_free_margin(free_margin)
+    min_range = _check_min_range(min_range, max_range)
     n_scans, n_beams = ranges.shape
     n_dims = _POSE_COLUMNS[poses.shape[1]]
 
     origins = poses[:, None, :n_dims]
     directions = _directions(poses, angles, n_beams)
     with np.errstate(invalid="ignore"):
-        returned = ranges < max_range  # False for NaN and inf
+        unread = (ranges < min_range) | (ranges == 0.0)  # False for NaN
+        returned = (ranges < max_range) & ~unread  # False for NaN and inf
     r = np.where(returned, ranges, 0.0)[..., None]
 
     hit_points = origins + r * directions
@@ -318,7 +342,9 @@ def scans_to_observations(
         axis=1,
     )  # (n_scans, kind, n_beams, D)
     starts = np.stack([hit_points, starts, starts], axis=1)
-    valid = np.stack([returned, returned & (r[..., 0] > free_margin), ~returned], axis=1)
+    valid = np.stack(
+        [returned, returned & (r[..., 0] > free_margin), ~(returned | unread)], axis=1
+    )
 
     # Boolean indexing walks (scan, kind, beam) in C order: the documented row order.
     X = np.concatenate([starts[valid], ends[valid]], axis=1)
@@ -341,7 +367,7 @@ class Scans:
         2-D ``[x, y, theta]`` or 3-D ``[x, y, z, qw, qx, qy, qz]`` (unit quaternion, scalar
         first, rotating the sensor frame into the world frame; normalised on construction).
     ranges : array-like of shape (n_scans, n_beams)
-        Ranges in metres; ``inf``/``NaN`` or ``>= max_range`` mean no return.
+        Ranges in metres; ``inf``/``NaN`` or ``>= max_range`` mean no return, 0 no reading.
     angles : array-like
         2-D: beam angles in radians counter-clockwise from the heading, (n_beams,) shared or
         (n_scans, n_beams) per scan. 3-D: unit beam directions in the sensor frame, (n_beams, 3)
@@ -478,7 +504,7 @@ class Scans:
         )
         return points[returned]
 
-    def to_observations(self, free_margin=0.05, *, return_scan_index=False):
+    def to_observations(self, free_margin=0.05, *, min_range=0.0, return_scan_index=False):
         """Labelled segment rows of these scans; see :func:`scans_to_observations`."""
         return scans_to_observations(
             self.poses,
@@ -486,6 +512,7 @@ class Scans:
             self.angles,
             self.max_range,
             free_margin=free_margin,
+            min_range=min_range,
             return_scan_index=return_scan_index,
         )
 

@@ -41,7 +41,7 @@ def _random_scans_3d(rng, n_scans=4, n_beams=9, max_range=4.0):
     return poses, ranges, dirs, max_range
 
 
-def _reference_rows(poses, ranges, angles, max_range, free_margin):
+def _reference_rows(poses, ranges, angles, max_range, free_margin, min_range=0.0):
     """Row-by-row construction with loops and scipy rotations, independent of vectorised code."""
     rows, ys, kinds, scan_ids = [], [], [], []
     n_dims = 2 if poses.shape[1] == 3 else 3
@@ -56,6 +56,8 @@ def _reference_rows(poses, ranges, angles, max_range, free_margin):
                 w, x, y, z = pose[3:]
                 d = Rotation.from_quat([x, y, z, w]).apply(angles[b])
             r = ranges[s, b]
+            if r == 0.0 or r < min_range:
+                continue
             if np.isfinite(r) and r < max_range:
                 hit = origin + r * d
                 per_kind[HIT].append(np.r_[hit, hit])
@@ -117,6 +119,31 @@ def test_matches_loop_reference(make, free_margin):
     assert_array_equal(y, y_ref)
     assert_array_equal(kind, kind_ref)
     assert_array_equal(scan, scan_ref)
+
+
+@pytest.mark.parametrize("make", [_random_scans_2d, _random_scans_3d])
+@pytest.mark.parametrize("min_range", [0.0, 1.0])
+def test_readings_of_zero_or_below_min_range_give_no_row(make, min_range):
+    poses, ranges, angles, max_range = make(np.random.default_rng(4))
+    ranges[:, ::3] = 0.0
+    X, y, kind, scan = scans_to_observations(
+        poses, ranges, angles, max_range, min_range=min_range, return_scan_index=True
+    )
+    X_ref, y_ref, kind_ref, scan_ref = _reference_rows(
+        poses, ranges, angles, max_range, 0.05, min_range
+    )
+    assert_allclose(X, X_ref, atol=1e-12)
+    assert_array_equal(kind, kind_ref)
+    assert_array_equal(scan, scan_ref)
+    # No row starts or ends at a sensor with a zero reading's hit, nor covers its beam.
+    n_read = np.sum((ranges != 0.0) & ~(ranges < min_range))
+    assert np.sum(kind == HIT) + np.sum(kind == NO_RETURN) == n_read
+
+
+def test_zero_readings_are_not_hits_at_the_sensor():
+    X, y, kind = scans_to_observations([[1.0, 2.0, 0.0]], [[0.0, 2.0, 0.0]], [0.0, 0.5, 1.0], 5.0)
+    assert_array_equal(kind, [HIT, RETURN])
+    assert not np.any(np.all(X == [1.0, 2.0, 1.0, 2.0], axis=1))
 
 
 def test_per_scan_angles_2d():
@@ -201,7 +228,7 @@ def test_beam_directions_unit_and_rotated():
         ({"ranges": [1.0, 2.0]}, "ranges must have shape"),
         ({"ranges": [[1.0, 2.0], [1.0, 2.0]]}, "ranges has 2 row"),
         ({"ranges": np.zeros((1, 0)), "angles": []}, "no beams"),
-        ({"angles": [0.0, 1.0, 2.0]}, "angles must have shape"),
+        ({"angles": [0.0, 1.0, 2.0]}, "angles must have shape.*ranges has 2 beam"),
         ({"angles": [0.0, np.nan]}, "angles contains NaN"),
         ({"max_range": 0.0}, "max_range must be a positive"),
         ({"max_range": -1.0}, "max_range must be a positive"),
@@ -209,6 +236,10 @@ def test_beam_directions_unit_and_rotated():
         ({"max_range": "far"}, "max_range must be a positive"),
         ({"free_margin": -0.1}, "free_margin must be a non-negative"),
         ({"free_margin": np.nan}, "free_margin must be a non-negative"),
+        ({"min_range": -0.1}, "min_range must be a finite number in"),
+        ({"min_range": 5.0}, "min_range must be a finite number in"),
+        ({"min_range": np.nan}, "min_range must be a finite number in"),
+        ({"min_range": "near"}, "min_range must be a non-negative number"),
     ],
 )
 def test_bad_input_2d(kwargs, match):
