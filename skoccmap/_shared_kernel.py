@@ -20,7 +20,7 @@ from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.utils.parallel import Parallel, delayed
 
-from .classifier import _minimize_in_bounds
+from .classifier import _check_learnable, _minimize_in_bounds
 
 __all__ = ["learn_shared_kernel", "warn_at_bounds", "warn_beyond_extent", "window_pieces"]
 
@@ -130,6 +130,8 @@ def learn_shared_kernel(expert, pieces, *, n_jobs=None):
         The expert's kernel with the learned hyperparameters.
     """
     optimizer = expert.get_params()["optimizer"]
+    if optimizer is not None and getattr(expert, "kernel", None) is not None:
+        _check_learnable(expert.kernel)
     fitted = Parallel(n_jobs=n_jobs)(delayed(_fit_fixed)(expert, X, y) for X, y in pieces)
     kernel = fitted[0].kernel_
     if optimizer is None or kernel.n_dims == 0:

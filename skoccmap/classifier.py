@@ -151,7 +151,7 @@ def _warn_at_bounds(kernel):
                 f"close to the specified {side} bound {bound}. {verb} the bound and calling "
                 "fit again may find a better value.",
                 ConvergenceWarning,
-                stacklevel=4,
+                stacklevel=6,  # fit's caller, past fit's two decorators
             )
 
 
@@ -195,6 +195,31 @@ def _first_step_scale(obj_func, initial_theta):
     if grad.size == 0 or not np.all(np.isfinite(grad)):
         return 1.0
     return max(1.0, float(np.max(np.abs(grad))))
+
+
+def _check_learnable(kernel):
+    """Raise a ValueError naming the first hyperparameter to be learned whose value or
+    bounds are not positive and finite, or whose bounds are reversed: the optimiser works
+    on their logarithms, within the bounds."""
+    params = kernel.get_params()
+    for hyp in kernel.hyperparameters:
+        if hyp.fixed:
+            continue
+        value = np.atleast_1d(np.asarray(params[hyp.name], dtype=float))
+        low, high = np.atleast_2d(np.asarray(hyp.bounds, dtype=float)).T
+        shown = value.tolist() if value.size > 1 else float(value[0])
+        bounds = hyp.bounds.tolist() if low.size > 1 else [float(low[0]), float(high[0])]
+        if not np.all(np.isfinite(low) & np.isfinite(high) & (low > 0)) or np.any(low > high):
+            raise ValueError(
+                f"The bounds of the kernel's {hyp.name} must be pairs (low, high) with "
+                f"0 < low <= high, got {bounds}; pass them as "
+                f"{hyp.name}_bounds, or 'fixed' to keep the value as it is."
+            )
+        if not np.all(np.isfinite(value) & (value > 0)):
+            raise ValueError(
+                f"The kernel's {hyp.name} must be positive and finite to be learned, got "
+                f"{shown}."
+            )
 
 
 def _minimize_in_bounds(optimizer, obj_func, initial_theta, bounds):
@@ -346,7 +371,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     >>> from skoccmap import EPGaussianProcessClassifier
     >>> rng = np.random.default_rng(0)
     >>> X = rng.uniform(-3, 3, size=(60, 1))
-    >>> y = (np.sin(X[:, 0]) > 0).astype(int)
+    >>> noisy_sine = np.sin(X[:, 0]) + 0.3 * rng.normal(size=60)
+    >>> y = (noisy_sine > 0).astype(int)
     >>> clf = EPGaussianProcessClassifier(random_state=0).fit(X, y)
     >>> clf.predict([[-1.5], [1.5]])
     array([0, 1])
@@ -356,7 +382,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
 
     Three classes, one binary classifier per class against the rest:
 
-    >>> y3 = np.digitize(np.sin(X[:, 0]), [-0.35, 0.35])
+    >>> y3 = np.digitize(np.sin(X[:, 0]) + 0.3 * rng.normal(size=60), [-0.35, 0.35])
     >>> clf3 = EPGaussianProcessClassifier(random_state=0).fit(X, y3)
     >>> clf3.classes_, clf3.n_classes_, len(clf3.base_estimator_.estimators_)
     (array([0, 1, 2]), 3, 3)
@@ -488,6 +514,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         # while kernel_ is that kernel, i.e. unless hyperparameters are learned here.
         K = self.__dict__.pop("_initial_kernel", None)
         hold = self.__dict__.pop("_hold", None)
+        if self.optimizer is not None:
+            _check_learnable(self.kernel_)
         if self.optimizer is not None and self.kernel_.n_dims > 0:
             self._optimize_hyperparameters(warm)
             _warn_at_bounds(self.kernel_)
@@ -754,8 +782,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         --------
         >>> import numpy as np
         >>> from skoccmap import EPGaussianProcessClassifier
-        >>> X = np.linspace(0, 1, 8)[:, None]
-        >>> clf = EPGaussianProcessClassifier().fit(X, X[:, 0] > 0.5)
+        >>> X = np.linspace(0, 1, 12)[:, None]
+        >>> clf = EPGaussianProcessClassifier().fit(X, [0, 0, 0, 1, 0, 0, 1, 0, 1, 1, 1, 1])
         >>> lml, grad = clf.log_marginal_likelihood(clf.kernel_.theta, eval_gradient=True)
         >>> bool(np.isclose(lml, clf.log_marginal_likelihood_value_)), grad.shape
         (True, (2,))

@@ -445,6 +445,28 @@ def test_bad_training_input(X, y, match):
         EPGaussianProcessClassifier().fit(X, y)
 
 
+@pytest.mark.parametrize(
+    "kernel, match",
+    [
+        (RBF(-1.0), "kernel's length_scale must be positive and finite to be learned, got -1.0"),
+        (C(1.0) * RBF([1.0, np.nan]), r"k2__length_scale must be positive.*\[1.0, nan\]"),
+        (C(-2.0) * RBF(1.0), "k1__constant_value must be positive and finite"),
+        (RBF(1.0, (5.0, 1.0)), r"bounds of the kernel's length_scale .* got \[5.0, 1.0\]"),
+        (RBF(1.0, (0.0, 1.0)), r"0 < low <= high, got \[0.0, 1.0\]"),
+    ],
+)
+def test_hyperparameters_that_cannot_be_learned_are_named(kernel, match):
+    X, y = _data(n=20)
+    with warnings.catch_warnings():
+        # Nothing is computed from them first: not even their logarithms.
+        warnings.simplefilter("error", RuntimeWarning)
+        with pytest.raises(ValueError, match=match):
+            EPGaussianProcessClassifier(kernel).fit(X, y)
+    if "bounds" in match or "low" in match:
+        # Bounds matter only to the optimiser: kept fixed, the kernel is used as it is.
+        EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+
+
 def test_n_jobs_zero_is_refused_before_any_work():
     X, y = _data(n=20)
     with pytest.raises(ValueError, match="'n_jobs' parameter"):
@@ -547,12 +569,14 @@ def test_separable_data_learns_without_a_spurious_warning():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = EPGaussianProcessClassifier().fit(X, y)
-    messages = [str(w.message) for w in caught if w.category is ConvergenceWarning]
-    assert len(messages) == 1
-    assert messages[0].startswith(
+    at_bound = [w for w in caught if w.category is ConvergenceWarning]
+    assert len(at_bound) == 1
+    assert str(at_bound[0].message).startswith(
         "The optimal value found for dimension 0 of parameter k1__constant_value is close "
         "to the specified upper bound 1000.0."
     )
+    # The warning names the line that called fit, not a line inside a decorator.
+    assert at_bound[0].filename == __file__
     assert model.kernel_.k1.constant_value == pytest.approx(1e3)
 
 

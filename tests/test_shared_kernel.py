@@ -57,6 +57,12 @@ def test_fixed_optimizer_keeps_the_kernel():
     np.testing.assert_allclose(shared.theta, kernel.theta)
 
 
+def test_reversed_bounds_are_named_before_any_fit():
+    expert = EPGaussianProcessClassifier(C(1.0, (1e-2, 1e2)) * RBF(1.0, (5.0, 1.0)))
+    with pytest.raises(ValueError, match=r"kernel's k2__length_scale .* got \[5.0, 1.0\]"):
+        learn_shared_kernel(expert, [_piece(0)])
+
+
 def test_warns_at_bounds_only():
     kernel = C(1e3, (1e-3, 1e3)) * RBF(0.5, (1e-2, 1e2))
     with pytest.warns(ConvergenceWarning, match=r"k1__constant_value ended at its upper"):
