@@ -269,6 +269,19 @@ class OccupancyGrid:
             raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}.")
         if not hasattr(estimator, "predict_proba"):
             raise ValueError(f"estimator {type(estimator).__name__} has no predict_proba.")
+        if not (
+            unknown_variance is None
+            or (isinstance(unknown_variance, str) and unknown_variance == "auto")
+            or (
+                isinstance(unknown_variance, Real)
+                and not isinstance(unknown_variance, bool)
+                and unknown_variance > 0  # False for NaN
+            )
+        ):
+            raise ValueError(
+                "unknown_variance must be 'auto', None or a positive number (a variance), "
+                f"got {unknown_variance!r}."
+            )
         if extent is None:
             extent = getattr(estimator, "extent_", None)
             if extent is None:
@@ -283,7 +296,7 @@ class OccupancyGrid:
         var = None if var is None else var.reshape(shape)
         unknown = None
         if var is not None and unknown_variance is not None:
-            auto = unknown_variance == "auto"
+            auto = isinstance(unknown_variance, str)
             reference = _reference_variance(estimator, var, origin, resolution, counts)
             threshold = _AUTO_UNKNOWN * reference if auto else float(unknown_variance)
             unknown = var > threshold

@@ -382,6 +382,11 @@ def test_bad_from_estimator_arguments():
     assert grid.shape == (2, 2)
     with pytest.raises(ValueError, match="predict_proba"):
         OccupancyGrid.from_estimator(object(), (0, 1, 0, 1), 0.1)
+    for threshold in ("foo", "AUTO", -1.0, 0.0, np.nan, True):
+        with pytest.raises(ValueError, match="unknown_variance must be 'auto', None or a"):
+            OccupancyGrid.from_estimator(est, (0, 1, 0, 1), 0.5, unknown_variance=threshold)
+    for threshold in ("auto", None, 0.5, np.float32(2.0), 3):
+        OccupancyGrid.from_estimator(est, (0, 1, 0, 1), 0.5, unknown_variance=threshold)
     grid = OccupancyGrid([[0.5]], (0, 0), 1.0)
     with pytest.raises(ValueError, match="free_threshold"):
         grid.trinary(free_threshold=0.8, occupied_threshold=0.6)
