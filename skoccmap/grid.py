@@ -521,6 +521,8 @@ class OccupancyGrid:
         Parameters
         ----------
         yaml_path : str or path-like
+            The YAML file, or the stem :meth:`save_map_server` took (``<stem>.yaml`` is
+            read when ``yaml_path`` itself is not a file).
 
         Returns
         -------
@@ -543,6 +545,9 @@ class OccupancyGrid:
         (np.True_, [-1.0, 2.0], 0.05)
         """
         yaml_path = Path(yaml_path)
+        stem_yaml = yaml_path.with_name(yaml_path.name + ".yaml")
+        if not yaml_path.is_file() and stem_yaml.is_file():
+            yaml_path = stem_yaml
         meta = _read_simple_yaml(yaml_path)
         for key in ("image", "resolution", "origin"):
             if key not in meta:

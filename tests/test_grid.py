@@ -249,6 +249,9 @@ def test_map_server_round_trip_reproduces_trinary_map(tmp_path):
     np.testing.assert_array_equal(back.trinary(), grid.trinary())
     np.testing.assert_allclose(back.origin, grid.origin)
     assert back.resolution == grid.resolution
+    # The stem that saved it loads it too.
+    by_stem = OccupancyGrid.load_map_server(yaml_path.with_suffix(""))
+    np.testing.assert_array_equal(by_stem.trinary(), grid.trinary())
 
 
 def test_hand_made_map_server_files(tmp_path):
