@@ -511,6 +511,8 @@ def _replay(args, train, unknown_variance):
     for b, first in enumerate(starts, 1):
         seen = train[: first + args.batch_scans]
         X, y, _ = train[first : first + args.batch_scans].to_observations()
+        if len(X) == 0:  # every reading 0: nothing to learn
+            continue
         if not hasattr(model, "n_experts_"):
             # The first update needs beams and two hits (to cluster): until then, batches
             # pile up.

@@ -2,8 +2,32 @@
 
 import contextlib
 import functools
+import os
+import sys
 
+import joblib
 import numpy as np
+import sklearn
+
+# Code whose frames a warning skips to name the line that called into it (see
+# caller_stacklevel).
+_LIBRARY_DIRS = tuple(
+    os.path.dirname(module.__file__) + os.sep
+    for module in (sys.modules[__package__], sklearn, joblib)
+)
+
+
+def caller_stacklevel():
+    """``stacklevel`` for ``warnings.warn`` that names the first frame outside this package,
+    scikit-learn and joblib: the user's line, however many wrappers, decorators and
+    meta-estimators (``OneVsRestClassifier``, ``Pipeline``) lie between.
+
+    Call it from the function that calls ``warnings.warn``."""
+    # Frame 2 is the warning function's caller: stacklevel 2.
+    frame, level = sys._getframe(2), 2
+    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def check_segments(X, *, name="X", allow_empty=False):

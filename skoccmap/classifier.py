@@ -23,7 +23,7 @@ from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.optimize import _check_optimize_result
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ._validation import fit_or_unfitted
+from ._validation import caller_stacklevel, fit_or_unfitted
 from .ep import (
     EPResult,
     ep_append_sites,
@@ -151,7 +151,7 @@ def _warn_at_bounds(kernel):
                 f"close to the specified {side} bound {bound}. {verb} the bound and calling "
                 "fit again may find a better value.",
                 ConvergenceWarning,
-                stacklevel=6,  # fit's caller, past fit's two decorators
+                stacklevel=caller_stacklevel(),
             )
 
 
@@ -209,11 +209,11 @@ def _check_learnable(kernel):
         low, high = np.atleast_2d(np.asarray(hyp.bounds, dtype=float)).T
         shown = value.tolist() if value.size > 1 else float(value[0])
         bounds = hyp.bounds.tolist() if low.size > 1 else [float(low[0]), float(high[0])]
-        if not np.all(np.isfinite(low) & np.isfinite(high) & (low > 0)) or np.any(low > high):
+        if not np.all((low > 0) & (low < high) & np.isfinite(low)):  # False for NaN
             raise ValueError(
                 f"The bounds of the kernel's {hyp.name} must be pairs (low, high) with "
-                f"0 < low <= high, got {bounds}; pass them as "
-                f"{hyp.name}_bounds, or 'fixed' to keep the value as it is."
+                f"0 < low < high (high may be inf), got {bounds}; correct "
+                f"{hyp.name}_bounds, or make them 'fixed' to keep the value as it is."
             )
         if not np.all(np.isfinite(value) & (value > 0)):
             raise ValueError(
@@ -535,7 +535,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
                 "increase damping (parallel updates oscillate at large signal variances), or "
                 "use ep_update='sequential'.",
                 ConvergenceWarning,
-                stacklevel=3,
+                stacklevel=caller_stacklevel(),
             )
         self.site_precision_ = result.site_precision
         self.site_nu_ = result.site_nu

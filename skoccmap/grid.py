@@ -545,9 +545,9 @@ class OccupancyGrid:
         (np.True_, [-1.0, 2.0], 0.05)
         """
         yaml_path = Path(yaml_path)
-        stem_yaml = yaml_path.with_name(yaml_path.name + ".yaml")
-        if not yaml_path.is_file() and stem_yaml.is_file():
-            yaml_path = stem_yaml
+        if not yaml_path.is_file() and yaml_path.name:
+            stem_yaml = yaml_path.with_name(yaml_path.name + ".yaml")
+            yaml_path = stem_yaml if stem_yaml.is_file() else yaml_path
         meta = _read_simple_yaml(yaml_path)
         for key in ("image", "resolution", "origin"):
             if key not in meta:

@@ -287,7 +287,7 @@ def heldout_points(
     returned = scans.returned()
     beam_range = np.where(returned, scans.ranges, scans.max_range)
     free_length = np.where(returned, scans.ranges - free_margin, scans.max_range)
-    usable = free_length > 0
+    usable = (free_length > 0) & ~scans.unread()
     if np.isfinite(max_beam_range):
         usable &= returned & (beam_range <= max_beam_range)
     counts = _free_points_per_beam(n_free_per_beam, beam_range[usable])

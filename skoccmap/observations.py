@@ -19,12 +19,13 @@ quaternion (scalar first) rotating sensor-frame vectors into the world frame; be
 direction vectors in the sensor frame.
 """
 
+import warnings
 from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
 
-from ._validation import check_segments, segment_dim
+from ._validation import caller_stacklevel, check_segments, segment_dim
 
 __all__ = [
     "HIT",
@@ -91,19 +92,6 @@ def _check_free_margin(free_margin):
     return value
 
 
-def _check_min_range(min_range, max_range):
-    try:
-        value = float(min_range)
-    except (TypeError, ValueError):
-        raise ValueError(f"min_range must be a non-negative number, got {min_range!r}.") from None
-    if not np.isfinite(value) or value < 0 or value >= max_range:
-        raise ValueError(
-            f"min_range must be a finite number in [0, max_range = {max_range:g}), "
-            f"got {min_range!r}."
-        )
-    return value
-
-
 def _check_poses(poses):
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 2 or poses.shape[1] not in _POSE_COLUMNS:
@@ -149,21 +137,31 @@ def _check_ranges(ranges, n_scans):
     return ranges
 
 
+def _shape_hint(beam_axis, n_beams):
+    """The end of a wrong-angles message: which array holds how many beams, when they differ."""
+    if beam_axis and beam_axis[0] != n_beams:
+        return (
+            f"; ranges has {n_beams} beam(s) (columns) per scan and angles "
+            f"{beam_axis[0]}, one per beam."
+        )
+    return "."
+
+
 def _check_angles(angles, n_scans, n_beams, n_dims):
     angles = np.asarray(angles, dtype=np.float64)
     if n_dims == 2:
         if angles.shape not in ((n_beams,), (n_scans, n_beams)):
             raise ValueError(
                 f"angles must have shape ({n_beams},) shared by all scans or ({n_scans}, "
-                f"{n_beams}) per scan for 2-D poses, got shape {angles.shape}; ranges has "
-                f"{n_beams} beam(s) (columns) per scan and angles needs one per beam."
+                f"{n_beams}) per scan for 2-D poses, got shape {angles.shape}"
+                + _shape_hint(angles.shape[-1:] if angles.ndim <= 2 else (), n_beams)
             )
     else:
         if angles.shape not in ((n_beams, 3), (n_scans, n_beams, 3)):
             raise ValueError(
                 f"angles must hold unit beam directions of shape ({n_beams}, 3) or ({n_scans}, "
-                f"{n_beams}, 3) for 3-D poses, got shape {angles.shape}; ranges has "
-                f"{n_beams} beam(s) (columns) per scan and angles needs one per beam."
+                f"{n_beams}, 3) for 3-D poses, got shape {angles.shape}"
+                + _shape_hint(angles.shape[-2:-1] if angles.ndim in (2, 3) else (), n_beams)
             )
     if not np.all(np.isfinite(angles)):
         raise ValueError("angles contains NaN or infinite values.")
@@ -252,8 +250,7 @@ def beam_directions(poses, angles):
 
 
 def scans_to_observations(
-    poses, ranges, angles, max_range, *, free_margin=0.05, min_range=0.0,
-    return_scan_index=False
+    poses, ranges, angles, max_range, *, free_margin=0.05, return_scan_index=False
 ):
     """Turn laser scans into labelled segment rows.
 
@@ -261,9 +258,10 @@ def scans_to_observations(
     point, ``y = 1``) and, when ``r > free_margin``, a :data:`RETURN` beam from the sensor to
     ``free_margin`` short of the hit (``y = 0``); a hit within ``free_margin`` of the sensor has
     no free part. A beam with ``r >= max_range``, ``inf`` or ``NaN`` gives a :data:`NO_RETURN`
-    beam from the sensor to ``max_range`` (``y = 0``). A reading of 0 or below ``min_range``
-    gives no row: many drivers write 0 for "no measurement", and neither a hit at the
-    sensor nor free space up to ``max_range`` is what the sensor saw.
+    beam from the sensor to ``max_range`` (``y = 0``). A reading of 0 gives no row: many
+    drivers write 0 for "no measurement", and neither a hit at the sensor nor free space up
+    to ``max_range`` is what the sensor saw (set readings below a sensor's minimum range
+    to 0 to drop them too).
 
     Rows are grouped by scan, in scan order; within a scan come its hits, then its return beams,
     then its no-return beams, each in beam order.
@@ -275,7 +273,7 @@ def scans_to_observations(
         quaternion (scalar first) rotating the sensor frame into the world frame.
     ranges : array-like of shape (n_scans, n_beams)
         Measured ranges in metres; ``inf``, ``NaN`` or values ``>= max_range`` mean no return,
-        0 or values below ``min_range`` no reading.
+        0 no reading.
     angles : array-like
         2-D: beam angles in radians counter-clockwise from the heading, shape (n_beams,) shared
         by all scans or (n_scans, n_beams). 3-D: unit beam directions in the sensor frame, shape
@@ -285,9 +283,6 @@ def scans_to_observations(
     free_margin : float, default=0.05
         Gap in metres between the end of a return beam and its hit, so that free and occupied
         observations never coincide.
-    min_range : float, default=0.0
-        Readings below it (metres) are dropped, as ROS drops those below a scan's
-        ``range_min``; readings of exactly 0 are dropped whatever its value.
     return_scan_index : bool, default=False
         Whether to return the scan index of every row.
 
@@ -306,7 +301,12 @@ def scans_to_observations(
     ------
     ValueError
         For non-finite poses, negative ranges, mismatched shapes, no scans or beams,
-        ``max_range <= 0``, ``free_margin < 0`` or ``min_range`` outside ``[0, max_range)``.
+        ``max_range <= 0`` or ``free_margin < 0``.
+
+    Warns
+    -----
+    UserWarning
+        When ``free_margin`` leaves more than half of the returned beams without a free row.
 
     Examples
     --------
@@ -324,15 +324,14 @@ def scans_to_observations(
     """
     poses, ranges, angles, max_range = _check_scan_arrays(poses, ranges, angles, max_range)
     free_margin = _check_free_margin(free_margin)
-    min_range = _check_min_range(min_range, max_range)
     n_scans, n_beams = ranges.shape
     n_dims = _POSE_COLUMNS[poses.shape[1]]
 
     origins = poses[:, None, :n_dims]
     directions = _directions(poses, angles, n_beams)
     with np.errstate(invalid="ignore"):
-        unread = (ranges < min_range) | (ranges == 0.0)  # False for NaN
-        returned = (ranges < max_range) & ~unread  # False for NaN and inf
+        unread = ranges == 0.0
+        returned = (ranges > 0.0) & (ranges < max_range)  # False for NaN and inf
     r = np.where(returned, ranges, 0.0)[..., None]
 
     hit_points = origins + r * directions
@@ -345,6 +344,15 @@ def scans_to_observations(
     valid = np.stack(
         [returned, returned & (r[..., 0] > free_margin), ~(returned | unread)], axis=1
     )
+    n_returned, n_free = int(returned.sum()), int(valid[:, 1].sum())
+    if n_free < n_returned / 2:
+        warnings.warn(
+            f"free_margin={free_margin:g} m is at least as long as {n_returned - n_free} of "
+            f"the {n_returned} returned ranges: their beams give no free row, only a hit. "
+            "free_margin is the gap between a beam's free part and its hit (a few cm).",
+            UserWarning,
+            stacklevel=caller_stacklevel(),
+        )
 
     # Boolean indexing walks (scan, kind, beam) in C order: the documented row order.
     X = np.concatenate([starts[valid], ends[valid]], axis=1)
@@ -492,9 +500,14 @@ class Scans:
         return self.poses[:, : self.n_dims].copy()
 
     def returned(self):
-        """Boolean mask (n_scans, n_beams) of beams with a return (range below max_range)."""
+        """Boolean mask (n_scans, n_beams) of beams with a return (range in (0, max_range))."""
         with np.errstate(invalid="ignore"):
-            return self.ranges < self.max_range
+            return (self.ranges > 0.0) & (self.ranges < self.max_range)
+
+    def unread(self):
+        """Boolean mask (n_scans, n_beams) of readings of 0: no measurement, no return or
+        free space (:func:`scans_to_observations` gives them no row)."""
+        return self.ranges == 0.0
 
     def hit_points(self):
         """Hit points of all beams with a return, shape (n_hits, n_dims), in scan/beam order."""
@@ -504,7 +517,7 @@ class Scans:
         )
         return points[returned]
 
-    def to_observations(self, free_margin=0.05, *, min_range=0.0, return_scan_index=False):
+    def to_observations(self, free_margin=0.05, *, return_scan_index=False):
         """Labelled segment rows of these scans; see :func:`scans_to_observations`."""
         return scans_to_observations(
             self.poses,
@@ -512,7 +525,6 @@ class Scans:
             self.angles,
             self.max_range,
             free_margin=free_margin,
-            min_range=min_range,
             return_scan_index=return_scan_index,
         )
 

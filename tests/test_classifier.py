@@ -452,7 +452,9 @@ def test_bad_training_input(X, y, match):
         (C(1.0) * RBF([1.0, np.nan]), r"k2__length_scale must be positive.*\[1.0, nan\]"),
         (C(-2.0) * RBF(1.0), "k1__constant_value must be positive and finite"),
         (RBF(1.0, (5.0, 1.0)), r"bounds of the kernel's length_scale .* got \[5.0, 1.0\]"),
-        (RBF(1.0, (0.0, 1.0)), r"0 < low <= high, got \[0.0, 1.0\]"),
+        (RBF(1.0, (0.0, 1.0)), r"0 < low < high \(high may be inf\), got \[0.0, 1.0\]"),
+        (RBF(1.0, (1.0, 1.0)), r"0 < low < high \(high may be inf\), got \[1.0, 1.0\]"),
+        (RBF(1.0, (np.nan, 2.0)), r"0 < low < high \(high may be inf\), got \[nan, 2.0\]"),
     ],
 )
 def test_hyperparameters_that_cannot_be_learned_are_named(kernel, match):
@@ -578,6 +580,20 @@ def test_separable_data_learns_without_a_spurious_warning():
     # The warning names the line that called fit, not a line inside a decorator.
     assert at_bound[0].filename == __file__
     assert model.kernel_.k1.constant_value == pytest.approx(1e3)
+    # So do the binary problems' warnings of a multi-class fit, inside scikit-learn's
+    # one-vs-rest meta-estimator.
+    X, y = load_iris(return_X_y=True)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        EPGaussianProcessClassifier().fit(X - X.mean(), y)
+    at_bound = [w for w in caught if w.category is ConvergenceWarning]
+    assert at_bound and {w.filename for w in at_bound} == {__file__}
+
+
+def test_an_infinite_upper_bound_can_be_learned_within():
+    X, y = _data(n=30)
+    clf = EPGaussianProcessClassifier(C(1.0, (1e-2, np.inf)) * RBF(1.0, (1e-2, 1e2))).fit(X, y)
+    assert np.all(np.isfinite(clf.kernel_.theta))
 
 
 def test_stationarity_ignores_gradients_pressing_on_bounds():

@@ -111,6 +111,15 @@ def test_heldout_points_uniform_along_beam():
     assert stats.kstest(points[:, 0], stats.uniform(0, 8).cdf).pvalue > 1e-3
 
 
+def test_zero_readings_give_no_heldout_point():
+    scans = Scans([[0.0, 0.0, 0.0]], [[0.0, 2.0, np.inf]], [0.0, 0.5, 1.0], max_range=8.0)
+    points, labels = heldout_points(scans, n_free_per_beam=50, random_state=0)
+    assert labels.sum() == 1 and not np.any(np.all(points == 0.0, axis=1))
+    # The two beams read: along directions 0.5 and 1.0 only.
+    angles = np.arctan2(points[:, 1], points[:, 0])
+    assert np.all(np.isclose(angles, 0.5) | np.isclose(angles, 1.0))
+
+
 def test_heldout_points_deterministic_and_3d():
     scans = make_room3d_scans().scans
     a = heldout_points(scans, random_state=3)

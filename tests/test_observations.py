@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -41,7 +43,7 @@ def _random_scans_3d(rng, n_scans=4, n_beams=9, max_range=4.0):
     return poses, ranges, dirs, max_range
 
 
-def _reference_rows(poses, ranges, angles, max_range, free_margin, min_range=0.0):
+def _reference_rows(poses, ranges, angles, max_range, free_margin):
     """Row-by-row construction with loops and scipy rotations, independent of vectorised code."""
     rows, ys, kinds, scan_ids = [], [], [], []
     n_dims = 2 if poses.shape[1] == 3 else 3
@@ -56,7 +58,7 @@ def _reference_rows(poses, ranges, angles, max_range, free_margin, min_range=0.0
                 w, x, y, z = pose[3:]
                 d = Rotation.from_quat([x, y, z, w]).apply(angles[b])
             r = ranges[s, b]
-            if r == 0.0 or r < min_range:
+            if r == 0.0:
                 continue
             if np.isfinite(r) and r < max_range:
                 hit = origin + r * d
@@ -122,28 +124,28 @@ def test_matches_loop_reference(make, free_margin):
 
 
 @pytest.mark.parametrize("make", [_random_scans_2d, _random_scans_3d])
-@pytest.mark.parametrize("min_range", [0.0, 1.0])
-def test_readings_of_zero_or_below_min_range_give_no_row(make, min_range):
+def test_readings_of_zero_give_no_row(make):
     poses, ranges, angles, max_range = make(np.random.default_rng(4))
     ranges[:, ::3] = 0.0
     X, y, kind, scan = scans_to_observations(
-        poses, ranges, angles, max_range, min_range=min_range, return_scan_index=True
+        poses, ranges, angles, max_range, return_scan_index=True
     )
-    X_ref, y_ref, kind_ref, scan_ref = _reference_rows(
-        poses, ranges, angles, max_range, 0.05, min_range
-    )
+    X_ref, y_ref, kind_ref, scan_ref = _reference_rows(poses, ranges, angles, max_range, 0.05)
     assert_allclose(X, X_ref, atol=1e-12)
     assert_array_equal(kind, kind_ref)
     assert_array_equal(scan, scan_ref)
-    # No row starts or ends at a sensor with a zero reading's hit, nor covers its beam.
-    n_read = np.sum((ranges != 0.0) & ~(ranges < min_range))
-    assert np.sum(kind == HIT) + np.sum(kind == NO_RETURN) == n_read
+    # Every other reading gives a hit or a no-return beam.
+    assert np.sum(kind == HIT) + np.sum(kind == NO_RETURN) == np.sum(ranges != 0.0)
 
 
-def test_zero_readings_are_not_hits_at_the_sensor():
-    X, y, kind = scans_to_observations([[1.0, 2.0, 0.0]], [[0.0, 2.0, 0.0]], [0.0, 0.5, 1.0], 5.0)
-    assert_array_equal(kind, [HIT, RETURN])
+def test_zero_readings_are_no_reading_in_scans_too():
+    scans = Scans([[1.0, 2.0, 0.0]], [[0.0, 2.0, np.inf]], [0.0, 0.5, 1.0], 5.0)
+    X, y, kind = scans.to_observations()
+    assert_array_equal(kind, [HIT, RETURN, NO_RETURN])
     assert not np.any(np.all(X == [1.0, 2.0, 1.0, 2.0], axis=1))
+    assert_array_equal(scans.returned(), [[False, True, False]])
+    assert_array_equal(scans.unread(), [[True, False, False]])
+    assert_allclose(scans.hit_points(), X[kind == HIT, :2])
 
 
 def test_per_scan_angles_2d():
@@ -178,6 +180,7 @@ def _check_invariants(X, y, kind, scan, poses, ranges, max_range, free_margin):
     assert (kind == RETURN).sum() == (returned & (ranges > free_margin)).sum()
 
 
+@pytest.mark.filterwarnings("ignore:free_margin=.* is at least as long as")
 @settings(max_examples=40, deadline=None)
 @given(
     seed=st.integers(0, 2**32 - 1),
@@ -193,6 +196,19 @@ def test_invariants_property(seed, three_d, free_margin, max_range):
         poses, ranges, angles, max_range, free_margin=free_margin, return_scan_index=True
     )
     _check_invariants(X, y, kind, scan, poses, ranges, max_range, free_margin)
+
+
+def test_a_free_margin_longer_than_most_ranges_warns():
+    args = ([[0.0, 0.0, 0.0]], [[1.0, 2.0, 3.0]], [0.0, 0.5, 1.0], 5.0)
+    with pytest.warns(UserWarning, match="free_margin=2.5 m is at least as long as 2 of the 3"):
+        X, y, kind = scans_to_observations(*args, free_margin=2.5)
+    with pytest.warns(UserWarning, match="at least as long") as caught:
+        Scans(*args).to_observations(free_margin=2.0)
+    assert caught[0].filename == __file__
+    assert_array_equal(kind, [HIT, HIT, HIT, RETURN])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans_to_observations(*args, free_margin=1.5)  # one of three: a near obstacle
 
 
 def test_range_at_max_range_is_no_return():
@@ -236,10 +252,6 @@ def test_beam_directions_unit_and_rotated():
         ({"max_range": "far"}, "max_range must be a positive"),
         ({"free_margin": -0.1}, "free_margin must be a non-negative"),
         ({"free_margin": np.nan}, "free_margin must be a non-negative"),
-        ({"min_range": -0.1}, "min_range must be a finite number in"),
-        ({"min_range": 5.0}, "min_range must be a finite number in"),
-        ({"min_range": np.nan}, "min_range must be a finite number in"),
-        ({"min_range": "near"}, "min_range must be a non-negative number"),
     ],
 )
 def test_bad_input_2d(kwargs, match):

@@ -532,6 +532,25 @@ def test_cli_online_waits_for_two_hits(paper_log, tmp_path, capsys):
     assert [int(line.split("|")[2]) for line in table] == [2, 3, 4, 5]
 
 
+def test_cli_online_skips_a_scan_of_zero_readings(paper_log, tmp_path, capsys):
+    from skoccmap.cli import main
+
+    # Zeros are no reading: a scan of nothing but zeros gives no rows, and the replay
+    # moves on to the next batch.
+    log, _ = paper_log
+    text = log.read_text().splitlines(keepends=True)
+    third = text[3].split()
+    n = int(third[1])
+    third[2 : 2 + n] = ["0.0"] * n
+    zeros = tmp_path / "zeros.log"
+    zeros.write_text("".join(text[1:3]) + " ".join(third) + "\n" + "".join(text[4:6]))
+    argv = ["map", str(zeros), "--online", "--batch-scans", "1", "--resolution", "1.0",
+            "--n-jobs", "1", "--out", str(tmp_path / "out"), "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    table = [line for line in capsys.readouterr().out.splitlines() if re.match(r"\| \d+ \|", line)]
+    assert [int(line.split("|")[1]) for line in table] == [1, 2, 4, 5]
+
+
 def test_cli_online_bad_batch_size(paper_log, capsys):
     from skoccmap.cli import main
 

@@ -201,6 +201,20 @@ def test_written_scans_read_back(paper_scans, tmp_path, ros_version, storage):
     _assert_same_scans(load_rosbag(bag), scans)
 
 
+def test_zero_readings_stay_no_reading_through_a_bag(paper_scans, tmp_path):
+    scans, _ = paper_scans
+    ranges = scans.ranges[:3].copy()
+    ranges[:, ::4] = 0.0
+    scans = Scans(scans.poses[:3], ranges, scans.angles, scans.max_range,
+                  timestamps=scans.timestamps[:3])  # fmt: skip
+    back = load_rosbag(write_rosbag(scans, tmp_path / "zeros", ros_version=2))
+    np.testing.assert_array_equal(back.unread(), scans.unread())
+    X, y, kind = scans.to_observations()
+    X_back, y_back, kind_back = back.to_observations()
+    np.testing.assert_array_equal(kind_back, kind)
+    np.testing.assert_allclose(X_back, X, atol=1e-5)  # float32 ranges in a LaserScan
+
+
 def test_ros2_storage_without_metadata(paper_scans, tmp_path):
     scans, _ = paper_scans
     bag = write_rosbag(scans, tmp_path / "bag", storage="mcap")

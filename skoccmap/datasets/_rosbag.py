@@ -928,7 +928,9 @@ def write_rosbag(
         timestamps = np.arange(len(scans), dtype=np.float64)
     stamps = np.rint(np.asarray(timestamps) * _NS).astype(np.int64)
     translations, rotations = _laser_transforms(scans)
-    ranges = np.where(scans.returned(), scans.ranges, np.inf).astype(np.float32)
+    # Readings of 0 (no measurement) stay 0, and read back as 0.
+    kept = scans.returned() | scans.unread()
+    ranges = np.where(kept, scans.ranges, np.inf).astype(np.float32)
     with _BagWriter(path, ros_version, storage) as bag:
         store = bag.store
         scan_conn = bag.connection(scan_topic, _LASER_SCAN)
