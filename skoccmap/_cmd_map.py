@@ -400,10 +400,12 @@ def check_hits(scans, log, what):
     """Refuse, in the log's terms, scans with fewer than the 2 hits a map needs."""
     n_hits = int(scans.returned().sum())
     if n_hits < 2:
+        n_unread = int(scans.unread().sum())
+        unread = f", {n_unread} read 0 (no measurement)" if n_unread else ""
         raise ValueError(
-            f"{log}: {n_hits} beam(s) of the {len(scans)} {what} return a hit (the others "
-            f"read at or beyond the maximum range, {scans.max_range:g} m); a map needs at "
-            "least 2 hits. Check --max-range."
+            f"{log}: {n_hits} beam(s) of the {len(scans)} {what} return a hit{unread} (the "
+            f"others read at or beyond the maximum range, {scans.max_range:g} m); a map "
+            "needs at least 2 hits. Check --max-range."
         )
 
 

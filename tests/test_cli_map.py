@@ -90,8 +90,12 @@ def test_a_log_without_returns_says_so(tmp_path, capsys):
     log.write_text("".join(lines))
     out = tmp_path / "o"
     assert main(["map", str(log), "--max-range", "8", "--quiet", "--out", str(out)]) == 2
-    assert "0 beam(s) of the 3 training scans return a hit" in capsys.readouterr().err
+    assert "0 beam(s) of the 3 training scans return a hit (the others" in capsys.readouterr().err
     assert not out.exists()
+    # Zeros (no measurement) are no hit either, and the message counts them.
+    log.write_text("".join(line.replace(" 8.0 8.0 ", " 0.0 8.0 ", 1) for line in lines))
+    assert main(["map", str(log), "--max-range", "8", "--quiet", "--out", str(out)]) == 2
+    assert "return a hit, 3 read 0 (no measurement)" in capsys.readouterr().err
 
 
 def test_a_failed_map_removes_the_folders_it_made(tmp_path, capsys):
