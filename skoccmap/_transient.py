@@ -127,14 +127,17 @@ class CellCounts:
             return self
         if self.origin is None:
             self.origin = np.floor(starts[0] / self.cell_size)
-        # Every cell is found (and range-checked) before any count changes.
-        start_cells, end_cells = self._cells(starts), self._cells(ends)
-        keys, hits = np.unique(self._keys(end_cells[occupied]), return_counts=True)
+        # The range check first, on the extreme coordinates (cells grow with them), so that
+        # a row too far out is refused before anything is counted, without holding the
+        # cells of every row.
+        self._cells(np.vstack([starts.min(axis=0), starts.max(axis=0), ends.min(axis=0),
+                               ends.max(axis=0)]))  # fmt: skip
+        keys, hits = np.unique(self._keys(self._cells(ends[occupied])), return_counts=True)
         parts = [(self.keys, self.hits, self.passes), (keys, hits, np.zeros_like(hits))]
         free = np.flatnonzero(~occupied)
         for lo in range(0, free.size, _CHUNK):
             rows = free[lo : lo + _CHUNK]
-            first, last = start_cells[rows], end_cells[rows]
+            first, last = self._cells(starts[rows]), self._cells(ends[rows])
             low = np.minimum(first.min(axis=0), last.min(axis=0))
             high = np.maximum(first.max(axis=0), last.max(axis=0))
             shape = tuple(int(n) for n in high - low + 1)
