@@ -219,8 +219,8 @@ class OccupancyGrid:
             Cell edge length in metres.
         unknown_variance : float, "auto" or None, default="auto"
             Cells whose variance exceeds this are unknown. ``"auto"``: 90 % of the prior
-            variance (the estimator's ``prior_variance`` where it has one, else the largest
-            variance on the grid) -- far from all data a GP's variance returns to its prior,
+            variance (the estimator's ``prior_variance`` where it has one, or the largest
+            variance on the grid where that is larger or there is none) -- far from all data a GP's variance returns to its prior,
             the largest value it takes, while cells seen by a few beams keep much of it when
             the signal variance is large (on the Intel lab, every 10th scan, half the largest
             variance hid 43 % of the cells the map calls free; 90 % hides none of them and

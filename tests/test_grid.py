@@ -164,6 +164,13 @@ def test_cells_no_beam_observed_are_unknown():
     np.testing.assert_array_equal(both.unknown, var_only.unknown | ~observed)
     with pytest.raises(ValueError, match="observed_by"):
         OccupancyGrid.from_estimator(_ProbaOnly(), extent, 1.0, observed_by=np.zeros((2, 4)))
+    # A third beam, along the diagonal, reads 0 (no measurement): it observes nothing.
+    with_zero = Scans([[0.5, 0.5, 0.0]], [[2.0, np.inf, 0.0]], [0.0, np.pi / 2, np.pi / 4],
+                      max_range=2.0)  # fmt: skip
+    grid = OccupancyGrid.from_estimator(
+        _ProbaOnly(), extent, 1.0, unknown_variance=None, observed_by=with_zero
+    )
+    np.testing.assert_array_equal(grid.unknown, ~observed)
 
 
 def test_no_return_beams_count_up_to_the_first_cell_holding_a_hit():

@@ -152,12 +152,14 @@ def _observed_cells(scans, lo, resolution, counts, through_hits=True):
     """Cells crossed by any beam (sensor to hit, or to max_range) or holding a hit.
 
     ``through_hits=False``: a beam without a return counts only up to the first cell that
-    holds a hit after the sensor's own cell, that cell included.
+    holds a hit after the sensor's own cell, that cell included. A reading of 0 (no
+    measurement) observes nothing.
     """
-    origins = np.repeat(scans.origins(), scans.n_beams, axis=0)
-    directions = scans.directions().reshape(-1, scans.n_dims)
-    returned = scans.returned().ravel()
-    ranges = np.where(returned, scans.ranges.ravel(), scans.max_range)
+    read = ~scans.unread().ravel()
+    origins = np.repeat(scans.origins(), scans.n_beams, axis=0)[read]
+    directions = scans.directions().reshape(-1, scans.n_dims)[read]
+    returned = scans.returned().ravel()[read]
+    ranges = np.where(returned, scans.ranges.ravel()[read], scans.max_range)
     ends = origins + ranges[:, None] * directions
     stop = None
     if not through_hits:
