@@ -742,8 +742,9 @@ def ep_latent_joint_predictive(K_cross, K_new, posterior):
     R&W eqs. 3.60-3.61 with the full covariance instead of its diagonal. With the sites
     of the training points held fixed, this is the prior that new points' sites see: EP
     on ``(cov, y_new, mean=mean)`` fits sites for new rows without revisiting the old ones
-    (:meth:`skoccmap.classifier.EPGaussianProcessClassifier._absorbed`). Its sites are in the latent centred
-    on ``mean``; add ``tau * mean`` to their ``nu`` to express them in the latent itself.
+    (:meth:`skoccmap.classifier.EPGaussianProcessClassifier._absorbed`). Its sites are in
+    the latent centred on ``mean``; add ``tau * mean`` to their ``nu`` to express them in
+    the latent itself.
 
     Parameters
     ----------

@@ -220,12 +220,13 @@ class OccupancyGrid:
         unknown_variance : float, "auto" or None, default="auto"
             Cells whose variance exceeds this are unknown. ``"auto"``: 90 % of the prior
             variance (the estimator's ``prior_variance`` where it has one, or the largest
-            variance on the grid where that is larger or there is none) -- far from all data a GP's variance returns to its prior,
-            the largest value it takes, while cells seen by a few beams keep much of it when
-            the signal variance is large (on the Intel lab, every 10th scan, half the largest
-            variance hid 43 % of the cells the map calls free; 90 % hides none of them and
-            still marks the outside of the building unknown). ``None``, or an estimator
-            without ``predict_var``: no cell is unknown.
+            variance on the grid where that is larger or there is none) -- far from all
+            data a GP's variance returns to its prior, the largest value it takes, while
+            cells seen by a few beams keep much of it when the signal variance is large
+            (on the Intel lab, every 10th scan, half the largest variance hid 43 % of the
+            cells the map calls free; 90 % hides none of them and still marks the outside
+            of the building unknown). ``None``, or an estimator without ``predict_var``: no
+            cell is unknown.
         observed_by : Scans or None, default=None
             The training scans: cells that none of their beams crossed (sensor to hit, or,
             without a return, to the first cell past the sensor's that holds one of their
