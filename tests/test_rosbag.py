@@ -573,6 +573,11 @@ def test_writers_refuse_bad_arguments(grid, paper_scans, tmp_path):
         grid.write_rosbag(tmp_path / "other", ros_version=3)
     with pytest.raises(ValueError, match=r"\.bag file"):
         write_rosbag(scans, tmp_path / "scans", ros_version=1)
+    for name in ("scans.bag", "scans.db3", "scans.mcap"):
+        # A ROS 2 bag is a directory: so named, it would not read back.
+        with pytest.raises(ValueError, match="a ROS 2 bag is a directory"):
+            write_rosbag(scans, tmp_path / name, ros_version=2)
+        assert not (tmp_path / name).exists()
     uneven = Scans(scans.poses, scans.ranges, scans.angles**3, scans.max_range)
     with pytest.raises(ValueError, match="evenly spaced"):
         write_rosbag(uneven, tmp_path / "uneven")

@@ -786,6 +786,13 @@ class _BagWriter:
             self.writer = Writer1(path)
         else:
             plugins = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
+            if path.suffix in (".bag", *_ROS2_STORAGES):
+                # A directory so named would be read back as a ROS 1 bag or a bare storage
+                # file, and fail.
+                raise ValueError(
+                    f"a ROS 2 bag is a directory, not a {path.suffix} file; name it without "
+                    f"the suffix (e.g. {path.with_suffix('')}), or pass ros_version=1."
+                )
             if storage not in plugins:
                 raise ValueError(f"storage must be 'sqlite3' or 'mcap', got {storage!r}.")
             self.writer = Writer2(path, version=8, storage_plugin=plugins[storage])
