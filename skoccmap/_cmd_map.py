@@ -250,11 +250,40 @@ def load_scans(args):
             f"{args.log} is a folder but not a ROS 2 bag (no metadata.yaml, .db3 or .mcap "
             "in it); pass a CARMEN log file or a bag"
         )
-    scans = _load_bag(args) if is_rosbag(args.log) else _load_carmen(args)
+    bag = is_rosbag(args.log)
+    _check_reader_options(args, bag)
+    scans = _load_bag(args) if bag else _load_carmen(args)
     print(
         f"{args.log}: {len(scans)} scans x {scans.n_beams} beams, max range {scans.max_range:g} m"
     )
     return scans
+
+
+# The options of one reader, at their defaults: given to the other, they would be ignored.
+_BAG_DEFAULTS = {
+    "scan_topic": "/scan",
+    "pose_topic": None,
+    "map_frame": "map",
+    "base_frame": None,
+    "laser_frame": None,
+}
+
+
+def _check_reader_options(args, bag):
+    """ValueError for a ROS bag option given with a CARMEN log, or the reverse."""
+    if bag:
+        given = ["--skip-bad-lines"] if getattr(args, "skip_bad_lines", False) else []
+        kind, other = "CARMEN logs", "a ROS bag"
+    else:
+        given = [
+            "--" + name.replace("_", "-")
+            for name, default in _BAG_DEFAULTS.items()
+            if getattr(args, name, default) != default
+        ]
+        kind, other = "ROS bags", "a CARMEN log"
+    if given:
+        verb = "applies" if len(given) == 1 else "apply"
+        raise ValueError(f"{', '.join(given)} {verb} only to {kind}; {args.log} is {other}")
 
 
 def _load_carmen(args):

@@ -68,6 +68,10 @@ def test_evaluate_prints_both_models(paper_log, capsys):
         (["map", "{log}", "--snapshots", "{tmp}/s"], "--snapshots applies only with --online"),
         (["map", "{log}", "--batch-scans", "3", "--refit-fraction", "0"],
          "--batch-scans, --refit-fraction apply only with --online"),
+        # A reader's options given to the other reader were ignored.
+        (["map", "{log}", "--scan-topic", "/front"], "--scan-topic applies only to ROS bags"),
+        (["evaluate", "{log}", "--map-frame", "odom", "--laser-frame", "laser"],
+         "--map-frame, --laser-frame apply only to ROS bags;"),
         # A folder that is not a bag used to say "Is a directory".
         (["map", "{tmp}"], "is a folder but not a ROS 2 bag"),
         # The output folder is checked before the fit, not after it.

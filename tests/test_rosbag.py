@@ -613,6 +613,9 @@ def test_cli_bag_options_reach_the_reader(small_bag, capsys):
     argv = ["map", str(small_bag), "--scan-topic", "/front_scan", "--pose-topic", "/pose"]
     assert main(argv) == 2
     assert "no pose topic '/pose'" in capsys.readouterr().err
+    # A CARMEN log's option, given with a bag, was ignored.
+    assert main(["map", str(small_bag), "--skip-bad-lines", "--quiet"]) == 2
+    assert "--skip-bad-lines applies only to CARMEN logs" in capsys.readouterr().err
     argv = ["map", str(small_bag), "--scan-topic", "/front_scan", "--map-frame", "world"]
     assert main(argv) == 2
     assert "['world'] are not in them" in capsys.readouterr().err
