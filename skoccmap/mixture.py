@@ -1595,7 +1595,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             New segment rows; ``n_features_in_`` is fixed by the first call.
         y : array-like of shape (n_samples,)
             Labels from ``classes``. After the first call one class is fine (a batch of
-            free space only).
+            free space only), and so is an empty batch (nothing is updated).
         classes : array-like of shape (2,), default=None
             All labels, needed on the first call unless ``y`` holds both; later calls may
             omit it, or must repeat ``classes_``.
@@ -1647,7 +1647,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 self.classes_ = classes
                 return self._fit(_as_segment_rows(X, self.layout), np.searchsorted(classes, y))
         check_is_fitted(self)
-        X, y = validate_data(self, X, y, reset=False, dtype=np.float64)
+        X, y = validate_data(self, X, y, reset=False, dtype=np.float64, ensure_min_samples=0)
+        if X.shape[0] == 0:
+            # A batch whose readings all failed (zeros): nothing to learn, nothing touched.
+            self.touched_experts_ = np.empty(0, dtype=np.intp)
+            return self
         check_classification_targets(y)
         if classes is not None and not np.array_equal(np.unique(classes), self.classes_):
             raise ValueError(

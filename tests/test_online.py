@@ -177,6 +177,22 @@ def test_one_class_batch(office):
     assert np.mean(after[changed, 1] - before[changed, 1]) < 0.0
 
 
+def test_an_empty_batch_changes_nothing(office):
+    # A batch of scans whose readings all failed (0, no measurement) has no rows.
+    data, queries = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    before = model.predict_proba(queries)
+    n_rows, n_experts = model.cluster_labels_.size, model.n_experts_
+    model.partial_fit(np.empty((0, 4)), np.empty(0))
+    assert model.touched_experts_.size == 0
+    assert model.cluster_labels_.size == n_rows and model.n_experts_ == n_experts
+    np.testing.assert_array_equal(model.predict_proba(queries), before)
+    with pytest.raises(ValueError, match="features"):
+        model.partial_fit(np.empty((0, 3)), np.empty(0))  # the columns are still checked
+    with pytest.raises(ValueError, match="0 sample"):
+        _model().partial_fit(np.empty((0, 4)), np.empty(0), classes=[0, 1])  # a first call
+
+
 @pytest.mark.parametrize(
     "make_bad",
     [
