@@ -130,6 +130,7 @@ class OccupancyMapDisplay:
         *,
         kind=None,
         unknown_variance="auto",
+        observed_by=None,
         chunk_size=65_536,
         verbose=0,
         ax=None,
@@ -140,8 +141,9 @@ class OccupancyMapDisplay:
         Parameters
         ----------
         estimator : fitted estimator with ``predict_proba`` (``predict_var`` optional)
-        extent, resolution, unknown_variance, chunk_size, verbose
-            See :meth:`skoccmap.OccupancyGrid.from_estimator`.
+        extent, resolution, unknown_variance, observed_by, chunk_size, verbose
+            See :meth:`skoccmap.OccupancyGrid.from_estimator` (``observed_by``: the
+            training scans, whose unseen cells are drawn unknown).
         kind : {"probability", "std", "variance", "both"} or None, default=None
             Panels; ``None``: both when the estimator has ``predict_var``.
         ax : matplotlib Axes, sequence of two Axes or None, default=None
@@ -158,6 +160,7 @@ class OccupancyMapDisplay:
             extent,
             resolution,
             unknown_variance=unknown_variance,
+            observed_by=observed_by,
             chunk_size=chunk_size,
             verbose=verbose,
         )

@@ -80,6 +80,20 @@ def test_from_estimator_and_user_axes():
     assert len(a.collections) == 1  # the overlaid points
 
 
+def test_from_estimator_draws_cells_no_beam_saw_as_unknown():
+    from skoccmap.observations import Scans
+
+    # One beam along +x from (-0.75, -0.75): the bottom row of cells, the rest unseen.
+    scans = Scans([[-0.75, -0.75, 0.0]], [[np.inf]], [0.0], max_range=1.5)
+    disp = OccupancyMapDisplay.from_estimator(
+        _WithVar(), (-1.0, 1.0, -1.0, 1.0), 0.5, kind="probability", unknown_variance=None,
+        observed_by=scans,
+    )
+    expected = np.ones((4, 4), dtype=bool)
+    expected[0, :] = False
+    np.testing.assert_array_equal(np.ma.getmaskarray(disp.im_.get_array()), expected)
+
+
 def test_probability_only_for_estimators_without_variance():
     X = np.array([[0.0, 0.0, 0.95, 0.0], [1.0, 0.0, 1.0, 0.0]])
     est = OccupancyGridMap(resolution=0.5).fit(X, [0, 1])
