@@ -573,6 +573,12 @@ def test_writers_refuse_bad_arguments(grid, paper_scans, tmp_path):
         grid.write_rosbag(tmp_path / "other", ros_version=3)
     with pytest.raises(ValueError, match=r"\.bag file"):
         write_rosbag(scans, tmp_path / "scans", ros_version=1)
+    for topic in ("map with space", "", "/map/", "//map", "/2d_map", 5):
+        with pytest.raises(ValueError, match="must be a ROS topic name"):
+            grid.write_rosbag(tmp_path / "named", topic=topic)
+        with pytest.raises(ValueError, match="scan_topic must be a ROS topic name"):
+            write_rosbag(scans, tmp_path / "named", scan_topic=topic)
+        assert not (tmp_path / "named").exists()
     for name in ("scans.bag", "scans.db3", "scans.mcap"):
         # A ROS 2 bag is a directory: so named, it would not read back.
         with pytest.raises(ValueError, match="a ROS 2 bag is a directory"):

@@ -10,6 +10,7 @@ Frames follow tf2: a ``geometry_msgs/TransformStamped`` with ``header.frame_id``
 leading ``/`` (ROS 1 allowed ``/base_link``; tf2 strips it).
 """
 
+import re
 import warnings
 from collections import deque
 from dataclasses import dataclass
@@ -881,6 +882,19 @@ def _laser_transforms(scans):
     return translations, np.column_stack([np.cos(half), zeros, zeros, np.sin(half)])
 
 
+# A ROS graph resource name (ROS 1 and ROS 2 alike): tokens of letters, digits and
+# underscores, not starting with a digit, separated by single slashes, optionally absolute.
+_TOPIC = re.compile(r"/?[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*")
+
+
+def _check_topic(topic, name):
+    if not (isinstance(topic, str) and _TOPIC.fullmatch(topic)):
+        raise ValueError(
+            f"{name} must be a ROS topic name (letters, digits and underscores between single "
+            f"slashes, not starting with a digit, e.g. '/map'), got {topic!r}."
+        )
+
+
 def write_rosbag(
     scans,
     path,
@@ -929,6 +943,7 @@ def write_rosbag(
     _import_rosbags()
     if not isinstance(scans, Scans):
         raise ValueError(f"scans must be a skoccmap.observations.Scans, got {type(scans)}.")
+    _check_topic(scan_topic, "scan_topic")
     angle_min, increment = _scan_geometry(scans)
     timestamps = scans.timestamps
     if timestamps is None:
@@ -1005,6 +1020,7 @@ def occupancy_grid_message(fields, *, stamp=None, ros_version=2):
 def write_occupancy_grid(fields, path, *, topic, stamp, ros_version, storage):
     """Write one ``nav_msgs/OccupancyGrid`` on a latched topic into a new bag."""
     _import_rosbags()
+    _check_topic(topic, "topic")
     stamp_ns = _stamp_to_ns(stamp)
     with _BagWriter(path, ros_version, storage) as bag:
         message = _occupancy_grid_message(bag.store, fields, stamp_ns)
