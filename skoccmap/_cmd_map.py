@@ -87,6 +87,17 @@ def add_arguments(parser):
     )
 
 
+# The ROS bag reader's options (load_rosbag's arguments) at their defaults: given with a
+# CARMEN log, they would be ignored.
+_BAG_DEFAULTS = {
+    "scan_topic": "/scan",
+    "pose_topic": None,
+    "map_frame": "map",
+    "base_frame": None,
+    "laser_frame": None,
+}
+
+
 def add_model_arguments(parser):
     """Options shared by ``map`` and ``evaluate``: reading the log and the mixture."""
     parser.add_argument(
@@ -98,29 +109,29 @@ def add_model_arguments(parser):
     bag = parser.add_argument_group("ROS bags")
     bag.add_argument(
         "--scan-topic",
-        default="/scan",
+        default=_BAG_DEFAULTS["scan_topic"],
         help="topic of the sensor_msgs/LaserScan messages (default /scan)",
     )
     bag.add_argument(
         "--pose-topic",
-        default=None,
+        default=_BAG_DEFAULTS["pose_topic"],
         help="nav_msgs/Odometry or geometry_msgs/PoseStamped topic giving the poses (default: "
         "the transforms from --map-frame to the laser on /tf and /tf_static)",
     )
     bag.add_argument(
         "--map-frame",
-        default="map",
+        default=_BAG_DEFAULTS["map_frame"],
         help="frame of the poses read from /tf (default map; odom maps with odometry alone)",
     )
     bag.add_argument(
         "--base-frame",
-        default=None,
+        default=_BAG_DEFAULTS["base_frame"],
         help="with --pose-topic: frame whose pose the topic gives (default: an Odometry "
         "message's child frame; the laser's own frame for the pose messages, which name none)",
     )
     bag.add_argument(
         "--laser-frame",
-        default=None,
+        default=_BAG_DEFAULTS["laser_frame"],
         help="frame of the scans (default: each scan's header frame; for bags whose scans "
         "name none, or the wrong one)",
     )
@@ -259,16 +270,6 @@ def load_scans(args):
     return scans
 
 
-# The options of one reader, at their defaults: given to the other, they would be ignored.
-_BAG_DEFAULTS = {
-    "scan_topic": "/scan",
-    "pose_topic": None,
-    "map_frame": "map",
-    "base_frame": None,
-    "laser_frame": None,
-}
-
-
 def _check_reader_options(args, bag):
     """ValueError for a ROS bag option given with a CARMEN log, or the reverse."""
     if bag:
@@ -310,21 +311,14 @@ def _load_bag(args):
     from .datasets import load_rosbag
 
     try:
-        scans = load_rosbag(
-            args.log,
-            getattr(args, "scan_topic", "/scan"),
-            pose_topic=getattr(args, "pose_topic", None),
-            map_frame=getattr(args, "map_frame", "map"),
-            base_frame=getattr(args, "base_frame", None),
-            laser_frame=getattr(args, "laser_frame", None),
-            max_range=args.max_range,
-        )
+        options = {name: getattr(args, name, default) for name, default in _BAG_DEFAULTS.items()}
+        scans = load_rosbag(args.log, **options, max_range=args.max_range)
     except ImportError as exc:
         raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
     except ValueError as exc:
         # The library's hints name its arguments; the command's user knows the options.
         message = str(exc)
-        for name in ("map_frame", "pose_topic", "base_frame", "laser_frame", "max_range"):
+        for name in (*_BAG_DEFAULTS, "max_range"):
             option = "--" + name.replace("_", "-")
             message = re.sub(rf"\b{name}=(?=[\s.,]|$)", option, message)
             message = re.sub(rf"\b{name}=", option + " ", message)
