@@ -137,6 +137,17 @@ def _check_ranges(ranges, n_scans):
     return ranges
 
 
+def _returned(ranges, max_range):
+    """Readings with a return: in (0, max_range); False for 0 (no reading), NaN and inf."""
+    with np.errstate(invalid="ignore"):
+        return (ranges > 0.0) & (ranges < max_range)
+
+
+def _unread(ranges):
+    """Readings of 0: many drivers' code for "no measurement"."""
+    return ranges == 0.0
+
+
 def _shape_hint(beam_axis, n_beams):
     """The end of a wrong-angles message: which array holds how many beams, when they differ."""
     if beam_axis and beam_axis[0] != n_beams:
@@ -329,9 +340,7 @@ def scans_to_observations(
 
     origins = poses[:, None, :n_dims]
     directions = _directions(poses, angles, n_beams)
-    with np.errstate(invalid="ignore"):
-        unread = ranges == 0.0
-        returned = (ranges > 0.0) & (ranges < max_range)  # False for NaN and inf
+    unread, returned = _unread(ranges), _returned(ranges, max_range)
     r = np.where(returned, ranges, 0.0)[..., None]
 
     hit_points = origins + r * directions
@@ -501,13 +510,12 @@ class Scans:
 
     def returned(self):
         """Boolean mask (n_scans, n_beams) of beams with a return (range in (0, max_range))."""
-        with np.errstate(invalid="ignore"):
-            return (self.ranges > 0.0) & (self.ranges < self.max_range)
+        return _returned(self.ranges, self.max_range)
 
     def unread(self):
         """Boolean mask (n_scans, n_beams) of readings of 0: no measurement, no return or
         free space (:func:`scans_to_observations` gives them no row)."""
-        return self.ranges == 0.0
+        return _unread(self.ranges)
 
     def hit_points(self):
         """Hit points of all beams with a return, shape (n_hits, n_dims), in scan/beam order."""
