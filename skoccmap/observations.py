@@ -514,7 +514,16 @@ class Scans:
 
     def unread(self):
         """Boolean mask (n_scans, n_beams) of readings of 0: no measurement, no return or
-        free space (:func:`scans_to_observations` gives them no row)."""
+        free space (:func:`scans_to_observations` gives them no row).
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap.observations import Scans
+        >>> scans = Scans([[0.0, 0.0, 0.0]], [[0.0, 2.0, np.inf]], [-1.0, 0.0, 1.0], 5.0)
+        >>> scans.unread(), scans.returned()
+        (array([[ True, False, False]]), array([[False,  True, False]]))
+        """
         return _unread(self.ranges)
 
     def hit_points(self):
