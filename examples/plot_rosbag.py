@@ -27,7 +27,6 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
-from rosbags.highlevel import AnyReader
 
 from skoccmap import MixtureGPOccupancyMap, OccupancyGrid
 from skoccmap.datasets import load_rosbag, make_office_scans, write_rosbag
@@ -35,7 +34,10 @@ from skoccmap.plotting import OccupancyMapDisplay
 
 tmp = Path(tempfile.mkdtemp())
 office = make_office_scans(noise_std=0.02, random_state=0)
+# Without rosbags installed, write_rosbag stops here with the command that installs it.
 bag = write_rosbag(office.scans, tmp / "office_bag", ros_version=2)
+
+from rosbags.highlevel import AnyReader  # noqa: E402 (installed with skoccmap[ros])
 
 with AnyReader([bag]) as reader:
     for topic, info in reader.topics.items():
