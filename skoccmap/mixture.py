@@ -1880,6 +1880,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             if len(expert_cluster) > n_experts:
                 n_experts = len(expert_cluster)
                 rows = _groups(piece_expert, n_experts)
+        # A split can leave an expert exactly its old rows (the new ones all split off):
+        # it is unchanged, not touched.
+        old_groups = _groups(self._piece_expert, n_old_experts)
+        touched = {
+            k for k in touched if k >= n_old_experts or not np.array_equal(rows[k], old_groups[k])
+        }
 
         # 5. Experts numbered cluster by cluster (a cluster's experts are contiguous, in
         # the order of its gate's columns); untouched clusters keep their order.
@@ -1898,7 +1904,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         for k in range(n_old_experts):
             old_experts[renumber[k]] = self.experts_[k]
         # Rows each old expert was fitted on (all of its pieces, in order), by new number.
-        old_groups = _groups(self._piece_expert, n_old_experts)
         old_rows = [np.empty(0, np.intp)] * n_experts
         for k in range(n_old_experts):
             old_rows[renumber[k]] = old_groups[k]

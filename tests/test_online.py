@@ -404,6 +404,23 @@ def test_refit_fraction_refits_after_a_share_of_added_rows(office, fraction):
     assert not _settled_and_absorbed(model)[:, 1].any()
 
 
+def test_an_expert_a_split_leaves_unchanged_is_not_touched(office):
+    # Small experts, five scans a batch: some updates split an expert so that all its new
+    # rows go to the part split off. The expert keeps exactly its old rows and fit, and
+    # touched_experts_ ("fitted, refitted or given new rows") must not name it.
+    data, _ = office
+    model = _model(refit_fraction=0.3, max_expert_size=60)
+    for first in range(0, 30, 5):
+        before = {id(e) for e in model.experts_} if first else set()
+        model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+        touched = set(model.touched_experts_.tolist())
+        assert not any(id(model.experts_[k]) in before for k in touched)
+        # ... and every expert not named is the one it was.
+        if first:
+            others = set(range(model.n_experts_)) - touched
+            assert all(id(model.experts_[k]) in before for k in others)
+
+
 def test_updates_warn_nothing_but_convergence(office):
     # Rows appended in this process and refits in workers alike: no stray warning
     # (such as joblib's about a delayed call run outside Parallel) reaches the user.
