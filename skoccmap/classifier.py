@@ -292,8 +292,9 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     max_iter : int, default=200
         Maximum number of EP sweeps per EP run.
     tol : float, default=1e-6
-        EP stops when every site residual ``|proposed - current| / (1 + |current|)`` is at most
-        ``tol``.
+        EP stops when no site would change its marginal by more than ``tol``: the
+        marginal precision relatively, the marginal mean in standard deviations (see
+        :func:`skoccmap.ep.expectation_propagation`).
     copy_X_train : bool, default=True
         Whether ``X_train_`` is a copy of the training data or a reference to it.
     random_state : int, RandomState instance or None, default=None

@@ -101,7 +101,8 @@ class EPResult(NamedTuple):
     converged : bool
         Whether the largest site residual fell below ``tol`` within ``max_iter`` sweeps.
     residual : float
-        Largest scaled site residual ``|proposed - current| / (1 + |current|)`` of the last sweep.
+        Largest site residual of the last sweep, in units of the marginals (see ``tol`` of
+        :func:`expectation_propagation`).
     """
 
     site_precision: np.ndarray
@@ -345,8 +346,9 @@ def expectation_propagation(
     max_iter : int, default=200
         Maximum number of sweeps.
     tol : float, default=1e-6
-        Stop when every site residual ``|proposed - current| / (1 + |current|)`` (for both
-        tau and nu) is at most ``tol``.
+        Stop when no site would change its marginal by more than ``tol``: neither the
+        marginal precision, relatively (``|d tau| var``), nor the marginal mean, in
+        standard deviations (``|d nu| sqrt(var)``), with ``var`` the marginal variance.
     acceleration : int, default=5
         Parallel updates only: number of past sweeps that Anderson acceleration combines
         (0 turns it off). Parallel EP is a fixed-point iteration that converges linearly;
@@ -399,10 +401,17 @@ def _sequential_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, done=
     return EPResult(tau, nu, posterior, done + max_iter, False, residual)
 
 
-def _residual(tau, nu, tau_new, nu_new):
+def _residual(tau, nu, tau_new, nu_new, var):
+    """Largest change of a site in units of its marginal: of the marginal precision,
+    ``|d tau| var``, and of the marginal mean in standard deviations, ``|d nu| sqrt(var)``.
+
+    Scale-free, unlike a change relative to ``1 + |site|``: at a large signal variance the
+    sites are of order ``1 / var``, and a whole first sweep from zero sites (the prior)
+    would fall within any tolerance of the sites themselves.
+    """
     return max(
-        np.max(np.abs(tau_new - tau) / (1.0 + np.abs(tau)), initial=0.0),
-        np.max(np.abs(nu_new - nu) / (1.0 + np.abs(nu)), initial=0.0),
+        np.max(np.abs(tau_new - tau) * var, initial=0.0),
+        np.max(np.abs(nu_new - nu) * np.sqrt(var), initial=0.0),
     )
 
 
@@ -430,7 +439,7 @@ def _parallel_ep(K, y, mean, tau, nu, posterior, damping, max_iter, tol, memory)
     residual = np.inf
     for n_iter in range(1, max_iter + 1):
         tau_prop, nu_prop = _proposed_sites(y, mean, tau, nu, posterior)
-        residual = _residual(tau, nu, tau_prop, nu_prop)
+        residual = _residual(tau, nu, tau_prop, nu_prop, posterior.var)
         if residual <= tol:
             return EPResult(tau, nu, posterior, n_iter, True, residual)
         if residual > 10.0 * lowest:
@@ -487,11 +496,7 @@ def _sequential_sweep(K, y, mean, tau, nu, posterior, damping):
         nu_cav = mu[i] / s2 - nu[i]
         t_new, n_new, _ = probit_site_update(y[i : i + 1], tau_cav, nu_cav, mean[i])
         t_new, n_new = t_new[0], n_new[0]
-        residual = max(
-            residual,
-            abs(t_new - tau[i]) / (1.0 + abs(tau[i])),
-            abs(n_new - nu[i]) / (1.0 + abs(nu[i])),
-        )
+        residual = max(residual, _residual(tau[i], nu[i], t_new, n_new, s2))
         d_tau = (1.0 - damping) * (t_new - tau[i])
         d_nu = (1.0 - damping) * (n_new - nu[i])
         tau[i] += d_tau
