@@ -462,7 +462,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         else:
             X, y = validate_data(self, X, y, ensure_2d=False, dtype=None)
         check_classification_targets(y)
-        classes = np.unique(y)
+        classes = self.__dict__.get("_given_classes")
+        classes = np.unique(y) if classes is None else classes
         if classes.size < 2:
             raise ValueError(
                 f"y holds one class ({classes.tolist()}); {type(self).__name__} needs "
@@ -579,6 +580,22 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         finally:
             for name in ("_initial_sites", "_initial_kernel", "_hold"):
                 self.__dict__.pop(name, None)
+
+    def _fit_one_class(self, X, y, classes):
+        """``fit`` on labels of one of the two ``classes``: the GP posterior of data that
+        show one class only (a wall seen without the free space in front of it).
+
+        EP needs no second class: each site pulls the latent to its own label's side.
+        ``fit`` asks for two, as scikit-learn's classifiers do. Learning hyperparameters
+        on one class would drive the signal variance to its bound: set ``optimizer=None``.
+        """
+        self._given_classes = np.asarray(classes)
+        if self._given_classes.size != 2 or not np.all(np.isin(y, self._given_classes)):
+            raise ValueError(f"classes must be two labels holding y's, got {classes!r}.")
+        try:
+            return self.fit(X, y)
+        finally:
+            self.__dict__.pop("_given_classes", None)
 
     def _absorbed(self, X, y, K_cross=None, K_new=None):
         """A copy with the rows ``X`` appended to the fit, EP run on their sites alone.

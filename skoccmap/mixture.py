@@ -607,7 +607,8 @@ def _training_kernel(kernel, X, previous=None):
 
 
 def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False, hold=None):
-    """Fit one expert; one-class data get a :class:`_ConstantExpert`.
+    """Fit one expert. One-class data: an EP expert runs EP on them (the GP posterior of
+    one class); another expert becomes a :class:`_ConstantExpert`.
 
     ``sites``, a pair ``(site_precision, site_nu)`` per row, warm-starts an expert that
     can take them (:class:`~skoccmap.EPGaussianProcessClassifier`); others ignore them.
@@ -623,13 +624,20 @@ def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False, hold
     warn as usual.
     """
     n_positive = int(np.sum(y == 1))
+    fit = expert.fit
     if n_positive in (0, y.size):
-        kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
-        return _ConstantExpert(kernel, n_positive, y.size), [], None
+        if type(expert) is not EPGaussianProcessClassifier:
+            kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
+            return _ConstantExpert(kernel, n_positive, y.size), [], None
+        # EP on one class: the GP posterior of walls seen alone (or free space alone), with
+        # the kernel given. A constant at the prior variance would say nothing under the
+        # robust BCM, which weighs experts by what they learned.
+        expert.set_params(optimizer=None)
+        fit = partial(expert._fit_one_class, classes=np.array([0, 1], dtype=y.dtype))
+        sites, keep_kernel, hold = None, False, None
     K = None
     if keep_kernel and _takes_kernel_matrix(expert):
         K = _training_kernel(expert.get_params()["kernel"], X, previous)
-    fit = expert.fit
     if (sites is not None or K is not None) and hasattr(expert, "_fit_warm_start"):
         tau, nu = (None, None) if sites is None else sites
 
@@ -1201,8 +1209,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     n_experts_ : int
         Number of experts.
     experts_ : list of estimators
-        Fitted experts; one-class pieces hold a constant expert (prior variance, smoothed
-        class frequency).
+        Fitted experts. An :class:`~skoccmap.EPGaussianProcessClassifier` expert of
+        one-class pieces (walls without the free space in front of them) is fitted on that
+        class, with its kernel as given; another expert of them is a constant (prior
+        variance, smoothed class frequency), to which ``combiner="rbcm"`` gives no weight.
     gating_ : estimator or None
         The fitted gating classifier when ``gating="gpc"`` and there are several experts.
     shared_kernel_ : kernel or None

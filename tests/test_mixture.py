@@ -182,6 +182,40 @@ def test_one_class_cluster_gets_constant_expert():
     np.testing.assert_allclose(model.predict_proba(q)[:, 1], 0.5)
 
 
+def test_a_one_class_ep_expert_is_the_gp_posterior_and_counts_under_the_robust_bcm():
+    from skoccmap.ep import ep_latent_predictive, expectation_propagation
+
+    # A wall with the free space in front of it, and a post of 25 hits far from any free
+    # point: the post's expert sees one class. Run as a constant at the prior variance,
+    # the robust BCM gave it no weight and drew the post at p = 0.5.
+    rng = np.random.default_rng(0)
+    wall = np.c_[np.full(60, 5.0), np.linspace(-3, 3, 60)]
+    free = np.c_[rng.uniform(0, 4.7, 400), rng.uniform(-3, 3, 400)]
+    post = np.array([10.0, 10.0]) + rng.normal(0, 0.2, (25, 2))
+    X = np.r_[wall, free, post]
+    y = np.r_[np.ones(60), np.zeros(400), np.ones(25)].astype(int)
+    model = MixtureGPOccupancyMap(layout="points", random_state=0).fit(X, y)
+    one_class = [e for e in model.experts_ if np.all(getattr(e, "y_train_", [0]) == 1)]
+    assert len(one_class) == 1 and one_class[0].classes_.tolist() == [0, 1]
+    expert = one_class[0]
+    # EP on the expert's rows alone, computed here, with the expert's (shared) kernel.
+    K = expert.kernel_(expert.X_train_)
+    res = expectation_propagation(K, np.ones(len(K)))
+    Q = as_segments([[10.0, 10.0], [10.5, 9.5]])
+    mean, var = ep_latent_predictive(
+        expert.kernel_(Q, expert.X_train_), expert.kernel_.diag(Q), res.posterior
+    )
+    got_mean, got_var = expert.latent_mean_and_variance(Q)
+    np.testing.assert_allclose(got_mean, mean, rtol=1e-5)
+    np.testing.assert_allclose(got_var, var, rtol=1e-5)
+    assert np.all(var < 0.5 * expert.kernel_.diag(Q))  # it learned something there
+    for combiner in ("rbcm", "bcm", "poe"):
+        model.set_params(combiner=combiner)
+        assert model.predict_proba([[10.0, 10.0]])[0, 1] > 0.9, combiner
+        # ... and beyond the reach of all data, the prior.
+        np.testing.assert_allclose(model.predict_proba([[40.0, 40.0]])[:, 1], 0.5)
+
+
 # --- experts, merging and splitting ------------------------------------------------------
 
 
