@@ -292,9 +292,8 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     max_iter : int, default=200
         Maximum number of EP sweeps per EP run.
     tol : float, default=1e-6
-        EP stops when no site would change its marginal by more than ``tol``: the
-        marginal precision relatively, the marginal mean in standard deviations (see
-        :func:`skoccmap.ep.expectation_propagation`).
+        EP stops when no site would change by more than ``tol`` in units of its
+        marginal (see :func:`skoccmap.ep.expectation_propagation`).
     copy_X_train : bool, default=True
         Whether ``X_train_`` is a copy of the training data or a reference to it.
     random_state : int, RandomState instance or None, default=None
@@ -589,9 +588,10 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         ``fit`` asks for two, as scikit-learn's classifiers do. Learning hyperparameters
         on one class would drive the signal variance to its bound: set ``optimizer=None``.
         """
-        self._given_classes = np.asarray(classes)
-        if self._given_classes.size != 2 or not np.all(np.isin(y, self._given_classes)):
+        given = np.asarray(classes)
+        if given.size != 2 or not np.all(np.isin(y, given)):
             raise ValueError(f"classes must be two labels holding y's, got {classes!r}.")
+        self._given_classes = given
         try:
             return self.fit(X, y)
         finally:

@@ -547,7 +547,8 @@ class _PieceGate:
 
 
 class _ConstantExpert:
-    """Expert of a cluster that saw one class only.
+    """Expert of a cluster that saw one class only, when the expert is not an
+    :class:`~skoccmap.EPGaussianProcessClassifier` (which is fitted on that class).
 
     Its latent variance is the prior variance (it learned nothing about the shape of the
     map) and its latent mean is chosen so that ``Phi(mu / sqrt(1 + var))`` equals the
@@ -1989,13 +1990,16 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         An expert whose rows have EP sites from the expert it comes from (itself, or the
         one it was split off) takes its other rows by EP on their sites alone, unless the
         rows not settled by a fit on all of an expert's rows reach ``refit_fraction`` of
-        those settled: then, as for a new expert or a count, it is refitted.
+        those settled: then, as for a new expert, a count or an expert fitted on one
+        class, it is refitted.
         """
         due = np.ones(len(touched), dtype=bool)
         for i, k in enumerate(touched):
             source = old_experts[origin[k]]
             if getattr(source, "n_classes_", 0) != 2 or not hasattr(source, "site_nu_"):
                 continue
+            if np.ptp(source.y_train_) == 0:
+                continue  # fitted on one class: its saturated sites cannot hold new rows
             split = not _appended(k, rows, old_rows, origin)
             if split and not _takes_kernel_matrix(self._expert_base):
                 continue  # the expert learns its kernel: a split one is fitted anyway

@@ -784,3 +784,14 @@ def test_packed_factor_unpacks_to_its_lower_triangle_with_zeros_above(n):
         np.testing.assert_array_equal(unpacked, lower)
         symmetric = _from_lower_triangle(_lower_triangle(full), symmetric=True)
         np.testing.assert_array_equal(symmetric, lower + np.tril(lower, -1).T)
+
+
+def test_a_refused_one_class_fit_leaves_no_classes_behind():
+    X = np.linspace(0, 1, 6)[:, None]
+    clf = EPGaussianProcessClassifier(optimizer=None)
+    with pytest.raises(ValueError, match="two labels"):
+        clf._fit_one_class(X, np.ones(6), classes=[1])
+    clf.fit(X, [0, 0, 0, 1, 1, 1])
+    assert clf.classes_.tolist() == [0, 1]
+    one = EPGaussianProcessClassifier(optimizer=None)._fit_one_class(X, np.ones(6), [0, 1])
+    assert one.classes_.tolist() == [0, 1] and np.all(one.predict(X) == 1)

@@ -182,18 +182,23 @@ def test_one_class_cluster_gets_constant_expert():
     np.testing.assert_allclose(model.predict_proba(q)[:, 1], 0.5)
 
 
-def test_a_one_class_ep_expert_is_the_gp_posterior_and_counts_under_the_robust_bcm():
-    from skoccmap.ep import ep_latent_predictive, expectation_propagation
-
-    # A wall with the free space in front of it, and a post of 25 hits far from any free
-    # point: the post's expert sees one class. Run as a constant at the prior variance,
-    # the robust BCM gave it no weight and drew the post at p = 0.5.
+def _wall_and_post():
+    """A wall with the free space in front of it, and a post of 25 hits far from any free
+    point: the post's expert sees one class."""
     rng = np.random.default_rng(0)
     wall = np.c_[np.full(60, 5.0), np.linspace(-3, 3, 60)]
     free = np.c_[rng.uniform(0, 4.7, 400), rng.uniform(-3, 3, 400)]
     post = np.array([10.0, 10.0]) + rng.normal(0, 0.2, (25, 2))
     X = np.r_[wall, free, post]
-    y = np.r_[np.ones(60), np.zeros(400), np.ones(25)].astype(int)
+    return X, np.r_[np.ones(60), np.zeros(400), np.ones(25)].astype(int)
+
+
+def test_a_one_class_ep_expert_is_the_gp_posterior_and_counts_under_the_robust_bcm():
+    from skoccmap.ep import ep_latent_predictive, expectation_propagation
+
+    # Run as a constant at the prior variance, the post's expert had no weight under the
+    # robust BCM, which drew the post at p = 0.5.
+    X, y = _wall_and_post()
     model = MixtureGPOccupancyMap(layout="points", random_state=0).fit(X, y)
     one_class = [e for e in model.experts_ if np.all(getattr(e, "y_train_", [0]) == 1)]
     assert len(one_class) == 1 and one_class[0].classes_.tolist() == [0, 1]
@@ -214,6 +219,25 @@ def test_a_one_class_ep_expert_is_the_gp_posterior_and_counts_under_the_robust_b
         assert model.predict_proba([[10.0, 10.0]])[0, 1] > 0.9, combiner
         # ... and beyond the reach of all data, the prior.
         np.testing.assert_allclose(model.predict_proba([[40.0, 40.0]])[:, 1], 0.5)
+
+
+def test_free_rows_added_to_a_one_class_ep_expert_refit_it_at_once():
+    # Its sites, fitted on one class, are saturated: held while EP ran on two new free
+    # points beside the post, they let the post fall to p = 0.32. Refitted, it stays.
+    X, y = _wall_and_post()
+    model = MixtureGPOccupancyMap(layout="points", random_state=0).partial_fit(X, y, [0, 1])
+    assert model.predict_proba([[10.0, 10.0]])[0, 1] > 0.9
+    near = np.array([[8.5, 10.0], [11.5, 10.0]])
+    model.partial_fit(near, [0, 0])
+    expert = model.experts_[model.touched_experts_[0]]
+    assert model.touched_experts_.size == 1 and np.ptp(expert.y_train_) > 0
+    whole = MixtureGPOccupancyMap(layout="points", random_state=0).fit(
+        np.r_[X, near], np.r_[y, 0, 0]
+    )
+    assert model.predict_proba([[10.0, 10.0]])[0, 1] > 0.9
+    np.testing.assert_allclose(
+        model.predict_proba([[10.0, 10.0]]), whole.predict_proba([[10.0, 10.0]]), atol=1e-3
+    )
 
 
 # --- experts, merging and splitting ------------------------------------------------------
