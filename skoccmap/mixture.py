@@ -1085,8 +1085,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         rows, and the map shows every row at once. Held, the old sites drift from EP's
         fixed point on all rows; once the rows added so reach this fraction of the rows
         its last fit on all its rows settled, the expert is refitted (EP warm-started
-        from all its sites). New experts and one-class counts are fitted at once; an
-        expert split off another holds that one's sites of its rows;
+        from all its sites). New experts and experts fitted on one class are refitted at
+        once; an expert split off another holds that one's sites of its rows;
         :meth:`refit_hyperparameters` refits every expert. 0 refits every touched
         expert. Replaying the simulated office (tuning seed 100, 60 poses x 90 beams in
         batches of 6, :func:`~skoccmap.metrics.map_quality` on the cells seen so far;
@@ -1587,7 +1587,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         3. Experts that received rows take them, in parallel. Most add them to their
            fit, EP running on the new rows' sites alone; an expert is refitted once the
            rows added so reach ``refit_fraction`` of those its last fit settled, and at
-           once when new, split or a one-class count. An expert grown past
+           once when new, split or fitted on one class. An expert grown past
            ``max_expert_size`` is bisected on its hits as clusters are in :meth:`fit`.
            A refit EP expert starts from the site parameters it has (zeros for new
            rows): EP reaches the same fixed point in fewer sweeps.
