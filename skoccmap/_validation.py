@@ -4,6 +4,7 @@ import contextlib
 import functools
 import os
 import sys
+import warnings
 
 import joblib
 import numpy as np
@@ -28,6 +29,19 @@ def caller_stacklevel():
     while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
         frame, level = frame.f_back, level + 1
     return level
+
+
+@contextlib.contextmanager
+def queries_of_our_own():
+    """Around predictions on arrays this package builds in the estimator's own column
+    order (cell centres, held-out points): scikit-learn's warning that such an array has
+    no feature names, for an estimator fitted on a DataFrame, would only puzzle the user.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message="X does not have valid feature names", category=UserWarning
+        )
+        yield
 
 
 def check_segments(X, *, name="X", allow_empty=False):

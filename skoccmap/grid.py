@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._validation import queries_of_our_own
+
 __all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
 
 # map_server reads a pixel v as p = (255 - v) / 255 (negate: 0) and calls it occupied above
@@ -647,12 +649,13 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
         hi = min(lo + chunk_size, n_cells)
         centers = _cell_centers(origin, resolution, counts, np.arange(lo, hi))
         queries = np.concatenate([centers, centers], axis=1)  # zero-length segments
-        if joint is not None:
-            proba[lo:hi], var[lo:hi] = joint(queries)
-        else:
-            proba[lo:hi] = estimator.predict_proba(queries)[:, 1]
-            if has_var:
-                var[lo:hi] = estimator.predict_var(queries)
+        with queries_of_our_own():
+            if joint is not None:
+                proba[lo:hi], var[lo:hi] = joint(queries)
+            else:
+                proba[lo:hi] = estimator.predict_proba(queries)[:, 1]
+                if has_var:
+                    var[lo:hi] = estimator.predict_var(queries)
         if verbose and (hi / n_cells >= next_report or hi == n_cells):
             elapsed = time.perf_counter() - tic
             print(
@@ -679,7 +682,8 @@ def _reference_variance(estimator, var, origin, resolution, counts):
     n_cells = int(np.prod(counts))
     sample = np.unique(np.linspace(0, n_cells - 1, min(n_cells, 1024)).astype(np.int64))
     centers = _cell_centers(origin, resolution, counts, sample)
-    prior = prior_variance(np.concatenate([centers, centers], axis=1))
+    with queries_of_our_own():
+        prior = prior_variance(np.concatenate([centers, centers], axis=1))
     return max(reference, float(np.max(prior)))
 
 

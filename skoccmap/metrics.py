@@ -17,6 +17,7 @@ import numpy as np
 from sklearn.metrics import brier_score_loss, roc_auc_score
 from sklearn.utils import Bunch, check_random_state
 
+from ._validation import queries_of_our_own
 from .datasets import Environment2D, Room3D
 from .grid import ROS_FREE_THRESH, ROS_OCCUPIED_THRESH
 from .observations import Scans, _check_free_margin, as_segments
@@ -391,7 +392,8 @@ def _positive_proba(estimator, X):
     """P(occupied) from ``predict_proba``: the column of the larger class, as every
     estimator of the package reads its labels (1 of {0, 1}, 2 of {1, 2}); the last column
     without ``classes_``."""
-    proba = np.asarray(estimator.predict_proba(X))
+    with queries_of_our_own():
+        proba = np.asarray(estimator.predict_proba(X))
     if proba.ndim != 2 or proba.shape[1] != 2:
         raise ValueError(
             "the estimator must predict two classes (free, occupied); predict_proba gave "

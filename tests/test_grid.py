@@ -1,7 +1,9 @@
+import warnings
+
 import numpy as np
 import pytest
 
-from skoccmap import OccupancyGrid
+from skoccmap import MixtureGPOccupancyMap, OccupancyGrid
 from skoccmap.baselines import OccupancyGridMap
 
 
@@ -435,3 +437,26 @@ def test_3d_scans_mapped_end_to_end_with_mixture():
 
     model = MixtureGPOccupancyMap(share_hyperparameters=True, random_state=0)
     assert _room3d_pipeline(model) > 0.75
+
+
+def test_helpers_pass_their_own_queries_without_feature_name_warnings():
+    # Fitted on a DataFrame, the estimator warns of arrays without feature names; the
+    # package's own cell centres and test points are built in its column order.
+    pd = pytest.importorskip("pandas")
+    from skoccmap.datasets import make_paper_scans
+    from skoccmap.metrics import ground_truth_auc
+
+    data = make_paper_scans(random_state=0)
+    frame = pd.DataFrame(data.X, columns=["x0", "y0", "x1", "y1"])
+    model = MixtureGPOccupancyMap(random_state=0).fit(frame, data.y)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        grid = OccupancyGrid.from_estimator(model, data.X[data.y == 1, :2], 0.5)
+        auc = ground_truth_auc(model, data.environment, 0.5)
+    # ... and the same map as a fit on the array.
+    plain = MixtureGPOccupancyMap(random_state=0).fit(data.X, data.y)
+    same = OccupancyGrid.from_estimator(plain, data.X[data.y == 1, :2], 0.5)
+    np.testing.assert_array_equal(grid.probability, same.probability)
+    assert auc == ground_truth_auc(plain, data.environment, 0.5)
+    with pytest.warns(UserWarning, match="valid feature names"):
+        model.predict_proba(data.X[:3])  # the user's own arrays still warn
