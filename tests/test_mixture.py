@@ -214,7 +214,7 @@ def test_a_one_class_ep_expert_is_the_gp_posterior_and_counts_under_the_robust_b
     np.testing.assert_allclose(got_mean, mean, rtol=1e-5)
     np.testing.assert_allclose(got_var, var, rtol=1e-5)
     assert np.all(var < 0.5 * expert.kernel_.diag(Q))  # it learned something there
-    for combiner in ("rbcm", "bcm", "poe"):
+    for combiner in ("rbcm", "bcm", "poe", "moe"):
         model.set_params(combiner=combiner)
         assert model.predict_proba([[10.0, 10.0]])[0, 1] > 0.9, combiner
         # ... and beyond the reach of all data, the prior.
