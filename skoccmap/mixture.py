@@ -49,10 +49,11 @@ __all__ = ["MixtureGPOccupancyMap"]
 # the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
 _GATING_RIDGE = 1e-3
 # No-return beams are compared with at most this many return beams, drawn uniformly per
-# block: the exact argmax over all of them costs about 15% of all (no-return, return)
+# block: the exact argmax over all of them costs about 6% of all (no-return, return)
 # pairs in quadrature (on dense simulated scans), quadratic in the number of observations.
 _NO_RETURN_REFERENCES = 1000
-# (no-return, return) pairs bounded at once, and pairs per no-return beam evaluated first.
+# (no-return, return) pairs bounded at once, and pairs per no-return beam integrated
+# first (the rest in rounds of doubling size).
 _NO_RETURN_PAIRS = 1 << 18
 _NO_RETURN_FIRST = 4
 # ... and the pairs with the largest loose bound whose exact bound is computed first.
@@ -250,43 +251,68 @@ def _most_similar(A, B):
     nearest segment where none is within the kernel's reach. The exact bounds
     (:func:`~skoccmap._integrals.pair_upper_bound`, which need the segments' distance) are
     computed only for the pairs a looser, cheaper bound cannot rule out
-    (:func:`~skoccmap._integrals.loose_upper_bound`): the few with the largest loose bound,
-    then every pair whose loose bound reaches the ``_NO_RETURN_FIRST``-th largest exact one
-    or, later, the best similarity found.
+    (:func:`~skoccmap._integrals.loose_upper_bound`): the ``_NO_RETURN_SCREEN`` with the
+    largest loose bound, whose ``_NO_RETURN_FIRST`` largest exact bounds are integrated
+    first, then every pair whose loose bound beats the best similarity found. The pairs
+    whose exact bound beats it are then integrated in rounds, largest bound first, each
+    round raising the best and ruling out more of the rest.
     """
-    from ._integrals import _CUTOFF, loose_upper_bound, pair_integrals, pair_upper_bound
+    from ._integrals import (
+        _CUTOFF,
+        crossing_upper_bound,
+        loose_upper_bound,
+        pair_integrals,
+        pair_upper_bound,
+    )
 
     n_a, n_b = A.shape[0], B.shape[0]
-    n_first = min(_NO_RETURN_FIRST, n_b)
+    rows = np.arange(n_a)
     # Slack for the rounding of the two bounds and of the quadrature against them.
     slack = 1.0 + 1e-9
     loose = loose_upper_bound(A, B) * slack
     bound = np.full((n_a, n_b), -1.0)  # -1: not computed (bounds are >= 0)
     dist2 = np.full((n_a, n_b), np.inf)
+    sim = np.full((n_a, n_b), -np.inf)
 
     def exact(ii, jj):
         bound[ii, jj], dist2[ii, jj] = pair_upper_bound(A[ii], B[jj])
 
-    n_screen = min(_NO_RETURN_SCREEN, n_b)
+    def integrate(ii, jj):
+        sim[ii, jj] = pair_integrals(A[ii], B[jj])[0]
+
+    n_screen, n_first = min(_NO_RETURN_SCREEN, n_b), min(_NO_RETURN_FIRST, n_b)
     top = np.argpartition(-loose, n_screen - 1, axis=1)[:, :n_screen]
-    exact(np.repeat(np.arange(n_a), n_screen), top.ravel())
-    # Every pair that may be among the n_first largest exact bounds.
-    kth = -np.partition(-bound, n_first - 1, axis=1)[:, n_first - 1]
-    exact(*np.nonzero((loose >= kth[:, None]) & (bound < 0.0)))
-    sim = np.full(bound.shape, -np.inf)
+    exact(np.repeat(rows, n_screen), top.ravel())
     first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
-    ii = np.repeat(np.arange(n_a), n_first)
-    sim[ii, first.ravel()] = pair_integrals(A[ii], B[first.ravel()])[0]
+    integrate(np.repeat(rows, n_first), first.ravel())
     best = sim.max(axis=1)
-    exact(*np.nonzero((loose > best[:, None]) & (bound < 0.0)))
+    # The crossing bound, which needs no distances, rules out most crossing beams.
+    ii, jj = np.nonzero((loose > best[:, None]) & (bound < 0.0))
+    crossing = crossing_upper_bound(A[ii], B[jj]) * slack > best[ii]
+    exact(ii[crossing], jj[crossing])
+    # The rest of the candidates, each row's in decreasing order of their bounds.
     ii, jj = np.nonzero((bound * slack > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim))
-    sim[ii, jj] = pair_integrals(A[ii], B[jj])[0]
+    order = np.lexsort((-bound[ii, jj], ii))
+    ii, jj = ii[order], jj[order]
+    rank = np.arange(ii.size) - np.searchsorted(ii, ii)
+    done, step = 0, n_first
+    while True:
+        # A row is finished at its first candidate that the best rules out.
+        open_ = (rank >= done) & (bound[ii, jj] * slack > best[ii])
+        if not np.any(open_):
+            break
+        now = open_ & (rank < done + step)
+        integrate(ii[now], jj[now])
+        np.maximum.at(best, ii[now], sim[ii[now], jj[now]])
+        done, step = done + step, 2 * step
     choice = np.argmax(sim, axis=1)
-    out_of_reach = np.flatnonzero(sim[np.arange(n_a), choice] <= 0.0)
+    out_of_reach = np.flatnonzero(sim[rows, choice] <= 0.0)
     if out_of_reach.size:
-        rows = A[out_of_reach]
-        _, far = pair_upper_bound(np.repeat(rows, n_b, axis=0), np.tile(B, (rows.shape[0], 1)))
-        choice[out_of_reach] = np.argmin(far.reshape(rows.shape[0], n_b), axis=1)
+        far_rows = A[out_of_reach]
+        _, far = pair_upper_bound(
+            np.repeat(far_rows, n_b, axis=0), np.tile(B, (far_rows.shape[0], 1))
+        )
+        choice[out_of_reach] = np.argmin(far.reshape(far_rows.shape[0], n_b), axis=1)
     return choice
 
 

@@ -11,6 +11,7 @@ from skoccmap._integrals import (
     _GL_NODES,
     _GL_WEIGHTS,
     _SHORT,
+    crossing_upper_bound,
     gauss_legendre_order,
     integral_kernel,
     loose_upper_bound,
@@ -520,6 +521,49 @@ def test_pair_upper_bound_bounds_the_integral(dim):
             - s2[i, :dim], axis=1))
         for i in range(500)
     ], atol=1e-3)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pair_upper_bound_of_crossing_beams_counts_their_strips(dim):
+    # Beams of one scan fan out from the sensor: they cross at their ends, where the two
+    # whole lines' integral 2 pi / (L1 L2 |sin t|) is about twice the value. Nearly
+    # parallel segments end to end, far from the origin, cross far away, where the strips'
+    # ends round badly: the bound must hold there too.
+    rng = np.random.default_rng(dim)
+    m = 2000
+    origin = rng.uniform(-1e3, 1e3, size=(m, dim))
+    u, v = rng.normal(size=(2, m, dim))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    la, lb = rng.uniform(1.0, 10.0, size=(2, m, 1))
+    fan1, fan2 = np.hstack([origin, origin + la * u]), np.hstack([origin, origin + lb * v])
+    n = 4000
+    e1 = rng.normal(size=(n, dim))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    f = rng.normal(size=(n, dim))
+    f -= np.sum(f * e1, axis=1, keepdims=True) * e1
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    angle = 10.0 ** rng.uniform(-4, -0.5, size=(n, 1))
+    e2 = np.cos(angle) * e1 + np.sin(angle) * f
+    length = rng.uniform(0.5, 50.0, size=(n, 2))
+    a1 = rng.uniform(-1e4, 1e4, size=(n, dim))
+    b1 = a1 + length[:, :1] * e1
+    a2 = b1 + rng.uniform(0.0, 3.0, size=(n, 1)) * e1 + rng.normal(scale=0.3, size=(n, dim))
+    s1 = np.vstack([fan1, np.hstack([a1, b1])])
+    s2 = np.vstack([fan2, np.hstack([a2, a2 + length[:, 1:] * e2])])
+    k, _ = pair_integrals(s1, s2)
+    bound, _ = pair_upper_bound(s1, s2)
+    crossing = crossing_upper_bound(s1, s2)
+    assert np.all(k <= bound * (1 + 1e-9) + 1e-15)
+    assert np.all(k <= crossing * (1 + 1e-9) + 1e-15)
+    assert np.all(bound <= crossing)
+    # On the fans, half the whole lines' integral: each strip holds half the mass.
+    d1, d2 = fan1[:, dim:] - origin, fan2[:, dim:] - origin
+    lines = 2 * np.pi / np.sqrt(
+        np.sum(d1 * d1, axis=1) * np.sum(d2 * d2, axis=1) - np.sum(d1 * d2, axis=1) ** 2
+    )
+    crossed = lines < 0.5  # where the lines' integral bounds the pair, not its length
+    np.testing.assert_allclose(np.median(bound[:m][crossed] / lines[crossed]), 0.5, atol=0.01)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
