@@ -95,6 +95,7 @@ _BAG_DEFAULTS = {
     "map_frame": "map",
     "base_frame": None,
     "laser_frame": None,
+    "level_tolerance": 0.01,
 }
 
 
@@ -134,6 +135,14 @@ def add_model_arguments(parser):
         default=_BAG_DEFAULTS["laser_frame"],
         help="frame of the scans (default: each scan's header frame; for bags whose scans "
         "name none, or the wrong one)",
+    )
+    bag.add_argument(
+        "--level-tolerance",
+        type=float,
+        default=_BAG_DEFAULTS["level_tolerance"],
+        help="radians: scans whose plane lies within this angle of the map's horizontal plane "
+        "(upright or upside down) are mapped in 2-D (default 0.01); a larger value projects a "
+        "tilted laser's scans onto the plane, inf always does",
     )
     parser.add_argument(
         "--max-range",
@@ -325,7 +334,9 @@ def _load_bag(args):
         raise ValueError(message) from None
     if scans.n_dims != 2:
         raise ValueError(
-            f"{args.log}: the laser is not level (3-D poses); skoccmap map draws 2-D maps."
+            f"{args.log}: the laser is not level (3-D poses) within --level-tolerance "
+            f"{getattr(args, 'level_tolerance', 0.01):g} rad; skoccmap map draws 2-D maps. A larger "
+            "--level-tolerance projects the scans onto the horizontal plane."
         )
     return scans
 

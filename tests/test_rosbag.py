@@ -365,6 +365,40 @@ def test_level_tolerance_chooses_2d_or_3d_poses(tmp_path):
     np.testing.assert_allclose(tilted.hit_points()[:, :2], level.hit_points(), atol=0.02)
 
 
+@pytest.mark.parametrize("roll", [np.pi, np.pi - 0.005])
+def test_a_laser_upside_down_scans_a_level_plane_mirrored(tmp_path, roll):
+    # Rolled by pi the laser's z axis points down: the beam at angle a points at yaw - a.
+    bag = _Bag(2)
+    for stamp in (0.0, 1.0):
+        bag.tf(stamp, "map", "laser", (1.0, 2.0, 0.4), yaw=0.5, roll=roll)
+    bag.scan(0.5, [1.0, 2.0, 3.0])  # angles -0.5, 0, 0.5
+    path = bag.write(tmp_path / "b")
+    level = load_rosbag(path)
+    assert level.poses.shape == (1, 3)
+    np.testing.assert_allclose(level.poses, [[1.0, 2.0, 0.5]], atol=1e-12)
+    heading = 0.5 - np.array([-0.5, 0.0, 0.5])
+    expected = [1.0, 2.0] + np.array([1.0, 2.0, 3.0])[:, None] * np.column_stack(
+        [np.cos(heading), np.sin(heading)]
+    )
+    np.testing.assert_allclose(level.hit_points(), expected, atol=0.02)
+    if roll != np.pi:  # exactly upside down is level at any tolerance
+        # The 3-D poses put the hits at the same places in the plane.
+        tilted = load_rosbag(path, level_tolerance=0.001)
+        assert tilted.n_dims == 3
+        np.testing.assert_allclose(tilted.hit_points()[:, :2], level.hit_points(), atol=0.02)
+    forced = load_rosbag(path, level_tolerance=np.inf)
+    np.testing.assert_allclose(forced.hit_points(), level.hit_points(), atol=1e-12)
+
+
+def test_base_frame_needs_poses_from_a_topic(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(1.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="base_frame= applies only to poses read from a topic"):
+        load_rosbag(bag.write(tmp_path / "b"), base_frame="base_link")
+
+
 # --------------------------------------------------------------------------------------------
 # Readings: range limits and beam counts
 # --------------------------------------------------------------------------------------------
@@ -645,3 +679,24 @@ def test_cli_base_and_laser_frames_reach_the_reader(tmp_path, capsys):
     assert main([*argv, "--laser-frame", "laser", "--base-frame", "laser"]) == 0
     assert f"{path}: 9 scans x 5 beams" in capsys.readouterr().out
     assert (out / "b.npz").is_file()
+
+
+def test_cli_level_tolerance_maps_a_tilted_laser(tmp_path, capsys):
+    # A laser rolled by 0.05 rad: 3-D poses at the default tolerance, which the command
+    # refuses with the way out; --level-tolerance projects its scans onto the plane.
+    bag = _Bag(2)
+    for stamp in (0.0, 10.0):
+        bag.tf(stamp, "map", "laser", (stamp / 5.0, 0.0, 0.4), roll=0.05)
+    for t in range(1, 10):
+        bag.scan(float(t), [1.0, 2.0, 3.0, 2.5, 1.5])
+    path = bag.write(tmp_path / "b")
+    argv = ["map", str(path), "--resolution", "0.5", "--out", str(tmp_path / "out"), "--quiet"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "not level (3-D poses) within --level-tolerance 0.01 rad" in err
+    assert "A larger --level-tolerance projects the scans" in err
+    assert main([*argv, "--level-tolerance", "0.1"]) == 0
+    assert f"{path}: 9 scans x 5 beams" in capsys.readouterr().out
+    # The transforms give the laser's own pose: a base frame would be ignored.
+    assert main([*argv, "--base-frame", "base_link"]) == 2
+    assert "--base-frame applies only to poses read from a topic" in capsys.readouterr().err

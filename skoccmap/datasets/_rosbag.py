@@ -548,14 +548,17 @@ def _to_scans(t, q, ranges, angles, stamps, max_range, level_tolerance):
 
     rot = _quaternion_to_matrix(q)
     tilt = np.arccos(np.clip(rot[:, 2, 2], -1.0, 1.0))
-    if np.all(tilt <= level_tolerance):
+    # A laser mounted upside down (z axis down) scans a level plane too.
+    if np.all(np.minimum(tilt, np.pi - tilt) <= level_tolerance):
         theta = np.arctan2(rot[:, 1, 0], rot[:, 0, 0])
         poses = np.column_stack([t[:, :2], theta])
-        beams = angles
+        # Upside down, the map's x-y block of the rotation is a reflection: the beam at
+        # angle a points at theta - a.
+        beams = np.where((rot[:, 2, 2] < 0.0)[:, None], -angles, angles)
     else:
         poses = np.column_stack([t, q])
         beams = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=-1)
-    if np.all(angles == angles[0]):
+    if np.all(beams == beams[0]):
         beams = beams[0].copy()
     return Scans(
         poses=poses, ranges=ranges, angles=beams, max_range=max_range, timestamps=stamps / _NS
@@ -618,7 +621,8 @@ def load_rosbag(
     base_frame : str or None, default=None
         Frame whose pose the ``pose_topic`` messages give. ``None``: the ``child_frame_id``
         of Odometry messages, the laser's own frame for the pose messages, which name none.
-        Pass the laser's frame to use the message poses as laser poses unchanged.
+        Pass the laser's frame to use the message poses as laser poses unchanged. Only with
+        ``pose_topic`` (a ValueError otherwise: the transforms give the laser's pose itself).
     laser_frame : str or None, default=None
         Frame of the scans; ``None``: each scan's ``header.frame_id``. For bags whose scans
         name no frame, or the wrong one.
@@ -630,7 +634,9 @@ def load_rosbag(
         (the laser's z axis within it of the map's z axis), poses are 2-D ``[x, y, theta]``
         (the laser's height is dropped); otherwise they are 3-D ``[x, y, z, qw, qx, qy, qz]``
         with beam directions ``(cos a, sin a, 0)`` in the laser frame. A laser mounted upside
-        down has 3-D poses. ``np.inf`` forces 2-D poses (the yaw of a tilted laser).
+        down (its z axis within this angle of the map's -z) is level too: its beam angles are
+        mirrored (the beam at angle ``a`` points at ``theta - a``). ``np.inf`` forces 2-D
+        poses (the yaw of a tilted laser, mirrored where its z axis points down).
     tf_topics : (str, str), default=("/tf", "/tf_static")
         The dynamic and the static transform topics.
 
@@ -702,6 +708,11 @@ def load_rosbag(
         raise ValueError("pose='topic' needs pose_topic, the topic to read poses from.")
     if not (level_tolerance >= 0):
         raise ValueError(f"level_tolerance must be >= 0 radians, got {level_tolerance!r}.")
+    if base_frame is not None and pose != "topic":
+        raise ValueError(
+            "base_frame= applies only to poses read from a topic, given by pose_topic=. "
+            "The transforms give the laser's own pose."
+        )
     paths = _bag_paths(path)
     reader = AnyReader(paths, default_typestore=_typestore(2))
     try:
