@@ -333,10 +333,11 @@ def _load_bag(args):
             message = re.sub(rf"\b{name}=", option + " ", message)
         raise ValueError(message) from None
     if scans.n_dims != 2:
+        tolerance = getattr(args, "level_tolerance", _BAG_DEFAULTS["level_tolerance"])
         raise ValueError(
             f"{args.log}: the laser is not level (3-D poses) within --level-tolerance "
-            f"{getattr(args, 'level_tolerance', 0.01):g} rad; skoccmap map draws 2-D maps. A larger "
-            "--level-tolerance projects the scans onto the horizontal plane."
+            f"{tolerance:g} rad; skoccmap map draws 2-D maps. A larger --level-tolerance "
+            "projects the scans onto the horizontal plane."
         )
     return scans
 
