@@ -700,3 +700,49 @@ def test_cli_level_tolerance_maps_a_tilted_laser(tmp_path, capsys):
     # The transforms give the laser's own pose: a base frame would be ignored.
     assert main([*argv, "--base-frame", "base_link"]) == 2
     assert "--base-frame applies only to poses read from a topic" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("ros_version", "timestamps"),
+    [(1, [-2.0, -1.0]), (1, [1.7e12, 1.7e12 + 0.1]), (2, [1.7e12, 1.7e12 + 0.1])],
+)
+def test_write_rosbag_refuses_times_a_bag_cannot_hold(tmp_path, ros_version, timestamps):
+    # ROS 1 stamps are unsigned 32-bit seconds, ROS 2 signed: milliseconds by mistake or
+    # negative times failed inside rosbags and left a half-written bag behind.
+    scans = Scans(poses=[[0.0, 0.0, 0.0], [5.0, 5.0, 1.0]], ranges=[[1.0, 2.0, 3.0]] * 2,
+                  angles=[-0.1, 0.0, 0.1], max_range=4.0, timestamps=timestamps)  # fmt: skip
+    path = _bag_path(tmp_path, ros_version)
+    with pytest.raises(ValueError, match=f"for a ROS {ros_version} bag.*not milliseconds"):
+        write_rosbag(scans, path, ros_version=ros_version)
+    assert not path.exists()
+
+
+def test_write_rosbag_refuses_two_poses_at_one_stamp(tmp_path):
+    # One transform per stamp: scan 0 read back in scan 1's pose.
+    scans = Scans(poses=[[0.0, 0.0, 0.0], [5.0, 5.0, 1.0], [10.0, 0.0, 2.0]],
+                  ranges=[[1.0, 2.0, 3.0]] * 3, angles=[-0.1, 0.0, 0.1], max_range=4.0,
+                  timestamps=[1.0, 1.0, 2.0])  # fmt: skip
+    with pytest.raises(ValueError, match="scans 0 and 1 share the timestamp 1 s"):
+        write_rosbag(scans, tmp_path / "dup")
+    assert not (tmp_path / "dup").exists()
+    # The same pose twice is one transform: fine.
+    still = Scans(poses=[[0.0, 0.0, 0.0]] * 2, ranges=[[1.0, 2.0, 3.0]] * 2,
+                  angles=[-0.1, 0.0, 0.1], max_range=4.0, timestamps=[1.0, 1.0])  # fmt: skip
+    back = load_rosbag(write_rosbag(still, tmp_path / "still"))
+    np.testing.assert_allclose(back.poses, still.poses)
+
+
+def test_a_failed_write_leaves_no_bag(tmp_path, monkeypatch):
+    import skoccmap.datasets._rosbag as rosbag_module
+
+    def fail(*args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(rosbag_module, "_transform_stamped", fail)
+    scans = Scans(poses=[[0.0, 0.0, 0.0]], ranges=[[1.0, 2.0, 3.0]], angles=[-0.1, 0.0, 0.1],
+                  max_range=4.0)  # fmt: skip
+    for ros_version in (1, 2):
+        path = _bag_path(tmp_path, ros_version)
+        with pytest.raises(RuntimeError, match="disk full"):
+            write_rosbag(scans, path, ros_version=ros_version)
+        assert not path.exists()

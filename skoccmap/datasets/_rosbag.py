@@ -11,6 +11,7 @@ leading ``/`` (ROS 1 allowed ``/base_link``; tf2 strips it).
 """
 
 import re
+import shutil
 import warnings
 from collections import deque
 from dataclasses import dataclass
@@ -814,8 +815,14 @@ class _BagWriter:
         self.writer.open()
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, exc_type, *exc):
         self.writer.close()
+        if exc_type is not None:
+            # A half-written bag would block the next try ("exists already").
+            if self.path.is_dir():
+                shutil.rmtree(self.path, ignore_errors=True)
+            else:
+                self.path.unlink(missing_ok=True)
         return False
 
     def connection(self, topic, msgtype, *, latched=False):
@@ -956,11 +963,15 @@ def write_rosbag(
         raise ValueError(f"scans must be a skoccmap.observations.Scans, got {type(scans)}.")
     _check_topic(scan_topic, "scan_topic")
     angle_min, increment = _scan_geometry(scans)
+    _check_ros_version(ros_version)
     timestamps = scans.timestamps
     if timestamps is None:
         timestamps = np.arange(len(scans), dtype=np.float64)
-    stamps = np.rint(np.asarray(timestamps) * _NS).astype(np.int64)
+    timestamps = np.asarray(timestamps, dtype=np.float64)
+    _check_stamps(timestamps, ros_version, "the scans' timestamps")
+    stamps = np.rint(timestamps * _NS).astype(np.int64)
     translations, rotations = _laser_transforms(scans)
+    _check_one_pose_per_stamp(stamps, translations, rotations)
     # Readings of 0 (no measurement) stay 0, and read back as 0.
     kept = scans.returned() | scans.unread()
     ranges = np.where(kept, scans.ranges, np.inf).astype(np.float32)
@@ -989,6 +1000,27 @@ def write_rosbag(
     return Path(path)
 
 
+def _check_one_pose_per_stamp(stamps, translations, rotations):
+    """ValueError for two scans at one stamp in different poses: the bag keeps one
+    transform per stamp, and one of them would read back in the other's pose."""
+    order = np.argsort(stamps, kind="stable")
+    same = np.flatnonzero(np.diff(stamps[order]) == 0)
+    if same.size == 0:
+        return
+    a, b = order[same], order[same + 1]
+    differ = ~(
+        np.all(translations[a] == translations[b], axis=1)
+        & np.all(rotations[a] == rotations[b], axis=1)
+    )
+    if np.any(differ):
+        i, j = sorted((int(a[differ][0]), int(b[differ][0])))
+        raise ValueError(
+            f"scans {i} and {j} share the timestamp {stamps[i] / _NS:.9g} s in different "
+            "poses: a bag holds one laser pose per time, so one of them would read back in "
+            "the other's pose. Give every scan its own timestamp."
+        )
+
+
 def _occupancy_grid_message(store, fields, stamp_ns):
     """A ``nav_msgs/OccupancyGrid`` of ``store`` from the dict of
     :meth:`skoccmap.OccupancyGrid.to_ros_occupancy_grid`."""
@@ -1012,27 +1044,44 @@ def _occupancy_grid_message(store, fields, stamp_ns):
     )
 
 
-def _stamp_to_ns(stamp):
+def _stamp_to_ns(stamp, ros_version):
     import time
 
     stamp = time.time() if stamp is None else stamp
-    if not (np.isfinite(stamp) and stamp >= 0):
-        raise ValueError(f"stamp must be a non-negative time in seconds, got {stamp!r}.")
+    if not np.isfinite(stamp):
+        raise ValueError(f"stamp must be a finite time in seconds, got {stamp!r}.")
+    _check_stamps(np.array([float(stamp)]), ros_version, "stamp")
     return int(round(float(stamp) * _NS))
+
+
+def _check_stamps(seconds, ros_version, what):
+    """ValueError for times a bag of ``ros_version`` cannot hold: ROS 1 stamps are unsigned
+    32-bit seconds, ROS 2 stamps signed 32-bit seconds."""
+    lo, hi = (0.0, 2.0**32) if ros_version == 1 else (-(2.0**31), 2.0**31)
+    bad = ~((seconds >= lo) & (seconds < hi))
+    if np.any(bad):
+        raise ValueError(
+            f"{what} must lie in [{lo:.0f}, {hi:.0f}) seconds for a ROS {ros_version} bag, got "
+            f"{float(seconds[bad][0]):.9g}; times are seconds (since the epoch, or relative), not "
+            "milliseconds."
+        )
 
 
 def occupancy_grid_message(fields, *, stamp=None, ros_version=2):
     """A ``rosbags`` ``nav_msgs/OccupancyGrid`` message built from a fields dict."""
     _import_rosbags()
     _check_ros_version(ros_version)
-    return _occupancy_grid_message(_typestore(ros_version), fields, _stamp_to_ns(stamp))
+    return _occupancy_grid_message(
+        _typestore(ros_version), fields, _stamp_to_ns(stamp, ros_version)
+    )
 
 
 def write_occupancy_grid(fields, path, *, topic, stamp, ros_version, storage):
     """Write one ``nav_msgs/OccupancyGrid`` on a latched topic into a new bag."""
     _import_rosbags()
     _check_topic(topic, "topic")
-    stamp_ns = _stamp_to_ns(stamp)
+    _check_ros_version(ros_version)
+    stamp_ns = _stamp_to_ns(stamp, ros_version)
     with _BagWriter(path, ros_version, storage) as bag:
         message = _occupancy_grid_message(bag.store, fields, stamp_ns)
         bag.write(bag.connection(topic, _OCCUPANCY_GRID, latched=True), stamp_ns, message)
