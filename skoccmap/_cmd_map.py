@@ -312,8 +312,19 @@ def _load_carmen(args):
         finally:
             command = getattr(args, "command", None) or "map"
             for warning in caught:
-                print(f"skoccmap {command}: warning: {warning.message}", file=sys.stderr)
+                message = _option_names(str(warning.message), ["max_range"])
+                print(f"skoccmap {command}: warning: {message}", file=sys.stderr)
     return scans
+
+
+def _option_names(message, names):
+    """The library's hints name its arguments (``max_range=100``); the command's user knows
+    the options (``--max-range 100``)."""
+    for name in names:
+        option = "--" + name.replace("_", "-")
+        message = re.sub(rf"\b{name}=(?=[\s.,]|$)", option, message)
+        message = re.sub(rf"\b{name}=", option + " ", message)
+    return message
 
 
 def _load_bag(args):
@@ -325,13 +336,7 @@ def _load_bag(args):
     except ImportError as exc:
         raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
     except ValueError as exc:
-        # The library's hints name its arguments; the command's user knows the options.
-        message = str(exc)
-        for name in (*_BAG_DEFAULTS, "max_range"):
-            option = "--" + name.replace("_", "-")
-            message = re.sub(rf"\b{name}=(?=[\s.,]|$)", option, message)
-            message = re.sub(rf"\b{name}=", option + " ", message)
-        raise ValueError(message) from None
+        raise ValueError(_option_names(str(exc), [*_BAG_DEFAULTS, "max_range"])) from None
     if scans.n_dims != 2:
         tolerance = getattr(args, "level_tolerance", _BAG_DEFAULTS["level_tolerance"])
         raise ValueError(

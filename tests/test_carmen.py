@@ -1,4 +1,5 @@
 import gzip
+import warnings
 
 import numpy as np
 import pytest
@@ -206,3 +207,22 @@ def test_shared_logs(shared_data, name, n_scans, sentinel, no_return_fraction, h
         fields = lines[index]
         assert scans.timestamps[index] == float(fields[-3])
         np.testing.assert_array_equal(scans.poses[index], np.array(fields[182:185], float))
+
+
+def test_max_range_above_the_sentinel_warns(tmp_path):
+    # 12 readings at 40 m, the log's largest: CARMEN's sentinel. Above it, they are hits.
+    lines = [_flaser([1.5, 40.0, 2.0, 40.0], [float(i), 0.0, 0.0], i) for i in range(6)]
+    path = tmp_path / "log"
+    path.write_text("".join(lines))
+    with pytest.warns(UserWarning, match=r"12 readings equal 40 m.*max_range=100 they are hits"):
+        scans = load_carmen(path, max_range=100.0)
+    assert np.isfinite(scans.ranges).all()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isinf(load_carmen(path).ranges[:, 1]).all()  # the sentinel, inferred
+        load_carmen(path, max_range=30.0)  # below the sentinel: no-return beams
+    # A largest reading seen a few times is a real one: no warning.
+    path.write_text("".join(lines[:4]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_carmen(path, max_range=100.0)

@@ -273,3 +273,17 @@ def test_help_names_bags_as_well_as_carmen_logs(capsys):
         assert "CARMEN log (plain text or gzip) or ROS bag: a path ending in .bag (ROS 1)" in text
         assert ".db3 or .mcap (ROS 2 storage), or a ROS 2 bag directory" in text
         assert "--skip-bad-lines" in text
+
+
+def test_map_warns_of_a_max_range_above_the_logs_sentinel(tmp_path, capsys):
+    lines = [
+        f"FLASER 4 1.5 40.0 2.0 40.0 {i} 0 0 {i} 0 0 {i} host {i}\n" for i in range(6)
+    ]
+    log = tmp_path / "sentinel.log"
+    log.write_text("".join(lines))
+    argv = ["map", str(log), "--max-range", "100", "--out", str(tmp_path / "out"), "--quiet"]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "12 readings equal 40 m" in err
+    assert "with --max-range 100 they are hits" in err
+    assert "Pass --max-range 40, or leave it out" in err

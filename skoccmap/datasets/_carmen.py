@@ -217,6 +217,11 @@ def _read_lines(path, messages, errors):
     return readings, skipped
 
 
+# A log's largest reading repeated this often is taken for its no-return sentinel (a
+# returned range is read to a few mm: no wall returns exactly the farthest range 10 times).
+_SENTINEL_REPEATS = 10
+
+
 def _infer_flaser_max_range(readings, path):
     # CARMEN writes the sensor's maximum range for beams without a return, so the largest
     # reading of the log is the sentinel (81.83 m in the Intel log, 50 m in ACES). An
@@ -239,6 +244,25 @@ def _infer_flaser_max_range(readings, path):
     return float(largest)
 
 
+def _warn_if_sentinel_below(ranges, max_range, path):
+    """Warn when a FLASER log's largest reading, repeated as CARMEN's no-return sentinel,
+    lies below ``max_range``: those beams would become hits at the sentinel's range."""
+    finite = ranges[np.isfinite(ranges)]
+    if finite.size == 0:
+        return
+    largest = finite.max()
+    n = int(np.count_nonzero(finite == largest))
+    if largest < max_range and n >= _SENTINEL_REPEATS:
+        warnings.warn(
+            f"{path}: {n} readings equal {largest:g} m, the log's largest, as CARMEN writes "
+            f"for beams without a return; with max_range={max_range:g} they are hits "
+            f"{largest:g} m away. Pass max_range={largest:g}, or leave it out, to read them "
+            "as beams without a return.",
+            UserWarning,
+            stacklevel=4,
+        )
+
+
 def load_carmen(path, *, max_range=None, message=None, errors="raise"):
     """Load the laser scans of a CARMEN log.
 
@@ -253,7 +277,9 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
         finite reading in the log, because CARMEN writes the maximum range for beams that
         return nothing (an infinite reading is a beam without a return too). Pass it
         explicitly for a log in which no beam reaches the maximum range, otherwise its
-        longest real reading becomes a no-return beam.
+        longest real reading becomes a no-return beam. A ``max_range`` above a ``FLASER``
+        log's largest reading warns when that reading repeats 10 times or more: it is the
+        log's sentinel, and its beams would become hits at the sentinel's range.
     message : {"FLASER", "ROBOTLASER1"} or None, default=None
         Which laser message to read. ``None`` reads ``ROBOTLASER1`` lines when the log has any
         (many logs store the same scans as both, and ``ROBOTLASER1`` carries its own geometry),
@@ -326,10 +352,12 @@ def _to_scans(readings, max_range, path):
             f"{path}: laser scans have different beam counts {sorted(counts)}; "
             "select one laser with message='FLASER' or message='ROBOTLASER1'."
         )
-    if max_range is None:
-        stated = [r.max_range for r in readings if np.isfinite(r.max_range)]
-        max_range = min(stated) if stated else _infer_flaser_max_range(readings, path)
+    stated = [r.max_range for r in readings if np.isfinite(r.max_range)]
     ranges = np.vstack([r.ranges for r in readings])
+    if max_range is None:
+        max_range = min(stated) if stated else _infer_flaser_max_range(readings, path)
+    elif not stated:
+        _warn_if_sentinel_below(ranges, max_range, path)
     ranges[ranges >= max_range] = np.inf
     angles = np.vstack([r.angles for r in readings])
     if np.all(angles == angles[0]):
