@@ -48,6 +48,10 @@ __all__ = ["MixtureGPOccupancyMap"]
 # Covariance ridge of the Gaussians that gate the pieces of a split cluster, relative to
 # the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
 _GATING_RIDGE = 1e-3
+# A hit carrying more rows (its beams' pieces) than this many times max_expert_size is an
+# error: its expert, which holds at least that hit, could not be split to size (a return
+# beam of 100 km cut into 1 m pieces asked for 75 GiB).
+_HIT_ROWS_FACTOR = 10
 # No-return beams are compared with at most this many return beams, drawn uniformly per
 # block: the exact argmax over all of them costs about 6% of all (no-return, return)
 # pairs in quadrature (on dense simulated scans), quadratic in the number of observations.
@@ -495,6 +499,17 @@ def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
     walls from the free space in front of them and leave one-class experts.
     """
     pieces_per_hit = np.bincount(piece_hit, minlength=hits.shape[0])
+    if max_size is not None and pieces_per_hit.size:
+        worst = int(np.argmax(pieces_per_hit))
+        if pieces_per_hit[worst] > _HIT_ROWS_FACTOR * max_size:
+            raise ValueError(
+                f"the hit at {np.round(hits[worst], 3).tolist()} carries "
+                f"{pieces_per_hit[worst]} rows (its beams' pieces), and an expert holds at "
+                f"least one hit with its rows: more than {_HIT_ROWS_FACTOR} x "
+                f"max_expert_size={max_size}. Its beams are far longer than the map around "
+                "them: check that the ranges are in metres, or cut beams into longer pieces "
+                "(max_beam_length)."
+            )
     hit_expert = np.empty(hits.shape[0], dtype=np.intp)
     expert_cluster = []
     for c, mine in enumerate(_groups(hit_cluster, n_clusters)):

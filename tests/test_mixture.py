@@ -1168,3 +1168,12 @@ def test_pairs_the_coverage_gate_weighs_are_within_reach(default_model, grid, sh
     weighed = cover > 0
     assert weighed.sum() > Q.shape[0] and not weighed.all()
     assert index.within_reach(Q, query[weighed], expert[weighed]).all()
+
+
+def test_a_beam_far_longer_than_the_map_is_a_clear_error(paper):
+    # Ranges in millimetres by mistake: a return beam of 100 km cut into 1 m pieces gave
+    # its hit's expert 1e5 rows, and a MemoryError asking for 75 GiB.
+    X = np.vstack([paper.X, [[0.0, 0.0, 1e5, 0.0], [1e5 + 0.05, 0.0, 1e5 + 0.05, 0.0]]])
+    y = np.r_[paper.y, 0, 1]
+    with pytest.raises(ValueError, match=r"carries \d+ rows.*check that the ranges are in metres"):
+        MixtureGPOccupancyMap(random_state=0).fit(X, y)
