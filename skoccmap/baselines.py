@@ -99,11 +99,36 @@ def traverse_cells(starts, ends, origin, resolution, shape):
     >>> sorted(map(tuple, cells.tolist()))
     [(0, 0), (1, 0), (1, 1), (2, 1)]
     """
+    starts, ends = np.asarray(starts, dtype=np.float64), np.asarray(ends, dtype=np.float64)
     origin = np.asarray(origin, dtype=np.float64)
-    q0 = (np.asarray(starts, dtype=np.float64) - origin) / resolution
-    q1 = (np.asarray(ends, dtype=np.float64) - origin) / resolution
-    seg, flat = _traverse_flat(q0, q1, tuple(int(s) for s in shape))
-    return seg, np.column_stack(np.unravel_index(flat, shape))
+    if starts.ndim != 2 or starts.shape != ends.shape:
+        raise ValueError(
+            "starts and ends must be arrays of shape (n_segments, n_dims) alike, got "
+            f"{starts.shape} and {ends.shape}."
+        )
+    n_dims = starts.shape[1]
+    if origin.shape != (n_dims,) or np.ndim(shape) != 1 or len(shape) != n_dims:
+        raise ValueError(
+            f"origin and shape must hold one value per dimension ({n_dims}), got origin of "
+            f"shape {origin.shape} and shape={shape!r}."
+        )
+    counts = np.asarray(shape)
+    if not (np.issubdtype(counts.dtype, np.integer) and np.all(counts >= 1)):
+        raise ValueError(f"shape must be positive integers, got {shape!r}.")
+    if not (np.isscalar(resolution) and np.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"resolution must be a positive finite number, got {resolution!r}.")
+    q0, q1 = (starts - origin) / resolution, (ends - origin) / resolution
+    # Within rounding of the grid's faces: end points computed from the grid's own corner.
+    lo, hi = -1e-9, counts + 1e-9
+    inside = np.all((q0 >= lo) & (q0 <= hi) & (q1 >= lo) & (q1 <= hi), axis=1)
+    if not np.all(inside):  # NaN included
+        row = int(np.flatnonzero(~inside)[0])
+        raise ValueError(
+            f"segment {row} ({starts[row].tolist()} -> {ends[row].tolist()}) is not finite "
+            "and inside the grid; clip segments to the grid first."
+        )
+    seg, flat = _traverse_flat(q0, q1, tuple(int(c) for c in counts))
+    return seg, np.column_stack(np.unravel_index(flat, tuple(int(c) for c in counts)))
 
 
 def _traverse_flat(q0, q1, shape):

@@ -250,6 +250,12 @@ def beam_directions(poses, angles):
     poses = _check_poses(poses)
     n_dims = _POSE_COLUMNS[poses.shape[1]]
     angles_arr = np.asarray(angles, dtype=np.float64)
+    if angles_arr.ndim < (1 if n_dims == 2 else 2):
+        shapes = "(n_beams,) or (n_scans, n_beams)" if n_dims == 2 else "(n_beams, 3) or more"
+        raise ValueError(
+            f"angles must have shape {shapes} for {n_dims}-D poses, got shape "
+            f"{angles_arr.shape}; one beam is an array of one."
+        )
     n_beams = angles_arr.shape[-1] if n_dims == 2 else angles_arr.shape[-2]
     angles = _check_angles(angles_arr, poses.shape[0], n_beams, n_dims)
     return _directions(poses, angles, n_beams)

@@ -51,6 +51,13 @@ def probability_std(proba, latent_variance):
     """
     proba = np.asarray(proba, dtype=np.float64)
     var = np.asarray(latent_variance, dtype=np.float64)
+    try:
+        np.broadcast_shapes(proba.shape, var.shape)
+    except ValueError:
+        raise ValueError(
+            f"proba and latent_variance must have the same shape, got {proba.shape} and "
+            f"{var.shape}."
+        ) from None
     if np.any(np.isnan(proba)) or np.any((proba < 0) | (proba > 1)):
         raise ValueError("proba must hold probabilities in [0, 1] (no NaN).")
     if np.any(np.isnan(var)) or np.any(var < 0):

@@ -760,3 +760,20 @@ def test_scan_index_is_an_optional_fit_parameter():
     )
     with sklearn.config_context(enable_metadata_routing=True):
         assert est.set_fit_request(scan_index=True) is est
+
+
+@pytest.mark.parametrize(
+    ("starts", "ends", "resolution", "shape", "match"),
+    [
+        ([[np.nan, 0.05]], [[0.25, 0.15]], 0.1, (3, 2), "segment 0 .* is not finite and inside"),
+        ([[0.05, 0.05]], [[0.45, 0.15]], 0.1, (3, 2), "segment 0 .* is not finite and inside"),
+        ([[0.05, 0.05]], [[0.25, 0.15]], 0.0, (3, 2), "resolution must be a positive"),
+        ([[0.05, 0.05]], [[0.25, 0.15]], -0.1, (3, 2), "resolution must be a positive"),
+        ([[0.05, 0.05]], [[0.25, 0.15]], 0.1, (0, 2), "shape must be positive integers"),
+        ([0.05, 0.05], [0.25, 0.15], 0.1, (3, 2), "shape .n_segments, n_dims."),
+        ([[0.05, 0.05]], [[0.25, 0.15]], 0.1, (3, 2, 2), "one value per dimension"),
+    ],
+)
+def test_traverse_cells_rejects_bad_input(starts, ends, resolution, shape, match):
+    with pytest.raises(ValueError, match=match):
+        traverse_cells(starts, ends, np.zeros(2), resolution, shape)

@@ -429,3 +429,12 @@ def test_split_segments_exact_multiples_and_bad_end_length():
     assert len(pieces) == 3
     with pytest.raises(ValueError, match="end_length"):
         split_segments(np.empty((0, 4)), 1.0, end_length=-1.0)
+
+
+@pytest.mark.parametrize(
+    ("poses", "angles"),
+    [([[0.0, 0.0, 0.0]], 0.0), ([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]], [1.0, 0.0, 0.0])],
+)
+def test_beam_directions_without_a_beam_axis_is_a_clear_error(poses, angles):
+    with pytest.raises(ValueError, match="one beam is an array of one"):
+        beam_directions(poses, angles)
