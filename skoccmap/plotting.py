@@ -218,6 +218,7 @@ class OccupancyMapDisplay:
         probability = np.asarray(self.probability, dtype=np.float64)
         if probability.ndim != 2:
             raise ValueError(f"probability must be 2-D (ny, nx), got shape {probability.shape}.")
+        self._check_arrays(probability)
         if kind is None:
             kind = "both" if self.variance is not None else "probability"
         if kind not in _KINDS:
@@ -267,6 +268,39 @@ class OccupancyMapDisplay:
         self.im_ = images[0]
         self.figure_ = axes[0].figure
         return self
+
+    def _check_arrays(self, probability):
+        """ValueError for panels that do not match the probability, or values a map cannot
+        hold (a NaN would be drawn in the colour of unknown cells)."""
+        for name in ("variance", "unknown"):
+            value = getattr(self, name)
+            if value is not None and np.shape(value) != probability.shape:
+                raise ValueError(
+                    f"{name} must have the probability's shape {probability.shape}, got "
+                    f"{np.shape(value)}."
+                )
+        known = np.ones(probability.shape, dtype=bool)
+        if self.unknown is not None:
+            known = ~np.asarray(self.unknown, dtype=bool)
+        if not np.all(((probability >= 0.0) & (probability <= 1.0)) | ~known):
+            raise ValueError(
+                "probability must hold values in [0, 1] (no NaN) in the known cells; mark "
+                "cells without a value with unknown=."
+            )
+        if self.variance is not None:
+            variance = np.asarray(self.variance, dtype=np.float64)
+            if not np.all((variance >= 0.0) | ~known):
+                raise ValueError("variance must hold values >= 0 (no NaN) in the known cells.")
+        extent = np.asarray(self.extent, dtype=np.float64)
+        if not (
+            extent.shape == (4,)
+            and np.all(np.isfinite(extent))
+            and extent[1] > extent[0]
+            and extent[3] > extent[2]
+        ):
+            raise ValueError(
+                f"extent must be (x_min, x_max, y_min, y_max) with max > min, got {self.extent!r}."
+            )
 
     @staticmethod
     def _axes(plt, ax, n_panels):

@@ -118,6 +118,26 @@ def test_plot_on_constructed_display_and_errors():
         OccupancyMapDisplay.from_grid(grid, z=5.0)
     with pytest.raises(ValueError, match=r"points must have shape \(m, 2\)"):
         disp.plot(points=[0.0, 3.0])
+    # Panels that do not match the probability, and values a map cannot hold.
+    p = grid.probability
+    bad = [
+        (dict(variance=np.ones((2, 2))), "variance must have the probability's shape"),
+        (dict(unknown=np.zeros(3, dtype=bool)), "unknown must have the probability's shape"),
+        (dict(variance=-np.ones(p.shape)), "variance must hold values >= 0"),
+    ]
+    for kwargs, match in bad:
+        with pytest.raises(ValueError, match=match):
+            OccupancyMapDisplay(p, extent=grid.extent, **kwargs).plot(ax=ax, kind="probability")
+    with pytest.raises(ValueError, match=r"values in \[0, 1\] \(no NaN\) in the known cells"):
+        OccupancyMapDisplay(np.full(p.shape, np.nan), extent=grid.extent).plot(ax=ax)
+    with pytest.raises(ValueError, match="extent must be"):
+        OccupancyMapDisplay(p, extent=(0, 1, 0)).plot(ax=ax)
+    # NaN in cells marked unknown is no value to draw: fine.
+    unknown = np.zeros(p.shape, dtype=bool)
+    unknown[0, 0] = True
+    holed = p.copy()
+    holed[0, 0] = np.nan
+    OccupancyMapDisplay(holed, extent=grid.extent, unknown=unknown).plot(ax=ax)
 
 
 def test_3d_grid_draws_a_slice():
