@@ -610,6 +610,12 @@ class OccupancyGrid:
         if not path.exists() and path.suffix != ".npz":
             path = path.with_name(path.name + ".npz")
         with np.load(path, allow_pickle=False) as data:
+            missing = [k for k in ("probability", "origin", "resolution") if k not in data]
+            if missing:
+                raise ValueError(
+                    f"{path} is not an OccupancyGrid saved by OccupancyGrid.save: it holds no "
+                    f"{', '.join(missing)}."
+                )
             return cls(
                 data["probability"],
                 data["origin"],

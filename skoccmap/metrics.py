@@ -388,10 +388,23 @@ def blocks_protocol(scans, *, train_every=1, block_size=HILBERT_BLOCK_SIZE, rand
     )
 
 
+def _check_environment(environment):
+    if not isinstance(environment, (Environment2D, Room3D)):
+        raise ValueError(
+            "environment must be a skoccmap.datasets.Environment2D or Room3D, got "
+            f"{type(environment).__name__}."
+        )
+
+
 def _positive_proba(estimator, X):
     """P(occupied) from ``predict_proba``: the column of the larger class, as every
     estimator of the package reads its labels (1 of {0, 1}, 2 of {1, 2}); the last column
     without ``classes_``."""
+    if not hasattr(estimator, "predict_proba"):
+        raise ValueError(
+            f"the estimator must be a fitted classifier with predict_proba, got "
+            f"{type(estimator).__name__}."
+        )
     with queries_of_our_own():
         proba = np.asarray(estimator.predict_proba(X))
     if proba.ndim != 2 or proba.shape[1] != 2:
@@ -518,6 +531,7 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
     >>> ground_truth_auc(grid.occupied * 0.9, data.environment, 0.5)
     1.0
     """
+    _check_environment(environment)
     grid = environment.ground_truth_grid(resolution, extent, scans=scans)
     scored = np.ones(len(grid.points), bool) if scans is None else grid.observed
     what = "grid cell" if scans is None else "observed grid cell"
@@ -944,11 +958,7 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
     >>> scores["wall_thickness"], scores["n_wall_bands"], round(scores["brier"], 2)
     (nan, 0, 0.25)
     """
-    if not isinstance(environment, (Environment2D, Room3D)):
-        raise ValueError(
-            "environment must be a skoccmap.datasets.Environment2D or Room3D, got "
-            f"{type(environment).__name__}."
-        )
+    _check_environment(environment)
     grid = environment.ground_truth_grid(resolution, extent, scans=scans)
     scored = np.ones(len(grid.points), bool) if scans is None else grid.observed
     what = "grid cell" if scans is None else "observed grid cell"

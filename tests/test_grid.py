@@ -460,3 +460,9 @@ def test_helpers_pass_their_own_queries_without_feature_name_warnings():
     assert auc == ground_truth_auc(plain, data.environment, 0.5)
     with pytest.warns(UserWarning, match="valid feature names"):
         model.predict_proba(data.X[:3])  # the user's own arrays still warn
+
+
+def test_load_of_an_npz_that_is_no_grid(tmp_path):
+    np.savez(tmp_path / "a.npz", a=np.zeros(2))
+    with pytest.raises(ValueError, match="not an OccupancyGrid saved by OccupancyGrid.save"):
+        OccupancyGrid.load(tmp_path / "a.npz")

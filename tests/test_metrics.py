@@ -726,3 +726,13 @@ def test_walls_found_counts_truly_occupied_cells_only(make):
         np.where(near, 0.0, truth), data.environment, resolution=res, scans=data.scans
     )
     assert cleared["walls_found"] == 0.0
+
+
+def test_wrong_objects_are_clear_errors():
+    from skoccmap.datasets import make_paper_scans
+
+    data = make_paper_scans()
+    with pytest.raises(ValueError, match="environment must be a skoccmap.datasets"):
+        ground_truth_auc(np.zeros(3), object())
+    with pytest.raises(ValueError, match="fitted classifier with predict_proba, got object"):
+        heldout_auc(object(), data.scans)
