@@ -455,6 +455,9 @@ def check_model_arguments(args):
         raise ValueError(f"--max-expert-size must be >= 2, got {args.max_expert_size}")
     if args.n_jobs == 0:
         raise ValueError("--n-jobs must not be 0 (-1: all cores, 1: one)")
+    seed = getattr(args, "seed", 0)
+    if not 0 <= seed < 2**32:
+        raise ValueError(f"--seed must be an integer in [0, 2**32), got {seed}")
 
 
 # Suffixes the default output names drop: the log's name stays otherwise whole, so that

@@ -44,6 +44,26 @@ def queries_of_our_own():
         yield
 
 
+def validate_queries(estimator, X):
+    """``validate_data(estimator, X, reset=False)`` of a fitted estimator's queries, with a
+    hint where they are points while the estimator takes segment rows."""
+    from sklearn.utils.validation import validate_data
+
+    try:
+        return validate_data(estimator, X, reset=False, dtype=np.float64)
+    except ValueError as exc:
+        n_features = getattr(estimator, "n_features_in_", None)
+        shape = np.shape(X)
+        segments = getattr(estimator, "layout", "segments") != "points"
+        if segments and n_features and n_features % 2 == 0 and shape[1:] == (n_features // 2,):
+            raise ValueError(
+                f"{exc} The queries look like points of {n_features // 2} coordinates; the "
+                "estimator takes segment rows [start, end] (a point is a zero-length "
+                "segment): pass skoccmap.as_segments(points)."
+            ) from None
+        raise
+
+
 def check_segments(X, *, name="X", allow_empty=False):
     """Return ``X`` as a float array of segment rows ``[start, end]``.
 

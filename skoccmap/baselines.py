@@ -29,7 +29,7 @@ from sklearn.utils.multiclass import check_classification_targets, type_of_targe
 from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ._validation import fit_or_unfitted
+from ._validation import fit_or_unfitted, validate_queries
 from .grid import _snapped_origin
 
 __all__ = ["FrequencyGridMap", "HilbertMap", "OccupancyGridMap", "traverse_cells"]
@@ -345,7 +345,7 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
     def _cell_position(self, X):
         """Position in ``cell_index_`` of the cell holding each query's midpoint, else -1."""
         check_is_fitted(self)
-        X = validate_data(self, X, reset=False, dtype=np.float64)
+        X = validate_queries(self, X)
         starts, ends = _split_rows(X, self.layout)
         mid = 0.5 * (starts + ends)
         cells = np.floor((mid - self.origin_) / self.resolution)
@@ -1084,7 +1084,7 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
     def _batches(self, X):
         """Features of the query rows' midpoints, in batches (validated before the first)."""
         check_is_fitted(self)
-        X = validate_data(self, X, reset=False, dtype=np.float64)
+        X = validate_queries(self, X)
         starts, ends = _split_rows(X, self.layout)
         mid = 0.5 * (starts + ends) - self.center_
         return (

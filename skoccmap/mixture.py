@@ -37,7 +37,7 @@ from ._shared_kernel import (
 )
 from ._thinning import thin_free_pieces
 from ._transient import CellCounts
-from ._validation import fit_or_unfitted, unfitted_on_error
+from ._validation import fit_or_unfitted, unfitted_on_error, validate_queries
 from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .kernels import IntegralKernel
@@ -2638,7 +2638,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def _validate_queries(self, X):
         check_is_fitted(self)
         self._check_fitted_with()
-        X = validate_data(self, X, reset=False, dtype=np.float64)
+        X = validate_queries(self, X)
         return _as_segment_rows(X, self.layout)
 
     def _merged(self, X):

@@ -777,3 +777,14 @@ def test_scan_index_is_an_optional_fit_parameter():
 def test_traverse_cells_rejects_bad_input(starts, ends, resolution, shape, match):
     with pytest.raises(ValueError, match=match):
         traverse_cells(starts, ends, np.zeros(2), resolution, shape)
+
+
+@pytest.mark.parametrize(
+    "estimator", [OccupancyGridMap(resolution=0.5), FrequencyGridMap(resolution=0.5), HilbertMap()]
+)
+def test_points_as_queries_get_a_hint(estimator):
+    X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.9],
+                  [0.0, 1.0, 0.0, 1.0]])  # fmt: skip
+    estimator.fit(X, [0, 1, 0, 1])
+    with pytest.raises(ValueError, match=r"pass skoccmap.as_segments\(points\)"):
+        estimator.predict_proba([[0.5, 0.5]])

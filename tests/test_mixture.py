@@ -1177,3 +1177,9 @@ def test_a_beam_far_longer_than_the_map_is_a_clear_error(paper):
     y = np.r_[paper.y, 0, 1]
     with pytest.raises(ValueError, match=r"carries \d+ rows.*check that the ranges are in metres"):
         MixtureGPOccupancyMap(random_state=0).fit(X, y)
+
+
+def test_points_as_queries_get_a_hint(paper):
+    model = MixtureGPOccupancyMap(random_state=0).fit(paper.X, paper.y)
+    with pytest.raises(ValueError, match=r"pass skoccmap.as_segments\(points\)"):
+        model.predict_proba([[5.0, 5.0]])
