@@ -186,8 +186,9 @@ class OccupancyMapDisplay:
             A single Axes for one panel, two for ``kind="both"``; ``None`` makes a new figure.
         kind : {"probability", "std", "variance", "both"} or None, default=None
             ``"std"``: the standard deviation of the occupancy probability under the
-            latent Gaussian (:func:`skoccmap.uncertainty.probability_std`), in
-            ``[0, 1/2]`` whatever the kernel, so one threshold fits every map;
+            latent Gaussian (:func:`skoccmap.uncertainty.probability_std`; approximate
+            for a mixture of experts, ``combiner="moe"``), in ``[0, 1/2]`` whatever the
+            kernel, so one threshold fits every map;
             ``"variance"``: the latent variance, in the latent's units; ``"both"``:
             probability and std. ``None``: both when a variance is available, else
             probability.

@@ -35,6 +35,16 @@ def probability_std(proba, latent_variance):
     std : ndarray
         Standard deviation of the occupancy probability, in ``[0, 1/2]``.
 
+    Notes
+    -----
+    Exact for a map whose prediction is one Gaussian latent (a single GP, and
+    :class:`~skoccmap.MixtureGPOccupancyMap` with the product and committee combiners:
+    ``"poe"``, ``"gpoe"``, ``"bcm"``, ``"rbcm"``). Under ``combiner="moe"`` the map reports
+    the gate-weighted mean of its experts' probabilities and the mixture's latent variance
+    (law of total variance, which may exceed the prior's); they are not one Gaussian's, and
+    the std computed from them is that of the Gaussian with the mixture's variance through
+    the map's probability: an approximation.
+
     References
     ----------
     D. B. Owen, "Tables for computing bivariate normal probabilities", Annals of
@@ -55,7 +65,7 @@ def probability_std(proba, latent_variance):
         np.broadcast_shapes(proba.shape, var.shape)
     except ValueError:
         raise ValueError(
-            f"proba and latent_variance must have the same shape, got {proba.shape} and "
+            f"proba and latent_variance must broadcast together, got shapes {proba.shape} and "
             f"{var.shape}."
         ) from None
     if np.any(np.isnan(proba)) or np.any((proba < 0) | (proba > 1)):

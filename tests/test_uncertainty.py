@@ -47,5 +47,5 @@ def test_probability_std_rejects_bad_input(proba, var, match):
 
 
 def test_probability_std_of_mismatched_shapes_is_a_clear_error():
-    with pytest.raises(ValueError, match=r"the same shape, got \(2,\) and \(3,\)"):
+    with pytest.raises(ValueError, match=r"must broadcast together, got shapes \(2,\) and \(3,\)"):
         probability_std([0.5, 0.5], [1.0, 1.0, 1.0])
