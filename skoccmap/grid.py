@@ -11,12 +11,13 @@ origin -- the row-major layout of ROS ``OccupancyGrid.data``.
 
 import sys
 import time
+import warnings
 from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
 
-from ._validation import queries_of_our_own
+from ._validation import caller_stacklevel, queries_of_our_own
 
 __all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
 
@@ -71,6 +72,13 @@ def _grid_from_extent(extent, resolution):
     coords = arr.reshape(-1, n_dims) if arr.shape[1] > n_dims else arr
     low = _snapped_origin(coords.min(axis=0), resolution)
     counts = np.floor((coords.max(axis=0) - low) / resolution) + 1
+    if arr.shape[0] == 2 and arr.shape[1] == n_dims and np.any(counts == 1):
+        warnings.warn(
+            f"extent {arr.tolist()} was read as two points, which span a grid one cell wide; "
+            "for bounds pass a flat (xmin, xmax, ymin, ymax[, zmin, zmax]).",
+            UserWarning,
+            stacklevel=caller_stacklevel(),
+        )
     return low, _checked_counts(counts, resolution)
 
 

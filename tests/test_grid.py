@@ -466,3 +466,16 @@ def test_load_of_an_npz_that_is_no_grid(tmp_path):
     np.savez(tmp_path / "a.npz", a=np.zeros(2))
     with pytest.raises(ValueError, match="not an OccupancyGrid saved by OccupancyGrid.save"):
         OccupancyGrid.load(tmp_path / "a.npz")
+
+
+def test_an_extent_of_two_points_one_cell_wide_warns():
+    # ((xmin, xmax), (ymin, ymax)) is two points, (0, 22) and (0, 18): a strip one cell wide.
+    model = OccupancyGridMap(resolution=0.5).fit(
+        np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0]]), [0, 1]
+    )
+    with pytest.warns(UserWarning, match="read as two points, which span a grid one cell wide"):
+        grid = OccupancyGrid.from_estimator(model, extent=((0, 22), (0, 18)), resolution=0.2)
+    assert 1 in grid.shape
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        OccupancyGrid.from_estimator(model, extent=((0, 0), (22, 18)), resolution=0.2)
