@@ -465,3 +465,15 @@ def test_scalar_prior_parameters():
         ).fit(X)
     np.testing.assert_array_equal(model.covariance_prior_, np.eye(2))
     assert adjusted_rand_score(y, model.labels_) >= 0.95
+
+
+def test_coordinates_whose_squares_overflow_are_refused():
+    # They gave NaN probabilities, and partial_fit NaN for good.
+    rng = np.random.default_rng(0)
+    model = DPGMMClusterer(random_state=0).fit(rng.normal(size=(50, 2)))
+    for method in (model.predict_proba, model.predict, model.partial_fit):
+        with pytest.raises(ValueError, match="their squares overflow"):
+            method([[1e155, 0.0]])
+    with pytest.raises(ValueError, match="their squares overflow"):
+        DPGMMClusterer().fit([[1e155, 0.0], [0.0, 0.0]])
+    assert np.all(np.isfinite(model.predict_proba([[0.0, 0.0]])))
