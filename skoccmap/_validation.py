@@ -50,7 +50,7 @@ def validate_queries(estimator, X):
     from sklearn.utils.validation import validate_data
 
     try:
-        return validate_data(estimator, X, reset=False, dtype=np.float64)
+        return validate_data(estimator, X, reset=False, dtype=np.float64, ensure_min_samples=0)
     except ValueError as exc:
         n_features = getattr(estimator, "n_features_in_", None)
         shape = np.shape(X)

@@ -2648,6 +2648,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         region and each expert predicts its queries of a chunk in one call.
         """
         X = self._validate_queries(X)
+        if X.shape[0] == 0:
+            return np.empty(0), np.empty(0), np.empty(0)
         order = self._reach_index.spatial_order(X)
         # Bounded pair arrays: each query consults at most the experts near its block.
         pair_bytes = 8 * 8 * max(self._reach_index.max_candidates, 1)
@@ -2812,6 +2814,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         True
         """
         X = self._validate_queries(X)
+        if X.shape[0] == 0:
+            return np.empty(0)
         if self.shared_kernel_ is not None:
             return np.asarray(self.shared_kernel_.diag(X), dtype=np.float64)
         return self._unreached_prior_variance(X)

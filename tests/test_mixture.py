@@ -1183,3 +1183,14 @@ def test_points_as_queries_get_a_hint(paper):
     model = MixtureGPOccupancyMap(random_state=0).fit(paper.X, paper.y)
     with pytest.raises(ValueError, match=r"pass skoccmap.as_segments\(points\)"):
         model.predict_proba([[5.0, 5.0]])
+
+
+def test_no_queries_give_empty_predictions(paper):
+    # A robot asking about an empty region: empty answers, as partial_fit takes an empty batch.
+    model = MixtureGPOccupancyMap(random_state=0).fit(paper.X, paper.y)
+    empty = np.empty((0, 4))
+    assert model.predict_proba(empty).shape == (0, 2)
+    assert model.predict(empty).shape == (0,)
+    assert model.predict_var(empty).shape == (0,)
+    assert model.prior_variance(empty).shape == (0,)
+    assert [a.shape for a in model.latent_mean_and_variance(empty)] == [(0,), (0,)]
