@@ -741,21 +741,33 @@ def _read_simple_yaml(path):
 def _read_pgm(path):
     """Pixels of a binary (P5, maxval <= 255) PGM image, rows top to bottom."""
     data = Path(path).read_bytes()
+    unsupported = f"{path}: only binary 8-bit PGM (P5) images are supported"
+    if not data.startswith(b"P5"):
+        raise ValueError(f"{unsupported}; this file does not start with P5.")
     fields, pos = [], 0
-    while len(fields) < 4:
+    while len(fields) < 4 and pos < len(data):
         while pos < len(data) and data[pos : pos + 1].isspace():
             pos += 1
         if data[pos : pos + 1] == b"#":
-            pos = data.index(b"\n", pos) + 1
+            newline = data.find(b"\n", pos)
+            pos = len(data) if newline < 0 else newline + 1
             continue
         end = pos
         while end < len(data) and not data[end : end + 1].isspace():
             end += 1
         fields.append(data[pos:end])
         pos = end
-    magic, width, height, maxval = fields[0], *map(int, fields[1:])
-    if magic != b"P5" or not 0 < maxval <= 255:
-        raise ValueError(f"{path}: only binary 8-bit PGM (P5) images are supported.")
+    try:
+        width, height, maxval = (int(f) for f in fields[1:4])
+    except ValueError:
+        width = height = maxval = 0
+    if len(fields) < 4 or width <= 0 or height <= 0 or not 0 < maxval <= 255:
+        raise ValueError(f"{unsupported}; its header is not one (got {b' '.join(fields)!r}).")
+    if len(data) - (pos + 1) < width * height:
+        raise ValueError(
+            f"{path}: the image is truncated: {width} x {height} pixels need {width * height} "
+            f"bytes, it holds {max(len(data) - (pos + 1), 0)}."
+        )
     pixels = np.frombuffer(data, dtype=np.uint8, count=width * height, offset=pos + 1)
     # Scaled to 0-255, as image readers deliver a PGM of a smaller maxval.
     return pixels.reshape(height, width).astype(np.float64) * (255.0 / maxval)

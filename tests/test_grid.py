@@ -479,3 +479,20 @@ def test_an_extent_of_two_points_one_cell_wide_warns():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         OccupancyGrid.from_estimator(model, extent=((0, 0), (22, 18)), resolution=0.2)
+
+
+@pytest.mark.parametrize(
+    ("image", "message"),
+    [
+        (b"\x89PNG\r\n\x1a\n", "does not start with P5"),
+        (b"P5\n-2 2\n255\n\x00\x00\x00\x00", "its header is not one"),
+        (b"P5\n2 2\n255\n\x00\x00", "truncated: 2 x 2 pixels need 4 bytes, it holds 2"),
+        (b"", "does not start with P5"),
+        (b"P5\n# a comment without its newline", "its header is not one"),
+    ],
+)
+def test_malformed_map_server_images(tmp_path, image, message):
+    (tmp_path / "m.pgm").write_bytes(image)
+    (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
+    with pytest.raises(ValueError, match=message):
+        OccupancyGrid.load_map_server(tmp_path / "m.yaml")
