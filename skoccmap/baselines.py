@@ -1047,6 +1047,11 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
                     f"class_weight has a weight for class {label!r}, which is not in y "
                     f"(classes {self.classes_.tolist()})."
                 )
+            if not (isinstance(weight, Real) and np.isfinite(weight) and weight > 0):
+                raise ValueError(
+                    f"class_weight must give each class a positive finite weight, got "
+                    f"{weight!r} for class {label!r}."
+                )
             weights[int(matches[0])] = weight
         return weights
 

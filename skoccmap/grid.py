@@ -471,6 +471,7 @@ class OccupancyGrid:
         -------
         points : ndarray of shape (n_occupied, n_dims)
         """
+        _check_thresholds(0.0, occupied_threshold)
         occupied = (self.probability > occupied_threshold) & ~self._unknown_mask()
         return self.cell_centers()[occupied.ravel()]
 

@@ -799,3 +799,10 @@ def test_no_queries_give_empty_predictions(estimator):
     estimator.fit(X, [0, 1, 0, 1])
     assert estimator.predict_proba(np.empty((0, 4))).shape == (0, 2)
     assert estimator.predict(np.empty((0, 4))).shape == (0,)
+
+
+@pytest.mark.parametrize("weight", [np.nan, -1.0, 0.0])
+def test_hilbert_map_class_weight_must_be_positive(weight):
+    X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="positive finite weight"):
+        HilbertMap(class_weight={1: weight}).fit(X, [0, 1])

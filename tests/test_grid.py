@@ -496,3 +496,10 @@ def test_malformed_map_server_images(tmp_path, image, message):
     (tmp_path / "m.yaml").write_text("image: m.pgm\nresolution: 0.05\norigin: [0, 0, 0]\n")
     with pytest.raises(ValueError, match=message):
         OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+
+
+@pytest.mark.parametrize("threshold", [np.nan, 2.0, -0.1])
+def test_to_points_checks_its_threshold(threshold):
+    grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=1.0)
+    with pytest.raises(ValueError, match="occupied_threshold"):
+        grid.to_points(threshold)
