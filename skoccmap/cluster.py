@@ -668,7 +668,8 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
             mean = np.asarray(self.mean_prior, dtype=float).reshape(-1)
             if mean.shape != (D,) or not np.all(np.isfinite(mean)):
                 raise ValueError(
-                    f"mean_prior must be a finite array of shape ({D},), got shape {mean.shape}."
+                    f"mean_prior must be a finite array of shape ({D},), got "
+                    f"{self.mean_prior!r} of shape {mean.shape}."
                 )
         kappa = 1.0 if self.mean_precision_prior is None else float(self.mean_precision_prior)
         nu = (

@@ -753,6 +753,8 @@ def _check_piece_length(value, name, allow_none=False):
         raise ValueError(f"{name} must be a number > 0, got {value!r}.") from None
     if not value > 0:
         raise ValueError(f"{name} must be > 0, got {value!r}.")
+    if np.isinf(value) and not allow_none:
+        raise ValueError(f"{name} must be finite, got {value!r}.")
     return value
 
 

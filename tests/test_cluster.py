@@ -477,3 +477,9 @@ def test_coordinates_whose_squares_overflow_are_refused():
     with pytest.raises(ValueError, match="their squares overflow"):
         DPGMMClusterer().fit([[1e155, 0.0], [0.0, 0.0]])
     assert np.all(np.isfinite(model.predict_proba([[0.0, 0.0]])))
+
+
+def test_mean_prior_with_nan_names_the_value():
+    X = np.random.default_rng(0).normal(size=(20, 2))
+    with pytest.raises(ValueError, match=r"of shape \(2,\), got \[nan, 0.0\] of shape"):
+        DPGMMClusterer(mean_prior=[np.nan, 0.0]).fit(X)

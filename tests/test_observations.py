@@ -438,3 +438,8 @@ def test_split_segments_exact_multiples_and_bad_end_length():
 def test_beam_directions_without_a_beam_axis_is_a_clear_error(poses, angles):
     with pytest.raises(ValueError, match="one beam is an array of one"):
         beam_directions(poses, angles)
+
+
+def test_split_segments_refuses_an_infinite_end_length():
+    with pytest.raises(ValueError, match="end_length must be finite"):
+        split_segments([[0.0, 0.0, 5.0, 0.0]], 1.0, end_length=np.inf)

@@ -480,3 +480,11 @@ def test_paper_scans_scale_up():
         make_paper_scans(n_beams=0)
     with pytest.raises(ValueError, match="n_poses_per_piece"):
         make_paper_scans(n_poses_per_piece=1.5)
+
+
+@pytest.mark.parametrize(
+    ("azimuths", "elevations"), [([np.nan], [0.0]), ([], [0.0]), (0.0, [0.0])]
+)
+def test_scanner_directions_checks_its_angles(azimuths, elevations):
+    with pytest.raises(ValueError, match="non-empty 1-D array of finite angles"):
+        scanner_directions(azimuths, elevations)

@@ -236,7 +236,13 @@ def scanner_directions(azimuths, elevations):
     >>> scanner_directions([0.0], [0.0])
     array([[1., 0., 0.]])
     """
-    az, el = np.meshgrid(np.asarray(azimuths, float), np.asarray(elevations, float))
+    azimuths, elevations = np.asarray(azimuths, float), np.asarray(elevations, float)
+    for name, angles in (("azimuths", azimuths), ("elevations", elevations)):
+        if angles.ndim != 1 or angles.size == 0 or not np.all(np.isfinite(angles)):
+            raise ValueError(
+                f"{name} must be a non-empty 1-D array of finite angles, got {angles!r}."
+            )
+    az, el = np.meshgrid(azimuths, elevations)
     az, el = az.ravel(), el.ravel()
     return np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
 
