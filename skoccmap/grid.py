@@ -762,7 +762,7 @@ def _read_pgm(path):
         width, height, maxval = (int(f) for f in fields[1:4])
     except ValueError:
         width = height = maxval = 0
-    if len(fields) < 4 or width <= 0 or height <= 0 or not 0 < maxval <= 255:
+    if len(fields) < 4 or fields[0] != b"P5" or width <= 0 or height <= 0 or not 0 < maxval <= 255:
         raise ValueError(f"{unsupported}; its header is not one (got {b' '.join(fields)!r}).")
     if len(data) - (pos + 1) < width * height:
         raise ValueError(
