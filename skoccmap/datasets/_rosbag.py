@@ -955,8 +955,9 @@ def write_rosbag(
     Each scan is stamped with its timestamp (``0, 1, 2, ..`` seconds when ``scans`` has
     none), which must fit the bag's time type (ROS 1: ``[0, 2**32)`` s, ROS 2: ``[-2**31,
     2**31)`` s; a ValueError otherwise, and for two scans at one stamp in different poses,
-    since the bag holds one laser pose per time). Ranges are stored as float32 (as LaserScan defines them); no-return beams as
-    ``+inf``, ``range_min`` 0 and ``range_max`` the scans' ``max_range``.
+    since the bag holds one laser pose per time). Ranges are stored as float32 (as
+    LaserScan defines them); no-return beams as ``+inf``, ``range_min`` 0 and ``range_max``
+    the scans' ``max_range``.
     """
     from ..observations import Scans
 
