@@ -66,7 +66,9 @@ def window_pieces(points, y, *, radius, max_rows, n_pieces, random_state):
     A window is centred on an occupied row drawn at random and holds the rows whose
     ``points`` lie within ``radius`` of the centre, a random ``max_rows`` of them when there
     are more. Centres are drawn until ``n_pieces`` windows hold both classes, or
-    ``10 * n_pieces`` centres were tried.
+    ``10 * n_pieces`` centres were tried. A window holding the same rows as one drawn
+    before is skipped: its evidence would only count twice (a radius larger than the map
+    gave 128 copies of one window, and 128 times the learning's cost).
 
     Parameters
     ----------
@@ -92,15 +94,17 @@ def window_pieces(points, y, *, radius, max_rows, n_pieces, random_state):
     if occupied.size == 0 or occupied.size == y.size:
         return []
     tree = cKDTree(points)
-    pieces = []
+    pieces, seen = [], set()
     for _ in range(10 * n_pieces):
         centre = points[occupied[random_state.randint(occupied.size)]]
         rows = np.asarray(tree.query_ball_point(centre, radius), dtype=np.intp)
         if rows.size > max_rows:
             rows = random_state.choice(rows, max_rows, replace=False)
+        rows = np.sort(rows)
         labels = y[rows]
-        if 0 < labels.sum() < rows.size:
-            pieces.append(np.sort(rows))
+        if 0 < labels.sum() < rows.size and rows.tobytes() not in seen:
+            seen.add(rows.tobytes())
+            pieces.append(rows)
             if len(pieces) == n_pieces:
                 break
     return pieces

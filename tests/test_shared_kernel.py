@@ -136,3 +136,21 @@ def test_windows_need_both_classes():
         )
         == []
     )
+
+
+def test_windows_holding_the_same_rows_count_once():
+    # A radius larger than the data: every centre draws the same window, whose evidence
+    # would count 8 times (and cost 8 learnings).
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0.0, 5.0, size=(40, 2))
+    y = (np.arange(40) % 2).astype(np.int64)
+    pieces = window_pieces(
+        points, y, radius=100.0, max_rows=50, n_pieces=8, random_state=np.random.RandomState(0)
+    )
+    assert len(pieces) == 1
+    np.testing.assert_array_equal(pieces[0], np.arange(40))
+    # Subsampled windows differ: all 8 are kept.
+    pieces = window_pieces(
+        points, y, radius=100.0, max_rows=10, n_pieces=8, random_state=np.random.RandomState(0)
+    )
+    assert len(pieces) == 8
