@@ -447,11 +447,12 @@ def pair_upper_bound(s1, s2):
     from a point, the point kernel integrates to at most ``sqrt(2 pi) exp(-r**2 / 2)``.
     For the second, the integrand over the two lines' arc lengths is ``exp(-d**2 / 2)``
     (``d`` the lines' distance) times a bivariate normal density of total mass ``2 pi /
-    |sin t|``, centred on the lines' closest approach ``(s0, u0)``; the segments take the
-    mass of a rectangle, at most that of either strip: ``P1 = Phi((L1 - s0) |sin t|) -
-    Phi(-s0 |sin t|)`` (the marginal of ``s`` has standard deviation ``1 / |sin t|``), and
-    ``P2`` alike. Beams that cross near their ends (beams of one scan, fanning out from the
-    sensor) score a fraction of the whole lines' integral.
+    |sin t|``, centred on the lines' closest approach, at arc lengths ``(s0, u0)`` along
+    the two segments; the segments take the mass of a rectangle, at most that of either
+    strip: ``P1 = Phi((L1 - s0) |sin t|) - Phi(-s0 |sin t|)`` (the marginal of the first
+    arc length has standard deviation ``1 / |sin t|``), and ``P2`` alike. Beams that cross
+    near their ends (beams of one scan, fanning out from the sensor) score a fraction of the
+    whole lines' integral.
 
     Parameters
     ----------
@@ -478,8 +479,9 @@ def pair_upper_bound(s1, s2):
     d2 = s2[:, dim:] - s2[:, :dim]
     dist2 = _segment_dist2(s1[:, :dim], d1, s2[:, :dim], d2)
     len1_2, len2_2 = _dot(d1, d1), _dot(d2, d2)
-    bound = np.exp(-0.5 * dist2) * np.minimum(
-        1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2, len2_2)))
+    with np.errstate(divide="ignore"):  # two points: no length, no bound from it
+        bound = np.exp(-0.5 * dist2) * np.minimum(
+            1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2, len2_2)))
     return np.minimum(bound, crossing_upper_bound(s1, s2)), dist2
 
 

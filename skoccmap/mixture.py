@@ -48,10 +48,12 @@ __all__ = ["MixtureGPOccupancyMap"]
 # Covariance ridge of the Gaussians that gate the pieces of a split cluster, relative to
 # the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
 _GATING_RIDGE = 1e-3
-# A hit carrying more rows (its beams' pieces) than this many times max_expert_size is an
-# error: its expert, which holds at least that hit, could not be split to size (a return
-# beam of 100 km cut into 1 m pieces asked for 75 GiB).
+# A hit carrying more rows (its beams' pieces) than this many times max_expert_size, and
+# than _MAX_HIT_ROWS (a kernel matrix of 0.8 GB), is an error: its expert, which holds at
+# least that hit, could not be split to size (a return beam of 100 km cut into 1 m pieces
+# asked for 75 GiB). A hit of the Intel log carries up to about 400 rows.
 _HIT_ROWS_FACTOR = 10
+_MAX_HIT_ROWS = 10_000
 # No-return beams are compared with at most this many return beams, drawn uniformly per
 # block: the exact argmax over all of them costs about 6% of all (no-return, return)
 # pairs in quadrature (on dense simulated scans), quadratic in the number of observations.
@@ -211,11 +213,12 @@ def _assign_no_return(
 ):
     """Label of the most similar return beam under the integral kernel, per no-return beam.
 
-    The paper's rule, exact over the return beams compared with. The argmax is found by
-    bounds: per no-return beam the few return beams with the largest upper bound
-    (:func:`~skoccmap._integrals.pair_upper_bound`) are evaluated first, then only those
-    whose bound beats the best value so far. A beam beyond the kernel's reach of every
-    return beam takes the label of the nearest one.
+    The paper's rule, exact over the return beams compared with (up to near-ties within the
+    quadrature's error, about 1e-8). The argmax is found by bounds: per no-return beam the
+    few return beams with the largest upper bound
+    (:func:`~skoccmap._integrals.pair_upper_bound`) are evaluated first, then, largest
+    bound first, only those whose bound beats the best value so far. A beam beyond the
+    kernel's reach of every return beam takes the label of the nearest one.
 
     With more than ``max_references`` return beams, each block of no-return beams is
     compared with its own uniform sample of (at most) that many: the cost stays linear in
@@ -271,8 +274,10 @@ def _most_similar(A, B):
 
     n_a, n_b = A.shape[0], B.shape[0]
     rows = np.arange(n_a)
-    # Slack for the rounding of the two bounds and of the quadrature against them.
-    slack = 1.0 + 1e-9
+    # Slack for the rounding of the bounds and the quadrature's error against them: the
+    # quadrature of long segments crossing at small angles comes out a few 1e-9 above the
+    # integral, where the crossing bound is tight.
+    slack = 1.0 + 1e-7
     loose = loose_upper_bound(A, B) * slack
     bound = np.full((n_a, n_b), -1.0)  # -1: not computed (bounds are >= 0)
     dist2 = np.full((n_a, n_b), np.inf)
@@ -501,14 +506,15 @@ def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
     pieces_per_hit = np.bincount(piece_hit, minlength=hits.shape[0])
     if max_size is not None and pieces_per_hit.size:
         worst = int(np.argmax(pieces_per_hit))
-        if pieces_per_hit[worst] > _HIT_ROWS_FACTOR * max_size:
+        limit = max(_HIT_ROWS_FACTOR * max_size, _MAX_HIT_ROWS)
+        if pieces_per_hit[worst] > limit:
             raise ValueError(
                 f"the hit at {np.round(hits[worst], 3).tolist()} carries "
                 f"{pieces_per_hit[worst]} rows (its beams' pieces), and an expert holds at "
-                f"least one hit with its rows: more than {_HIT_ROWS_FACTOR} x "
-                f"max_expert_size={max_size}. Its beams are far longer than the map around "
-                "them: check that the ranges are in metres, or cut beams into longer pieces "
-                "(max_beam_length)."
+                f"least one hit with its rows: more than {limit}, at most {_HIT_ROWS_FACTOR} "
+                f"x max_expert_size={max_size} or {_MAX_HIT_ROWS}. Its beams are far longer "
+                "than the map around them: check that the ranges are in metres, or cut "
+                "beams into longer pieces (max_beam_length)."
             )
     hit_expert = np.empty(hits.shape[0], dtype=np.intp)
     expert_cluster = []
@@ -668,7 +674,9 @@ def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False, hold
     n_positive = int(np.sum(y == 1))
     fit = expert.fit
     if n_positive in (0, y.size):
-        if type(expert) is not EPGaussianProcessClassifier:
+        # An expert left without rows (a part of a split cluster whose hits are all
+        # transient) is the prior.
+        if type(expert) is not EPGaussianProcessClassifier or y.size == 0:
             kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
             return _ConstantExpert(kernel, n_positive, y.size), [], None
         # EP on one class: the GP posterior of walls seen alone (or free space alone), with

@@ -1194,3 +1194,24 @@ def test_no_queries_give_empty_predictions(paper):
     assert model.predict_var(empty).shape == (0,)
     assert model.prior_variance(empty).shape == (0,)
     assert [a.shape for a in model.latent_mean_and_variance(empty)] == [(0,), (0,)]
+
+
+def test_an_expert_without_rows_is_the_prior():
+    # A part of a split cluster whose hits are all transient holds no rows; EP on one class
+    # had nothing to run on ("Found array with 0 sample(s)").
+    from skoccmap import EPGaussianProcessClassifier
+    from skoccmap.mixture import _ConstantExpert, _fit_expert
+
+    kernel = C(1e3, "fixed") * IntegralKernel(1.0, "fixed")
+    expert = EPGaussianProcessClassifier(kernel, optimizer=None)
+    fitted, _, _ = _fit_expert(expert, np.empty((0, 4)), np.empty(0, dtype=np.int64))
+    assert isinstance(fitted, _ConstantExpert)
+    mean, var = fitted.latent_mean_and_variance(np.array([[1.0, 2.0, 1.0, 2.0]]))
+    np.testing.assert_allclose(mean, 0.0, atol=1e-12)
+    np.testing.assert_allclose(var, 1e3)
+
+
+def test_small_experts_are_no_error(paper):
+    # The bound on a hit's rows is absolute as well: a few dozen rows per hit are common.
+    model = MixtureGPOccupancyMap(max_expert_size=4, random_state=0).fit(paper.X, paper.y)
+    assert model.n_experts_ > 100

@@ -704,7 +704,8 @@ def test_cli_level_tolerance_maps_a_tilted_laser(tmp_path, capsys):
 
 @pytest.mark.parametrize(
     ("ros_version", "timestamps"),
-    [(1, [-2.0, -1.0]), (1, [1.7e12, 1.7e12 + 0.1]), (2, [1.7e12, 1.7e12 + 0.1])],
+    [(1, [-2.0, -1.0]), (1, [1.7e12, 1.7e12 + 0.1]), (2, [1.7e12, 1.7e12 + 0.1]),
+     (2, [-2.0, -1.0])],
 )
 def test_write_rosbag_refuses_times_a_bag_cannot_hold(tmp_path, ros_version, timestamps):
     # ROS 1 stamps are unsigned 32-bit seconds, ROS 2 signed: milliseconds by mistake or
@@ -746,3 +747,27 @@ def test_a_failed_write_leaves_no_bag(tmp_path, monkeypatch):
         with pytest.raises(RuntimeError, match="disk full"):
             write_rosbag(scans, path, ros_version=ros_version)
         assert not path.exists()
+
+
+def test_a_grid_at_a_negative_stamp_is_refused_and_leaves_no_bag(tmp_path):
+    # mcap keeps unsigned times: rosbags failed inside its writer, and the failed close
+    # left the half-written bag behind.
+    grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=1.0)
+    for storage in ("sqlite3", "mcap"):
+        path = tmp_path / storage
+        with pytest.raises(ValueError, match="stamp must lie in"):
+            grid.write_rosbag(path, stamp=-1.0, storage=storage)
+        assert not path.exists()
+
+
+def test_a_write_whose_close_fails_leaves_no_bag(tmp_path, monkeypatch):
+    from rosbags.rosbag2 import Writer
+
+    def fail(self):
+        raise OSError("close failed")
+
+    monkeypatch.setattr(Writer, "close", fail)
+    grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=1.0)
+    with pytest.raises(OSError, match="close failed"):
+        grid.write_rosbag(tmp_path / "m", stamp=1.0)
+    assert not (tmp_path / "m").exists()

@@ -816,14 +816,22 @@ class _BagWriter:
         return self
 
     def __exit__(self, exc_type, *exc):
-        self.writer.close()
+        # A half-written bag would block the next try ("exists already"): removed when a
+        # write failed, or the close (which may fail after a failed write too).
+        try:
+            self.writer.close()
+        except BaseException:
+            self._remove()
+            raise
         if exc_type is not None:
-            # A half-written bag would block the next try ("exists already").
-            if self.path.is_dir():
-                shutil.rmtree(self.path, ignore_errors=True)
-            else:
-                self.path.unlink(missing_ok=True)
+            self._remove()
         return False
+
+    def _remove(self):
+        if self.path.is_dir():
+            shutil.rmtree(self.path, ignore_errors=True)
+        else:
+            self.path.unlink(missing_ok=True)
 
     def connection(self, topic, msgtype, *, latched=False):
         """A connection; latched ones are ROS 1 ``latching=1`` or ROS 2 ``transient_local``
@@ -953,7 +961,7 @@ def write_rosbag(
     Notes
     -----
     Each scan is stamped with its timestamp (``0, 1, 2, ..`` seconds when ``scans`` has
-    none), which must fit the bag's time type (ROS 1: ``[0, 2**32)`` s, ROS 2: ``[-2**31,
+    none), which must fit the bag's time type (ROS 1: ``[0, 2**32)`` s, ROS 2: ``[0,
     2**31)`` s; a ValueError otherwise, and for two scans at one stamp in different poses,
     since the bag holds one laser pose per time). Ranges are stored as float32 (as
     LaserScan defines them); no-return beams as ``+inf``, ``range_min`` 0 and ``range_max``
@@ -1059,8 +1067,9 @@ def _stamp_to_ns(stamp, ros_version):
 
 def _check_stamps(seconds, ros_version, what):
     """ValueError for times a bag of ``ros_version`` cannot hold: ROS 1 stamps are unsigned
-    32-bit seconds, ROS 2 stamps signed 32-bit seconds."""
-    lo, hi = (0.0, 2.0**32) if ros_version == 1 else (-(2.0**31), 2.0**31)
+    32-bit seconds; ROS 2 stamps signed 32-bit seconds, but its bags' own (mcap) times are
+    unsigned."""
+    lo, hi = (0.0, 2.0**32) if ros_version == 1 else (0.0, 2.0**31)
     bad = ~((seconds >= lo) & (seconds < hi))
     if np.any(bad):
         raise ValueError(
