@@ -458,6 +458,9 @@ def check_model_arguments(args):
     seed = getattr(args, "seed", 0)
     if not 0 <= seed < 2**32:
         raise ValueError(f"--seed must be an integer in [0, 2**32), got {seed}")
+    tolerance = getattr(args, "level_tolerance", _BAG_DEFAULTS["level_tolerance"])
+    if not tolerance >= 0:
+        raise ValueError(f"--level-tolerance must be >= 0 radians, got {tolerance}")
 
 
 # Suffixes the default output names drop: the log's name stays otherwise whole, so that

@@ -115,11 +115,14 @@ def traverse_cells(starts, ends, origin, resolution, shape):
     counts = np.asarray(shape)
     if not (np.issubdtype(counts.dtype, np.integer) and np.all(counts >= 1)):
         raise ValueError(f"shape must be positive integers, got {shape!r}.")
-    if not (np.isscalar(resolution) and np.isfinite(resolution) and resolution > 0):
+    if not (np.ndim(resolution) == 0 and np.isfinite(resolution) and resolution > 0):
         raise ValueError(f"resolution must be a positive finite number, got {resolution!r}.")
+    resolution = float(resolution)
     q0, q1 = (starts - origin) / resolution, (ends - origin) / resolution
-    # Within rounding of the grid's faces: end points computed from the grid's own corner.
-    lo, hi = -1e-9, counts + 1e-9
+    # Within rounding of the grid's faces (end points computed from the grid's own corner,
+    # far from the origin of the coordinates: UTM-like values round to 1e-8 cells).
+    scale = np.max(np.abs(origin), initial=0.0) / resolution + np.max(counts)
+    lo, hi = -1e-12 * scale - 1e-9, counts + 1e-12 * scale + 1e-9
     inside = np.all((q0 >= lo) & (q0 <= hi) & (q1 >= lo) & (q1 <= hi), axis=1)
     if not np.all(inside):  # NaN included
         row = int(np.flatnonzero(~inside)[0])
@@ -1047,9 +1050,9 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
                     f"class_weight has a weight for class {label!r}, which is not in y "
                     f"(classes {self.classes_.tolist()})."
                 )
-            if not (isinstance(weight, Real) and np.isfinite(weight) and weight > 0):
+            if not (isinstance(weight, Real) and np.isfinite(weight) and weight >= 0):
                 raise ValueError(
-                    f"class_weight must give each class a positive finite weight, got "
+                    f"class_weight must give each class a finite weight >= 0, got "
                     f"{weight!r} for class {label!r}."
                 )
             weights[int(matches[0])] = weight

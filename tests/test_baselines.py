@@ -801,8 +801,20 @@ def test_no_queries_give_empty_predictions(estimator):
     assert estimator.predict(np.empty((0, 4))).shape == (0,)
 
 
-@pytest.mark.parametrize("weight", [np.nan, -1.0, 0.0])
-def test_hilbert_map_class_weight_must_be_positive(weight):
+@pytest.mark.parametrize("weight", [np.nan, -1.0, np.inf])
+def test_hilbert_map_class_weight_must_be_finite_and_not_negative(weight):
     X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0]])
-    with pytest.raises(ValueError, match="positive finite weight"):
+    with pytest.raises(ValueError, match="a finite weight >= 0"):
         HilbertMap(class_weight={1: weight}).fit(X, [0, 1])
+
+
+def test_traverse_cells_takes_ends_on_the_far_face_far_from_the_origin():
+    # A UTM-like origin: ends computed as origin + shape * resolution round to 1e-8 cells
+    # outside the grid, which a tolerance of 1e-9 cells refused.
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        origin = rng.uniform(4e5, 6e5, size=2)
+        shape, res = (7, 5), 0.1
+        ends = origin + np.array(shape) * res
+        seg, cells = traverse_cells(origin[None], ends[None], origin, np.array(res), shape)
+        assert cells.min() >= 0 and np.all(cells < shape)

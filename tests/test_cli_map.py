@@ -65,6 +65,7 @@ def test_evaluate_prints_both_models(paper_log, capsys):
         (["map", "{log}", "--max-expert-size", "0"], "--max-expert-size must be >= 2"),
         (["evaluate", "{log}", "--n-jobs", "0"], "--n-jobs must not be 0"),
         (["map", "{log}", "--seed", "-1"], "--seed must be an integer in [0, 2**32), got -1"),
+        (["map", "{log}", "--level-tolerance", "nan"], "--level-tolerance must be >= 0 radians"),
         # Options of the online replay were ignored without --online.
         (["map", "{log}", "--snapshots", "{tmp}/s"], "--snapshots applies only with --online"),
         (["map", "{log}", "--batch-scans", "3", "--refit-fraction", "0"],
