@@ -28,6 +28,7 @@ References
 .. [DN2015] M. P. Deisenroth and J. W. Ng, "Distributed Gaussian processes", ICML 2015.
 """
 
+from numbers import Integral
 from typing import NamedTuple
 
 import numpy as np
@@ -154,7 +155,10 @@ def _dense_pairs(means, variances, weights, prior_variance=None):
 
 def _sum(pairs, values):
     """Per-query sums of a value per pair."""
-    return np.bincount(pairs.query, weights=values, minlength=pairs.n_queries)
+    # float64 also for no pairs (bincount then gives integers)
+    return np.bincount(pairs.query, weights=values, minlength=pairs.n_queries).astype(
+        np.float64, copy=False
+    )
 
 
 def _normalized(pairs):
@@ -497,8 +501,12 @@ def combine_pairs(
         raise ValueError(f"method must be one of {sorted(_RULES)}, got {method!r}.")
     if method in _NEEDS_PRIOR and prior_variance is None:
         raise ValueError(f"prior_variance is required by method={method!r}.")
+    if not (isinstance(n_queries, Integral) and n_queries >= 0):
+        raise ValueError(f"n_queries must be an integer >= 0, got {n_queries!r}.")
     n_queries = int(n_queries)
     query = np.asarray(query_index)
+    if query.size == 0:
+        query = query.astype(np.intp)  # [] is a float array
     arrays = {"means": means, "variances": variances}
     if weights is not None:
         arrays["weights"] = weights

@@ -326,3 +326,10 @@ def test_pairs_refuse_bad_input():
         combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="rbcm")
     with pytest.raises(ValueError, match="method must be one of"):
         combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="mean")
+
+
+def test_combine_pairs_checks_n_queries_and_takes_no_pairs():
+    with pytest.raises(ValueError, match="n_queries must be an integer >= 0, got 1.7"):
+        combine_pairs([0], [0.0], [1.0], n_queries=1.7)
+    merged = combine_pairs([], [], [], n_queries=0)
+    assert all(a.shape == (0,) and a.dtype == np.float64 for a in merged)
