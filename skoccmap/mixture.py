@@ -511,10 +511,10 @@ def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
             raise ValueError(
                 f"the hit at {np.round(hits[worst], 3).tolist()} carries "
                 f"{pieces_per_hit[worst]} rows (its beams' pieces), and an expert holds at "
-                f"least one hit with its rows: more than {limit}, at most {_HIT_ROWS_FACTOR} "
-                f"x max_expert_size={max_size} or {_MAX_HIT_ROWS}. Its beams are far longer "
-                "than the map around them: check that the ranges are in metres, or cut "
-                "beams into longer pieces (max_beam_length)."
+                f"least one hit with its rows: more than {limit} (the larger of "
+                f"{_HIT_ROWS_FACTOR} x max_expert_size={max_size} and {_MAX_HIT_ROWS}). Its "
+                "beams are far longer than the map around them: check that the ranges are in "
+                "metres, or cut beams into longer pieces (max_beam_length)."
             )
     hit_expert = np.empty(hits.shape[0], dtype=np.intp)
     expert_cluster = []
