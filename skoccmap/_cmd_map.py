@@ -168,8 +168,8 @@ def add_model_arguments(parser):
         default=1.0,
         help="beams are cut into pieces no longer than this, in metres ('none': no bound; "
         "with --beam-end-length, --max-pieces-per-cell and --hyperparameter-beam-length "
-        "none too, beams stay whole as in the paper, each free beam joining the expert of "
-        "the hit nearest its midpoint; default 1)",
+        "none too, beams stay whole, each free beam joining the expert of the hit nearest "
+        "its midpoint when that lies within 2 m and has room, else its own hit's; default 1)",
     )
     parser.add_argument(
         "--hyperparameter-beam-length",

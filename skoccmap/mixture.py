@@ -1118,11 +1118,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         same replay re-learns at 10, 20, 45 and 95 scans and ends at 1.20 m and AUC 0.924.
         On the first 200 scans (re-learned at 190 scans too) it ends at 0.90 m and AUC
         0.946, against 0.928 never re-learned, and 1.35 m and 0.932 for the fit. The
-        length scale learned from 32 pieces varies by tens of percent from one draw to
-        another, and the AUC with it: one fit of the 120 scans gives 0.929 to 0.935 over
-        four seeds. With the 0.35 m end pieces the default replay ends 0.004 below the
-        fit's AUC on both prefixes (0.932 against 0.935 at 120 scans, 0.947 against
-        0.951 at 200). Re-learning at a fixed growth factor refits all experts a logarithmic
+        length scale learned from 32 pieces (the number then, now up to 128 experts)
+        varied by tens of percent from one draw to another, and the AUC with it: one fit of
+        the 120 scans gave 0.929 to 0.935 over four seeds. With the 0.35 m end pieces the
+        default replay ends 0.004 below the fit's AUC on both prefixes (0.932 against
+        0.935 at 120 scans, 0.947 against 0.951 at 200). Re-learning at a fixed growth factor refits all experts a logarithmic
         number of times, i.e. a constant amortised cost per added row; 2 was not tuned.
         ``None`` keeps the first batch's hyperparameters. Only with
         ``share_hyperparameters=True`` and hyperparameters to learn.
