@@ -1122,8 +1122,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         varied by tens of percent from one draw to another, and the AUC with it: one fit of
         the 120 scans gave 0.929 to 0.935 over four seeds. With the 0.35 m end pieces the
         default replay ends 0.004 below the fit's AUC on both prefixes (0.932 against
-        0.935 at 120 scans, 0.947 against 0.951 at 200). Re-learning at a fixed growth factor refits all experts a logarithmic
-        number of times, i.e. a constant amortised cost per added row; 2 was not tuned.
+        0.935 at 120 scans, 0.947 against 0.951 at 200). Re-learning at a fixed growth
+        factor refits all experts a logarithmic number of times, i.e. a constant amortised
+        cost per added row; 2 was not tuned.
         ``None`` keeps the first batch's hyperparameters. Only with
         ``share_hyperparameters=True`` and hyperparameters to learn.
     refit_fraction : float, default=0.5
