@@ -482,7 +482,8 @@ def pair_upper_bound(s1, s2):
     with np.errstate(divide="ignore"):  # two points: no length, no bound from it
         bound = np.exp(-0.5 * dist2) * np.minimum(
             1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2, len2_2)))
-    return np.minimum(bound, crossing_upper_bound(s1, s2)), dist2
+    crossing = _crossing_bound(s1[:, :dim] - s2[:, :dim], d1, d2, len1_2, len2_2)
+    return np.minimum(bound, crossing), dist2
 
 
 def crossing_upper_bound(s1, s2):
@@ -501,9 +502,15 @@ def crossing_upper_bound(s1, s2):
     dim = s1.shape[1] // 2
     d1 = s1[:, dim:] - s1[:, :dim]
     d2 = s2[:, dim:] - s2[:, :dim]
-    len1_2, len2_2, cross = _dot(d1, d1), _dot(d2, d2), _dot(d1, d2)
+    return _crossing_bound(s1[:, :dim] - s2[:, :dim], d1, d2, _dot(d1, d1), _dot(d2, d2))
+
+
+def _crossing_bound(w, d1, d2, len1_2, len2_2):
+    """:func:`crossing_upper_bound` of segments ``a + t d`` (``w = a1 - a2``, squared
+    lengths ``len1_2``, ``len2_2``), shared with :func:`pair_upper_bound`."""
+    cross = _dot(d1, d2)
     area = np.sqrt(np.maximum(len1_2 * len2_2 - cross * cross, 0.0))
-    mass = _strip_mass(s1[:, :dim] - s2[:, :dim], d1, d2, len1_2, len2_2, cross, area)
+    mass = _strip_mass(w, d1, d2, len1_2, len2_2, cross, area)
     with np.errstate(divide="ignore"):
         return 2.0 * np.pi / area * mass
 
