@@ -779,13 +779,16 @@ def test_traverse_cells_rejects_bad_input(starts, ends, resolution, shape, match
         traverse_cells(starts, ends, np.zeros(2), resolution, shape)
 
 
+# Two beams along the axes, each with its hit.
+_TWO_BEAMS = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.9],
+                       [0.0, 1.0, 0.0, 1.0]])  # fmt: skip
+
+
 @pytest.mark.parametrize(
     "estimator", [OccupancyGridMap(resolution=0.5), FrequencyGridMap(resolution=0.5), HilbertMap()]
 )
 def test_points_as_queries_get_a_hint(estimator):
-    X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.9],
-                  [0.0, 1.0, 0.0, 1.0]])  # fmt: skip
-    estimator.fit(X, [0, 1, 0, 1])
+    estimator.fit(_TWO_BEAMS, [0, 1, 0, 1])
     with pytest.raises(ValueError, match=r"pass skoccmap.as_segments\(points\)"):
         estimator.predict_proba([[0.5, 0.5]])
 
@@ -794,9 +797,7 @@ def test_points_as_queries_get_a_hint(estimator):
     "estimator", [OccupancyGridMap(resolution=0.5), FrequencyGridMap(resolution=0.5), HilbertMap()]
 )
 def test_no_queries_give_empty_predictions(estimator):
-    X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.9],
-                  [0.0, 1.0, 0.0, 1.0]])  # fmt: skip
-    estimator.fit(X, [0, 1, 0, 1])
+    estimator.fit(_TWO_BEAMS, [0, 1, 0, 1])
     assert estimator.predict_proba(np.empty((0, 4))).shape == (0, 2)
     assert estimator.predict(np.empty((0, 4))).shape == (0,)
 

@@ -481,6 +481,18 @@ def test_loose_upper_bound_bounds_the_exact_bound(dim, offset):
         assert np.mean(loose < 2.0 * exact + 1e-3) > 0.5
 
 
+def _directions_at_angles(rng, n, dim, log10_angles):
+    """Random unit directions ``e1``, and ``e2`` at angles log-uniform in ``10 **
+    log10_angles`` (low, high) from them."""
+    e1 = rng.normal(size=(n, dim))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    f = rng.normal(size=(n, dim))
+    f -= np.sum(f * e1, axis=1, keepdims=True) * e1
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    angle = 10.0 ** rng.uniform(*log10_angles, size=(n, 1))
+    return e1, np.cos(angle) * e1 + np.sin(angle) * f
+
+
 @pytest.mark.parametrize("dim", [2, 3, 5])
 def test_pair_upper_bound_bounds_the_integral(dim):
     # Any dimension: the estimator checks feed 10-column (5-D segment) rows.
@@ -496,13 +508,7 @@ def test_pair_upper_bound_bounds_the_integral(dim):
     # determinant cancels here, and a distance that is not zero would cut the bound.
     m = 1000
     length = rng.uniform(1.0, 200.0, size=(m, 2))
-    e1 = rng.normal(size=(m, dim))
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    f = rng.normal(size=(m, dim))
-    f -= np.sum(f * e1, axis=1, keepdims=True) * e1
-    f /= np.linalg.norm(f, axis=1, keepdims=True)
-    angle = 10.0 ** rng.uniform(-9, -1, size=(m, 1))
-    e2 = np.cos(angle) * e1 + np.sin(angle) * f
+    e1, e2 = _directions_at_angles(rng, m, dim, (-9, -1))
     cross = rng.normal(size=(m, dim))
     u, v = rng.uniform(size=(2, m, 1))
     a1, a2 = cross - u * length[:, :1] * e1, cross - v * length[:, 1:] * e2
@@ -538,13 +544,7 @@ def test_pair_upper_bound_of_crossing_beams_counts_their_strips(dim):
     la, lb = rng.uniform(1.0, 10.0, size=(2, m, 1))
     fan1, fan2 = np.hstack([origin, origin + la * u]), np.hstack([origin, origin + lb * v])
     n = 4000
-    e1 = rng.normal(size=(n, dim))
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    f = rng.normal(size=(n, dim))
-    f -= np.sum(f * e1, axis=1, keepdims=True) * e1
-    f /= np.linalg.norm(f, axis=1, keepdims=True)
-    angle = 10.0 ** rng.uniform(-4, -0.5, size=(n, 1))
-    e2 = np.cos(angle) * e1 + np.sin(angle) * f
+    e1, e2 = _directions_at_angles(rng, n, dim, (-4, -0.5))
     length = rng.uniform(0.5, 50.0, size=(n, 2))
     a1 = rng.uniform(-1e4, 1e4, size=(n, dim))
     b1 = a1 + length[:, :1] * e1
