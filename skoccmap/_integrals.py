@@ -498,6 +498,20 @@ def crossing_upper_bound(s1, s2):
     Returns
     -------
     bound : ndarray of shape (n_pairs,)
+
+    Examples
+    --------
+    Two beams from one sensor at right angles: about half the two whole lines' ``2 pi / (L1
+    L2)`` (each strip holds ``Phi(L) - Phi(0)`` of the mass).
+
+    >>> import numpy as np
+    >>> from skoccmap._integrals import crossing_upper_bound, pair_integrals
+    >>> s1, s2 = np.array([[0.0, 0.0, 4.0, 0.0]]), np.array([[0.0, 0.0, 0.0, 5.0]])
+    >>> bound = crossing_upper_bound(s1, s2)
+    >>> round(float(bound[0] / (2 * np.pi / 20)), 3)
+    0.5
+    >>> bool(pair_integrals(s1, s2)[0][0] <= bound[0])
+    True
     """
     dim = s1.shape[1] // 2
     d1 = s1[:, dim:] - s1[:, :dim]
