@@ -755,6 +755,8 @@ class FrequencyGridMap(_CountingGridBase):
 
 # Query rows turned into Nystroem features at once (n_components float64 columns each).
 _FEATURE_BATCH = 8192
+# Training features beyond this many bytes (float32) are refused before any is computed.
+_MAX_FEATURE_BYTES = 2**34
 
 
 def _free_points_per_row(length, spacing):
@@ -1079,6 +1081,14 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
             take_hit = int(round(self.max_samples * n_hit / (n_hit + n_free)))
             take_hit = min(max(take_hit, 1), n_hit, self.max_samples - 1)
             take_free = self.max_samples - take_hit
+        n_points = take_hit + take_free
+        feature_bytes = 4.0 * n_points * min(self.n_components, n_points)
+        if feature_bytes > _MAX_FEATURE_BYTES:
+            raise ValueError(
+                f"HilbertMap would train on {n_points:.3g} points, whose features take "
+                f"{feature_bytes / 2**30:.3g} GiB: set max_samples (default 50 000) or a "
+                f"larger free_spacing (now {self.free_spacing})."
+            )
         if take_hit < n_hit:
             hits = hits[np.sort(sample_without_replacement(n_hit, take_hit, random_state=rng))]
         if take_free < n_free:

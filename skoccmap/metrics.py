@@ -578,6 +578,10 @@ def _check_probabilities(proba, name="proba"):
     return proba
 
 
+# Bins finer than float64's spacing below 1 cannot separate probabilities.
+_MAX_BINS = 2**52
+
+
 def expected_calibration_error(y_true, proba, n_bins=10):
     """Expected calibration error of binary probabilities, with equal-width bins.
 
@@ -624,9 +628,16 @@ def expected_calibration_error(y_true, proba, n_bins=10):
     if not np.all(np.isin(y_true, [0, 1])):
         raise ValueError("y_true must hold only the labels 0 and 1.")
     n_bins = _check_positive_int(n_bins, "n_bins")
+    if n_bins > _MAX_BINS:
+        raise ValueError(
+            f"n_bins={n_bins} is more bins than float64 probabilities can be told apart "
+            f"by (at most 2**52); use fewer."
+        )
     bins = np.minimum((proba * n_bins).astype(np.int64), n_bins - 1)
+    # Only the bins that hold samples: empty ones add nothing, and n_bins may be large.
+    _, bins = np.unique(bins, return_inverse=True)
     # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
-    gap = np.bincount(bins, proba, n_bins) - np.bincount(bins, y_true.astype(float), n_bins)
+    gap = np.bincount(bins, proba) - np.bincount(bins, y_true.astype(float))
     return float(np.abs(gap).sum() / len(proba))
 
 

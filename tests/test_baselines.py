@@ -802,6 +802,15 @@ def test_no_queries_give_empty_predictions(estimator):
     assert estimator.predict(np.empty((0, 4))).shape == (0,)
 
 
+def test_hilbert_map_refuses_features_beyond_memory():
+    # 0.9 m beams sampled every nanometre, unbounded: 1.8e9 points, refused before any
+    # is drawn (numpy was asked for tens of GiB); with the default bound they are sampled.
+    with pytest.raises(ValueError, match="set max_samples"):
+        HilbertMap(free_spacing=1e-9, max_samples=None).fit(_TWO_BEAMS, [0, 1, 0, 1])
+    est = HilbertMap(free_spacing=1e-9, n_components=20).fit(_TWO_BEAMS, [0, 1, 0, 1])
+    assert est.n_training_points_ == 50_000
+
+
 @pytest.mark.parametrize("weight", [np.nan, -1.0, np.inf])
 def test_hilbert_map_class_weight_must_be_finite_and_not_negative(weight):
     X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0]])

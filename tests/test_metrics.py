@@ -478,6 +478,15 @@ def test_expected_calibration_error_matches_calibration_curve():
     assert_allclose(expected_calibration_error(y, p, n_bins=8), expected)
 
 
+
+def test_expected_calibration_error_many_bins():
+    # Bins finer than the probabilities' spacing hold one sample each: |p - y| per sample.
+    # The bins are counted where samples fall, not allocated (10**12 of them).
+    rng = np.random.default_rng(1)
+    p = np.linspace(0.0005, 0.9995, 1000)
+    y = (rng.uniform(size=1000) < p).astype(int)
+    assert_allclose(expected_calibration_error(y, p, n_bins=10**12), np.mean(np.abs(p - y)))
+
 @pytest.mark.parametrize(
     "y, p, kwargs, match",
     [
@@ -487,6 +496,7 @@ def test_expected_calibration_error_matches_calibration_curve():
         ([0, 2], [0.5, 0.5], {}, "labels 0 and 1"),
         ([], [], {}, "empty"),
         ([0, 1], [0.5, 0.5], {"n_bins": 0}, "n_bins"),
+        ([0, 1], [0.5, 0.5], {"n_bins": 2**53}, "more bins"),
     ],
 )
 def test_expected_calibration_error_bad_input(y, p, kwargs, match):
