@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import cho_solve, cholesky, lu_factor, lu_solve, solve_triangular
-from scipy.linalg.blas import dger, dtpsv
+from scipy.linalg.blas import dger, dtpsv, dtrmm
 from scipy.linalg.lapack import dpotri, dtrtri
 from scipy.special import log_ndtr
 
@@ -51,6 +51,9 @@ _CANCELLATION_THRESHOLD = 1e-4
 _STALL_SWEEPS = 20
 # Rows of a triangular factor solved at once by _solve_lower.
 _TRIANGULAR_BLOCK = 64
+# Triangles of at most this order are inverted by LAPACK's dtrtri, larger ones by halves
+# (see _lower_inverse).
+_INVERSE_BASE = 64
 
 
 class EPPosterior(NamedTuple):
@@ -219,10 +222,7 @@ def _posterior_cholesky(K, tau, nu):
     # Sigma = S^-1/2 (I - B^-1) S^-1/2 (from K = S^-1/2 (B - I) S^-1/2), so the marginal
     # variances need only diag(B^-1), the column norms of L^-1: n^3/3 flops, not the n^3 of
     # V = L^-1 S^1/2 K (R&W Alg. 3.5 line 8). Columns where 1 - [B^-1]_ii cancels are redone.
-    # (L's strict upper triangle is zero and dtrtri leaves it untouched.)
-    L_inv, info = dtrtri(L, lower=1)
-    if info != 0:
-        raise np.linalg.LinAlgError("Cholesky factor of B is singular.")
+    L_inv = _lower_inverse(L)
     one_minus = 1.0 - np.einsum("ij,ij->j", L_inv, L_inv)
     var = np.empty(n)
     good = one_minus > _CANCELLATION_THRESHOLD
@@ -236,6 +236,32 @@ def _posterior_cholesky(K, tau, nu):
     mean = K @ alpha
     log_det_B = 2.0 * np.sum(np.log(np.diagonal(L)))
     return EPPosterior(mean, var, alpha, log_det_B, sqrt_tau, L, None, tau)
+
+
+def _lower_inverse(L):
+    """Inverse of the lower triangle of ``L``, zero above its diagonal.
+
+    By halves, ``[[A, 0], [C, D]]^-1 = [[A^-1, 0], [-D^-1 C A^-1, D^-1]]``: the off-diagonal
+    block is two triangular matrix products (BLAS ``dtrmm``), and triangles of at most
+    ``_INVERSE_BASE`` rows are inverted by LAPACK's ``dtrtri``. The flops are those of
+    ``dtrtri`` on the whole (n^3 / 3), but in level-3 BLAS: about half its time on EP's
+    factors of 200-400 rows (one thread). Parallel EP inverts one factor per sweep.
+
+    Raises ``numpy.linalg.LinAlgError`` if a diagonal entry is zero.
+    """
+    n = L.shape[0]
+    if n <= _INVERSE_BASE:
+        inverse, info = dtrtri(L, lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError("Cholesky factor of B is singular.")
+        return np.tril(inverse)
+    h = n // 2
+    inverse = np.zeros((n, n))
+    inverse[:h, :h] = _lower_inverse(L[:h, :h])
+    inverse[h:, h:] = _lower_inverse(L[h:, h:])
+    C_times_A_inv = dtrmm(1.0, inverse[:h, :h], L[h:, :h], side=1, lower=1)
+    inverse[h:, :h] = dtrmm(-1.0, inverse[h:, h:], C_times_A_inv, lower=1)
+    return inverse
 
 
 def _posterior_lu(K, tau, nu):

@@ -138,6 +138,37 @@ def test_posterior_matches_dense_inverse(tau):
     np.testing.assert_allclose(v_star, v_ref, rtol=1e-9)
 
 
+@pytest.mark.parametrize("n", [1, 64, 65, 130, 301])
+def test_lower_inverse_matches_dense_inverse(n):
+    # Sizes at, just above and well above the dtrtri base case (halves of odd sizes).
+    rng = np.random.default_rng(n)
+    L = np.tril(rng.standard_normal((n, n))) / np.sqrt(n)
+    L[np.diag_indices(n)] = 1.0 + rng.uniform(size=n)  # like EP's factor: diagonal >= 1
+    inverse = ep_module._lower_inverse(L)
+    np.testing.assert_allclose(inverse, np.linalg.inv(L), rtol=1e-12, atol=1e-13)
+    assert np.all(np.triu(inverse, 1) == 0.0)
+
+
+def test_lower_inverse_of_a_singular_factor_raises():
+    L = np.eye(100)
+    L[90, 90] = 0.0
+    with pytest.raises(np.linalg.LinAlgError, match="singular"):
+        ep_module._lower_inverse(L)
+
+
+def test_posterior_of_many_sites_matches_dense_inverse():
+    # Beyond the base case of the factor's inverse, which gives the marginal variances.
+    rng = np.random.default_rng(2)
+    A = rng.standard_normal((150, 150))
+    K = A @ A.T / 150 + 0.8 * np.eye(150)  # well conditioned, so the dense inverse is a reference
+    tau = rng.uniform(0.0, 3.0, size=150)
+    nu = rng.standard_normal(150)
+    post = ep_posterior(K, tau, nu)
+    mean, Sigma = _dense_posterior(K, tau, nu)
+    np.testing.assert_allclose(post.var, np.diag(Sigma), rtol=1e-8)
+    np.testing.assert_allclose(post.mean, mean, rtol=1e-8, atol=1e-10)
+
+
 @pytest.mark.parametrize(
     "tau",
     [
