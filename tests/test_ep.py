@@ -90,6 +90,23 @@ def test_site_update_far_tail_is_finite_and_nonnegative():
     assert tau[1] < 1e-100
 
 
+@pytest.mark.parametrize("nu_cav", [-1e2, -1e3, -1e4, -1e5, -1e8])
+def test_site_update_far_into_the_wrong_tail_stays_a_proper_site(nu_cav):
+    # z = nu_cav / sqrt(2) for tau_cav = 1: r = lambda (z + lambda) in [0, 1] and
+    # tau = r / (2 - r) <= 1. Against the asymptotic series z + lambda = 1/x - 2/x^3 +
+    # 10/x^5 - 74/x^7 (x = -z, exact to 1e-12 here) up to |z| ~ 1e3, a cavity a thousand
+    # standard deviations on the wrong side; beyond, z + lambda cancels to a relative error
+    # of about z^2 eps, and the bounds hold (unclipped, r came out 1.6 and tau negative).
+    tau, nu, log_Z = probit_site_update(np.array([1.0]), np.array([1.0]), np.array([nu_cav]))
+    assert np.isfinite(tau[0]) and np.isfinite(nu[0]) and np.isfinite(log_Z[0])
+    assert 0.0 <= tau[0] <= 1.0
+    x = -nu_cav / np.sqrt(2.0)
+    if x < 1e3:
+        delta = 1 / x - 2 / x**3 + 10 / x**5 - 74 / x**7
+        one_minus_r = 1.0 - (x + delta) * delta
+        np.testing.assert_allclose(1.0 - tau[0], 2 * one_minus_r / (1 + one_minus_r), rtol=1e-4)
+
+
 def test_fixed_point_marginals_match_tilted_moments():
     # At an EP fixed point each posterior marginal has the moments of its tilted distribution.
     kernel, X, y = _problem(n=6)
@@ -448,6 +465,51 @@ def test_first_sweep_from_the_prior_is_not_taken_for_convergence(signal_variance
         res = expectation_propagation(K, y, update=update, tol=tol)
         assert res.converged and res.n_iter > 1
         assert np.all(np.sign(res.posterior.mean) == y)
+
+
+@pytest.mark.parametrize("damping", [0.0, 0.3])
+def test_sequential_sweep_matches_algorithm_3_5_site_by_site(damping):
+    # R&W Algorithm 3.5 with the posterior recomputed densely before each site, against the
+    # sweep's rank-one updates of Sigma and mu.
+    kernel, X, y = _problem(n=12, signal=2.5, seed=3)
+    K = kernel(X) + 1e-8 * np.eye(12)
+    start = expectation_propagation(K, y, max_iter=2)
+    tau, nu = start.site_precision.copy(), start.site_nu.copy()
+    mean = np.zeros(12)
+    got_tau, got_nu, _, _ = ep_module._sequential_sweep(
+        K, y, mean, tau, nu, ep_posterior(K, tau, nu), damping
+    )
+    for i in range(12):
+        # Sigma = K - K S^1/2 B^-1 S^1/2 K with B = I + S^1/2 K S^1/2 (tau may be 0).
+        sq = np.sqrt(tau)
+        B = np.eye(12) + sq[:, None] * K * sq[None, :]
+        Sigma = K - K @ (sq[:, None] * np.linalg.solve(B, sq[:, None] * K))
+        mu = Sigma @ nu
+        tau_cav = 1.0 / Sigma[i, i] - tau[i]
+        nu_cav = mu[i] / Sigma[i, i] - nu[i]
+        t, n_, _ = probit_site_update(y[i : i + 1], np.array([tau_cav]), np.array([nu_cav]))
+        tau[i] += (1.0 - damping) * (t[0] - tau[i])
+        nu[i] += (1.0 - damping) * (n_[0] - nu[i])
+    np.testing.assert_allclose(got_tau, tau, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got_nu, nu, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("update", ["parallel", "sequential"])
+@pytest.mark.parametrize("signal_variance", [1e-4, 1e-2, 0.1])
+def test_converged_sites_meet_the_documented_stopping_rule(update, signal_variance):
+    # EP stops when no site would move by more than tol in units of its marginal:
+    # |d tau| var and |d nu| sqrt(var). Small variances tell these units apart.
+    X = np.linspace(0, 5, 30)[:, None]
+    y = np.where(X[:, 0] > 2.5, 1.0, -1.0)
+    K = (C(signal_variance) * RBF(0.5))(X)
+    tol = 1e-4
+    res = expectation_propagation(K, y, update=update, acceleration=0, tol=tol)
+    assert res.converged
+    tau, nu, post = res.site_precision, res.site_nu, res.posterior
+    tau_new, nu_new = ep_module._proposed_sites(y, np.zeros(30), tau, nu, post)
+    var = post.var
+    assert np.max(np.abs(tau_new - tau) * var) <= tol
+    assert np.max(np.abs(nu_new - nu) * np.sqrt(var)) <= tol
 
 
 @pytest.mark.parametrize("ard", [False, True])
