@@ -15,7 +15,12 @@ from skoccmap._niw import (
     mahalanobis_sq,
     predictive,
 )
-from skoccmap.cluster import DPGMMClusterer, _CollapsedGibbs, sufficient_statistics
+from skoccmap.cluster import (
+    DPGMMClusterer,
+    _CollapsedGibbs,
+    greedy_merge,
+    sufficient_statistics,
+)
 
 
 def blobs(n, D, K, seed, separation=7.0):
@@ -222,7 +227,8 @@ def _exact_partition_posterior(X, prior, alpha):
     return keys, np.exp(log_joint - np.logaddexp.reduce(log_joint))
 
 
-def test_split_merge_moves_leave_the_exact_posterior_invariant():
+@pytest.mark.parametrize("alpha", [1.0, 2.0, 3.0])
+def test_split_merge_moves_leave_the_exact_posterior_invariant(alpha):
     # Split-merge proposals alone form an irreducible chain over partitions (any cluster can be
     # split in two, any two merged), so if every move is a valid Metropolis-Hastings step their
     # empirical partition frequencies converge to p(z | X), which for 4 points is enumerated
@@ -230,10 +236,10 @@ def test_split_merge_moves_leave_the_exact_posterior_invariant():
     # launch state's split proposal far from uniform, so dropping the proposal ratio q from the
     # acceptance probability shifts the chain's distribution by a total variation of ~0.25
     # (measured for seeds 0-2); the correct sampler is within 0.015-0.046 after 5000 proposals
-    # (Monte Carlo error of correlated draws). The bound 0.1 sits between the two.
+    # (Monte Carlo error of correlated draws). The bound 0.1 sits between the two. Values of
+    # alpha other than 1 check its place in the acceptance (log 1 = 0 hides it).
     X = np.array([[0.0, 0.0], [0.4, 0.1], [1.5, 1.0], [1.9, 1.3]])
     prior = NIWPrior(X.mean(0), 1.0, 2.0, 0.3 * np.eye(2))
-    alpha = 1.0
     keys, exact = _exact_partition_posterior(X, prior, alpha)
     assert len(keys) == 15 and exact.min() > 0.005
 
@@ -247,6 +253,64 @@ def test_split_merge_moves_leave_the_exact_posterior_invariant():
     empirical = np.array([counts[k] for k in keys]) / n_proposals
     total_variation = 0.5 * np.abs(empirical - exact).sum()
     assert total_variation < 0.1, total_variation
+
+
+def _log_joint(X, labels, prior, alpha):
+    _, z = np.unique(labels, return_inverse=True)
+    n, s, S = sufficient_statistics(X, z, z.max() + 1)
+    return log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum()
+
+
+@pytest.mark.parametrize("alpha", [0.1, 10.0])
+def test_greedy_merge_takes_the_best_merge_of_the_log_joint_until_none_gains(alpha):
+    # Brute force: at each step the pair whose merge raises the CRP-times-NIW log joint
+    # most, until no merge raises it. Four groups 2.5 apart: alpha decides how many stay
+    # apart (about 2 at 0.1, 4 at 10).
+    rng = np.random.default_rng(4)
+    corners = [[0, 0], [2.5, 0], [0, 2.5], [2.5, 2.5]]
+    X = np.vstack([rng.normal(c, 0.5, size=(4, 2)) for c in corners])
+    labels = np.repeat(np.arange(8), 2)  # over-split: 8 clusters of 2 points
+    prior = NIWPrior(X.mean(0), 0.5, 3.0, 0.5 * np.eye(2))
+    expected = labels.copy()
+    while len(np.unique(expected)) > 1:
+        current = _log_joint(X, expected, prior, alpha)
+        gains = {}
+        for a in np.unique(expected):
+            for b in np.unique(expected):
+                if a < b:
+                    merged = np.where(expected == b, a, expected)
+                    gains[a, b] = _log_joint(X, merged, prior, alpha) - current
+        (a, b), gain = max(gains.items(), key=lambda item: item[1])
+        if gain <= 0.0:
+            break
+        expected = np.where(expected == b, a, expected)
+    mapping = greedy_merge(*sufficient_statistics(X, labels, 8), prior, alpha)
+    assert adjusted_rand_score(expected, mapping[labels]) == 1.0
+    assert len(np.unique(expected)) > 1  # the merges stopped before one cluster
+
+
+@pytest.mark.parametrize("alpha", [0.2, 5.0])
+def test_seating_a_new_point_follows_the_crp_conditional(alpha):
+    # partial_fit seats each new point in a cluster drawn with probability proportional to
+    # the log joint with it there (an existing cluster or a new one), by brute force.
+    rng = np.random.default_rng(5)
+    old = rng.normal(size=(7, 2)) * 2
+    old_labels = np.array([0, 0, 1, 1, 1, 2, 0])
+    prior = random_prior(2, rng)
+    x = np.array([[0.5, -0.3]])
+    joint = np.array(
+        [_log_joint(np.vstack([old, x]), np.r_[old_labels, k], prior, alpha) for k in range(4)]
+    )
+    expected = np.exp(joint - np.logaddexp.reduce(joint))
+    statistics = sufficient_statistics(old, old_labels, 3)
+    u = (np.arange(4000) + 0.5) / 4000
+    seats = []
+    for uniform in u:
+        state = _CollapsedGibbs(x, np.zeros(1, dtype=np.intp), prior, alpha, statistics)
+        state.seat(0, uniform)
+        seats.append(state.labels[0])
+    freq = np.bincount(seats, minlength=4) / len(u)
+    np.testing.assert_allclose(freq, expected, atol=1e-3)
 
 
 # -- clustering quality ------------------------------------------------------------------
@@ -361,6 +425,8 @@ def test_fitted_attributes_and_predict_proba():
             + k0 * n / kappa * np.outer(dm, dm)
         )
         dof = nu - 1
+        # Psi_n / nu_n, as BayesianGaussianMixture.covariances_
+        np.testing.assert_allclose(model.covariances_[k], psi / nu)
         dens.append(n * stats.multivariate_t(mean, psi * (kappa + 1) / (kappa * dof), dof).pdf(x))
     dens = np.array(dens).T
     np.testing.assert_allclose(proba[:5], dens / dens.sum(1, keepdims=True), rtol=1e-8)
