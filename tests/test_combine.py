@@ -212,6 +212,19 @@ def test_uninformed_experts_give_back_the_prior(method):
     np.testing.assert_allclose(poe.variance, prior / 4, rtol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["bcm", "rbcm"])
+def test_experts_above_their_prior_add_no_information(method):
+    # A posterior variance above the prior (rounding, or an expert from elsewhere) removes no
+    # information: the merged variance is the prior's, and rBCM gives such experts no weight.
+    prior = np.array([1.0, 2.0])
+    variances = 1.5 * np.repeat(prior[:, None], 3, axis=1)
+    means = np.array([[0.3, -0.2, 0.5], [1.0, 0.4, -0.7]])
+    merged = combine(means, variances, method=method, prior_variance=prior)
+    np.testing.assert_allclose(merged.variance, prior, rtol=1e-12)
+    if method == "rbcm":
+        assert np.all(merged.mean == 0.0)
+
+
 finite = st.floats(-50, 50, allow_nan=False)
 positive = st.floats(1e-6, 50, allow_nan=False)
 

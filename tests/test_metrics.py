@@ -258,7 +258,9 @@ def _runs(indices):
     return np.diff(np.r_[0, breaks, len(indices)])
 
 
-@pytest.mark.parametrize("n_scans, n_blocks", [(41, 1), (120, 1), (1200, 3), (13631, 34)])
+@pytest.mark.parametrize(
+    "n_scans, n_blocks", [(41, 1), (120, 1), (700, 2), (1200, 3), (13631, 34)]
+)
 def test_split_scan_blocks_contiguous_and_about_ten_percent(n_scans, n_blocks):
     scans = _indexed_scans(n_scans)
     for seed in range(5):
@@ -636,6 +638,29 @@ def test_map_quality_classifier_cells_take_their_largest_value(paper):
     queried = map_quality(_Ripples(), env, scans=scans)
     for key in ["auc", "brier", "ece", "phantom_rate", "free_found", "walls_found", "n_cells"]:
         assert_allclose(queried[key], by_hand[key], rtol=1e-12, err_msg=key)
+
+
+class _HollowWalls:
+    """Occupied from 0.07 to 0.25 m off each wall's centre line, free on it: a wall drawn
+    a step beside where it is."""
+
+    classes_ = np.array([0, 1])
+
+    def __init__(self, environment):
+        self.environment = environment
+
+    def predict_proba(self, X):
+        d = self.environment.distance(X[:, :2])
+        p = ((d > 0.07) & (d <= 0.25)).astype(float)
+        return np.column_stack([1 - p, p])
+
+
+def test_map_quality_band_may_start_beside_the_centre_line(paper):
+    # A band goes through the wall when it holds a step within half a step of the wall's
+    # surface, not only the step on its centre line: here the steps 0.1 and 0.2 m off it.
+    q = map_quality(_HollowWalls(paper.environment), paper.environment)
+    assert q["n_wall_bands"] > 0.9 * q["n_wall_samples"]
+    assert_allclose(q["wall_thickness"], 0.2)
 
 
 def test_map_quality_no_band():
