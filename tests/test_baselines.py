@@ -506,6 +506,16 @@ def test_free_rows_beyond_max_free_length_pass_no_cell(grid):
     np.testing.assert_allclose(bounded.predict_proba(queries), without.predict_proba(queries))
     assert bounded.predict_proba(queries)[2, 1] == 0.5  # only the long beam passed it
     assert everything.predict_proba(queries)[0, 1] < bounded.predict_proba(queries)[0, 1]
+    # A row exactly as long as the bound counts.
+    at_bound = clone(grid).set_params(max_free_length=3.0).fit(X, y)
+    np.testing.assert_allclose(at_bound.predict_proba(queries), everything.predict_proba(queries))
+
+
+def test_frequency_grid_predicts_occupied_only_above_one_half():
+    # One hit and one pass in a cell: p = 1/2, which predict reads as free.
+    est = FrequencyGridMap(resolution=0.1).fit(np.array([_BEAM, _HIT]), [0, 1])
+    assert est.predict_proba(np.array([_HIT]))[0, 1] == 0.5
+    assert est.predict(np.array([_HIT]))[0] == 0
 
 
 def test_frequency_counts_match_loop_reference():
@@ -673,6 +683,16 @@ def test_hilbert_map_max_samples_keeps_both_classes():
     assert [9.0, 0.0] in (est.nystroem_.components_ + est.center_).tolist()
     every = HilbertMap(max_samples=None, **params).fit(X, y)
     assert every.n_training_points_ == 1 + 40 * 100
+
+
+def test_hilbert_map_max_samples_keeps_the_classes_in_proportion():
+    # 10 hits and 90 free points (zero-length free rows), 20 kept: 2 hits and 18 free.
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0, 5, size=(100, 2))
+    hit = np.arange(100) < 10
+    est = HilbertMap(max_samples=20, max_free_length=None)
+    _, labels = est._training_points(points, points, hit, np.random.RandomState(0))
+    assert labels.size == 20 and labels.sum() == 2
 
 
 def test_hilbert_map_skips_free_rows_beyond_max_free_length():

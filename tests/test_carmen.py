@@ -13,10 +13,15 @@ def _flaser(ranges, pose, timestamp=1.0):
     return " ".join(fields + [str(timestamp), "host", str(timestamp)]) + "\n"
 
 
-def _robotlaser(ranges, pose, *, start, resolution, max_range, remissions=(), timestamp=2.0):
+def _robotlaser(
+    ranges, pose, *, start, resolution, max_range, remissions=(), timestamp=2.0, robot_pose=None
+):
+    """A ROBOTLASER1 line: the laser's pose, then the robot's (the laser's by default)."""
+    robot_pose = pose if robot_pose is None else robot_pose
     fields = ["ROBOTLASER1", "0", str(start), str(resolution * len(ranges)), str(resolution)]
     fields += [str(max_range), "0.01", "0", str(len(ranges)), *map(str, ranges)]
-    fields += [str(len(remissions)), *map(str, remissions), *map(str, pose), *map(str, pose)]
+    fields += [str(len(remissions)), *map(str, remissions), *map(str, pose)]
+    fields += [*map(str, robot_pose)]
     fields += ["0", "0", "0.5", "0.5", "0", str(timestamp), "host", str(timestamp)]
     return " ".join(fields) + "\n"
 
@@ -109,6 +114,7 @@ def test_robotlaser_uses_its_own_geometry(tmp_path):
         resolution=0.25,
         max_range=30.0,
         remissions=(7, 8),
+        robot_pose=[0.0, 0.0, 0.0],  # the beams start from the laser, not the robot's centre
     )
     # A FLASER copy of the same scan: with ROBOTLASER1 present it is not read twice.
     path.write_text(line + _flaser([1.0, 2.0, 30.0], [0.5, 0.0, 0.0]))
@@ -120,6 +126,19 @@ def test_robotlaser_uses_its_own_geometry(tmp_path):
     np.testing.assert_allclose(scans.hit_points()[0], [0.5 + np.cos(-0.5), np.sin(-0.5)])
     only_flaser = load_carmen(path, message="FLASER")
     np.testing.assert_allclose(only_flaser.angles, flaser_angles(3))
+
+
+def test_robotlaser_max_range_is_the_smallest_stated(tmp_path):
+    # Scans stating 30 and 20 m: beyond 20 m the second cannot tell a return from none.
+    path = tmp_path / "two.log"
+    scan = dict(start=-0.5, resolution=0.25)
+    path.write_text(
+        _robotlaser([1.0, 25.0, 20.0], [0.0, 0.0, 0.0], max_range=30.0, timestamp=1.0, **scan)
+        + _robotlaser([1.0, 2.0, 20.0], [1.0, 0.0, 0.0], max_range=20.0, timestamp=2.0, **scan)
+    )
+    scans = load_carmen(path)
+    assert scans.max_range == 20.0
+    np.testing.assert_array_equal(scans.ranges[0], [1.0, np.inf, np.inf])
 
 
 @pytest.mark.parametrize(
@@ -221,6 +240,7 @@ def test_max_range_above_the_sentinel_warns(tmp_path):
         warnings.simplefilter("error")
         assert np.isinf(load_carmen(path).ranges[:, 1]).all()  # the sentinel, inferred
         load_carmen(path, max_range=30.0)  # below the sentinel: no-return beams
+        load_carmen(path, max_range=40.0)  # at the sentinel: no-return beams too
     # A largest reading seen a few times is a real one: no warning.
     path.write_text("".join(lines[:4]))
     with warnings.catch_warnings():

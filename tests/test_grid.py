@@ -263,6 +263,12 @@ def test_map_server_round_trip_reproduces_trinary_map(tmp_path):
     np.testing.assert_array_equal(by_stem.trinary(), grid.trinary())
 
 
+def test_trinary_thresholds_are_strict_as_map_servers():
+    # map_server marks a cell occupied above occupied_thresh and free below free_thresh.
+    grid = OccupancyGrid(np.array([[0.196, 0.65, 0.1959, 0.6501]]), np.zeros(2), 0.1)
+    np.testing.assert_array_equal(grid.trinary(), [[-1, -1, 0, 100]])
+
+
 def test_hand_made_map_server_files(tmp_path):
     # Pixels [0, 100, 128, 200, 230, 255] under thresholds 0.5 / 0.25, as map_server reads
     # them: occupancy (255 - v) / 255 = 1, 0.61, 0.50, 0.22, 0.10, 0.

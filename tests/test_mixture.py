@@ -32,6 +32,7 @@ from skoccmap.mixture import (
     _beam_pieces,
     _bisect,
     _ConstantExpert,
+    _merge_small,
 )
 from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
 
@@ -377,6 +378,25 @@ def test_weighted_bisection_bounds_piece_weight():
     heavy = _bisect(points[:3], 5, np.array([9, 1, 1]))
     assert [0] in [p.tolist() for p in heavy]
     assert sorted(np.concatenate(heavy).tolist()) == [0, 1, 2]
+
+
+def test_bisection_splits_at_the_median():
+    # Eight collinear points of unit weight and room for four: two halves of four.
+    points = np.column_stack([np.arange(8.0), np.zeros(8)])
+    pieces = _bisect(points, 4)
+    assert sorted(sorted(p.tolist()) for p in pieces) == [[0, 1, 2, 3], [4, 5, 6, 7]]
+
+
+def test_clusters_of_min_size_are_kept_and_smaller_ones_merged_into_the_nearest():
+    # Observations of clusters 0 (20), 1 (50) and 2 (5); hits at x = 0, 10 and 2.
+    labels = np.repeat([0, 1, 2], [20, 50, 5])
+    hit_points = np.array([[0.0, 0.0], [10.0, 0.0], [2.0, 0.0]])
+    hit_labels = np.array([0, 1, 2])
+    assert _merge_small(labels, hit_points, hit_labels, 5).tolist() == [0, 1, 2]
+    # Cluster 2 joins cluster 0, its nearest by hit centroid; cluster 0 of exactly 20 stays.
+    assert _merge_small(labels, hit_points, hit_labels, 20).tolist() == [0, 1, 0]
+    # With room for 26 the merged cluster of 25 joins cluster 1 as well.
+    assert _merge_small(labels, hit_points, hit_labels, 26).tolist() == [0, 0, 0]
 
 
 def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, grid):

@@ -408,6 +408,25 @@ def test_split_segments_rejects_bad_bound(max_length):
         split_segments([[0.0, 0.0, 1.0, 0.0]], max_length)
 
 
+@pytest.mark.parametrize("length", [0.25, 0.75, 1.75, 2.75, 3.0, 0.1])
+def test_graded_pieces_tile_a_segment_ending_on_their_boundaries(length):
+    # Graded pieces of 0.25, 0.5 and then 1 m from the end: lengths on their boundaries
+    # give no zero-length piece (a spurious free point).
+    pieces, _ = split_segments([[0.0, 0.0, length, 0.0]], 1.0, end_length=0.25)
+    lengths = pieces[:, 2] - pieces[:, 0]
+    assert np.all(lengths > 0) and np.all(lengths <= 1.0 + 1e-12)
+    assert pieces[0, 0] == 0.0 and pieces[-1, 2] == length
+    assert_array_equal(pieces[1:, 0], pieces[:-1, 2])
+    if length == 0.75:
+        assert_allclose(pieces, [[0.0, 0.0, 0.5, 0.0], [0.5, 0.0, 0.75, 0.0]])
+
+
+def test_split_segments_takes_a_whole_number_of_pieces_despite_rounding():
+    # 3 * 0.1 / 0.1 is 3.0000000000000004 in floating point: three pieces, not four.
+    pieces, _ = split_segments([[0.0, 0.0, 3 * 0.1, 0.0]], 0.1)
+    assert len(pieces) == 3
+
+
 def test_split_segments_in_blocks_equals_at_once(monkeypatch):
     import skoccmap.observations as observations
 

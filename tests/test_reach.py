@@ -8,7 +8,7 @@ from sklearn.gaussian_process.kernels import RBF, DotProduct
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
 from skoccmap import _reach
-from skoccmap._reach import ExpertReach, _unique_rows, kernel_reach
+from skoccmap._reach import ExpertReach, _segment_samples, _unique_rows, kernel_reach
 from skoccmap.kernels import IntegralKernel
 
 
@@ -345,3 +345,15 @@ def test_coverage_grows_with_the_data_near_the_query():
     index = ExpertReach(segments, np.array([0, 1]), 2, reach=np.inf)
     cover = index.coverage(np.zeros((1, 4)), np.array([0]), np.array([1]), 0.4)
     np.testing.assert_array_equal(cover, [0.0])
+
+
+def test_segment_samples_reach_both_ends_and_cover_the_segment():
+    segments = np.array([[0.0, 0.0, 1.05, 0.0], [2.0, 1.0, 2.0, 1.0], [0.0, 0.0, 0.3, 0.4]])
+    samples, row = _segment_samples(segments, 0.2)
+    for k, (start, end) in enumerate(zip(segments[:, :2], segments[:, 2:], strict=True)):
+        mine = samples[row == k]
+        np.testing.assert_array_equal(mine[0], start)
+        np.testing.assert_allclose(mine[-1], end, atol=1e-15)
+        along = start + np.linspace(0, 1, 1001)[:, None] * (end - start)
+        gaps = np.linalg.norm(along[:, None, :] - mine[None, :, :], axis=2).min(axis=1)
+        assert gaps.max() <= 0.1 + 1e-12

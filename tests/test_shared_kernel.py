@@ -8,7 +8,12 @@ from sklearn.gaussian_process.kernels import RBF
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 
 from skoccmap import EPGaussianProcessClassifier
-from skoccmap._shared_kernel import learn_shared_kernel, warn_at_bounds, window_pieces
+from skoccmap._shared_kernel import (
+    learn_shared_kernel,
+    warn_at_bounds,
+    warn_beyond_extent,
+    window_pieces,
+)
 
 
 def _piece(seed, n=40):
@@ -71,6 +76,18 @@ def test_warns_at_bounds_only():
         warnings.simplefilter("error")
         warn_at_bounds(C(10.0, (1e-3, 1e3)) * RBF(0.5, (1e-2, 1e2)), "shared kernel")
         warn_at_bounds(C(1e3, "fixed") * RBF(0.5, (1e-2, 1e2)), "shared kernel")
+    with pytest.warns(ConvergenceWarning, match=r"k2__length_scale ended at its lower"):
+        warn_at_bounds(C(10.0, (1e-3, 1e3)) * RBF(1e-2, (1e-2, 1e2)), "shared kernel")
+
+
+def test_warns_when_any_length_scale_is_beyond_the_extent():
+    # The longest of the per-axis length scales counts: one axis beyond the extent makes the
+    # map nearly constant along it.
+    with pytest.warns(ConvergenceWarning, match="beyond the extent"):
+        warn_beyond_extent(RBF([0.5, 50.0]), 10.0, "shared kernel")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_beyond_extent(RBF([0.5, 5.0]), 10.0, "shared kernel")
 
 
 def _scatter(n=600, seed=0):
@@ -111,6 +128,18 @@ def test_windows_are_capped_and_reproducible():
         np.testing.assert_array_equal(a, b)
         assert a.size == 30
         assert cdist(points[a], points[a]).max() <= 2 * 5.0
+
+
+def test_capped_windows_still_hold_both_classes():
+    # A few rows drawn from a window of mostly free rows may hold no occupied one: such a
+    # draw is not a window.
+    points, y = _scatter(seed=2)
+    y = (np.random.RandomState(4).uniform(size=len(y)) < 0.1).astype(int)
+    for seed in range(20):
+        rng = np.random.RandomState(seed)
+        pieces = window_pieces(points, y, radius=20.0, max_rows=3, n_pieces=6, random_state=rng)
+        assert pieces
+        assert all(0 < y[rows].sum() < rows.size for rows in pieces)
 
 
 def test_windows_need_both_classes():

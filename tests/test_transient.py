@@ -175,6 +175,18 @@ def test_a_cell_hit_more_than_a_few_times_keeps_its_hits(n_hits, left_out):
     assert not model.transient_hits_[40 + n_hits :].any()
 
 
+def test_a_hit_at_exactly_the_bound_is_not_transient():
+    # One hit and three beams through its cell: a frequency of exactly 1/4, not below 1/4.
+    y_beam = np.array([0.02, 0.05, 0.08])
+    beams = np.column_stack([np.full(3, -2.0), y_beam, np.full(3, 2.0), y_beam])
+    X = np.vstack([beams, [[0.05, 0.05, 0.05, 0.05]]])
+    counts = CellCounts(0.1, 2).add(X, np.array([False, False, False, True]))
+    hit = X[3:, :2]
+    assert [int(c[0]) for c in counts.counted(hit)] == [1, 3]
+    assert not counts.transient(hit, 0.25, 3)[0]
+    assert counts.transient(hit, 0.26, 3)[0]
+
+
 def test_a_map_without_a_lasting_hit_says_so():
     # Three hits in one cell that forty beams cross, and no other hit.
     y_beam = np.linspace(0.01, 0.09, 40)
