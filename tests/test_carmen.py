@@ -8,8 +8,10 @@ from skoccmap.datasets._carmen import flaser_angles, load_carmen
 from skoccmap.observations import Scans
 
 
-def _flaser(ranges, pose, timestamp=1.0):
-    fields = ["FLASER", str(len(ranges)), *map(str, ranges), *map(str, pose), *map(str, pose)]
+def _flaser(ranges, pose, timestamp=1.0, odometry=None):
+    """A FLASER line: the laser's pose, then the odometry (the laser's pose by default)."""
+    odometry = pose if odometry is None else odometry
+    fields = ["FLASER", str(len(ranges)), *map(str, ranges), *map(str, pose), *map(str, odometry)]
     return " ".join(fields + [str(timestamp), "host", str(timestamp)]) + "\n"
 
 
@@ -35,7 +37,8 @@ def tiny_log(tmp_path):
         _flaser([1.0, 2.0, 80.0, 1.5], [0.0, 0.0, 0.0], 10.0),
         "ODOM 0 0 0 0 0 0 10.1 host 10.1\n",
         "\n",
-        _flaser([3.0, 80.0, 80.0, 0.5], [1.0, 2.0, np.pi / 2], 11.0),
+        # Its odometry differs from its laser pose, which places the scan.
+        _flaser([3.0, 80.0, 80.0, 0.5], [1.0, 2.0, np.pi / 2], 11.0, [0.9, 1.7, 1.5]),
         _flaser([2.5, 2.5, 2.5, 2.5], [-1.0, 0.5, -np.pi], 12.0),
     ]
     path = tmp_path / "tiny.log"
