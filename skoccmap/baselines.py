@@ -755,8 +755,9 @@ class FrequencyGridMap(_CountingGridBase):
 
 # Query rows turned into Nystroem features at once (n_components float64 columns each).
 _FEATURE_BATCH = 8192
-# Training features beyond this many bytes (float32) are refused before any is computed.
-_MAX_FEATURE_BYTES = 2**34
+# Training sets beyond this many bytes (mostly float32 features) are refused before any
+# point is drawn.
+_MAX_TRAINING_BYTES = 2**34
 
 
 def _free_points_per_row(length, spacing):
@@ -1082,11 +1083,12 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
             take_hit = min(max(take_hit, 1), n_hit, self.max_samples - 1)
             take_free = self.max_samples - take_hit
         n_points = take_hit + take_free
-        feature_bytes = 4.0 * n_points * min(self.n_components, n_points)
-        if feature_bytes > _MAX_FEATURE_BYTES:
+        # float32 features, and the points (2-D float64), labels and sample index.
+        n_bytes = n_points * (4.0 * min(self.n_components, n_points) + 32.0)
+        if n_bytes > _MAX_TRAINING_BYTES:
             raise ValueError(
                 f"HilbertMap would train on {n_points:.3g} points, whose features take "
-                f"{feature_bytes / 2**30:.3g} GiB: set max_samples (default 50 000) or a "
+                f"{n_bytes / 2**30:.3g} GiB: set max_samples (default 50 000) or a "
                 f"larger free_spacing (now {self.free_spacing})."
             )
         if take_hit < n_hit:

@@ -578,7 +578,8 @@ def _check_probabilities(proba, name="proba"):
     return proba
 
 
-# Bins finer than float64's spacing below 1 cannot separate probabilities.
+# Beyond this many bins ``p * n_bins`` is no longer exact in float64, so samples would fall
+# in bins by rounding.
 _MAX_BINS = 2**52
 
 
@@ -597,7 +598,7 @@ def expected_calibration_error(y_true, proba, n_bins=10):
     proba : array-like of shape (n_samples,)
         Predicted probabilities of class 1.
     n_bins : int, default=10
-        Number of bins.
+        Number of bins, at most 2**52 (a ValueError beyond).
 
     Returns
     -------
@@ -634,8 +635,9 @@ def expected_calibration_error(y_true, proba, n_bins=10):
             f"by (at most 2**52); use fewer."
         )
     bins = np.minimum((proba * n_bins).astype(np.int64), n_bins - 1)
-    # Only the bins that hold samples: empty ones add nothing, and n_bins may be large.
-    _, bins = np.unique(bins, return_inverse=True)
+    if n_bins > proba.size:
+        # More bins than samples: only those holding samples, as empty ones add nothing.
+        _, bins = np.unique(bins, return_inverse=True)
     # sum_b (n_b / n) |mean_b(p) - mean_b(y)| = sum_b |sum_b(p) - sum_b(y)| / n
     gap = np.bincount(bins, proba) - np.bincount(bins, y_true.astype(float))
     return float(np.abs(gap).sum() / len(proba))

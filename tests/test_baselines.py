@@ -827,6 +827,11 @@ def test_hilbert_map_refuses_features_beyond_memory():
     # is drawn (numpy was asked for tens of GiB); with the default bound they are sampled.
     with pytest.raises(ValueError, match="set max_samples"):
         HilbertMap(free_spacing=1e-9, max_samples=None).fit(_TWO_BEAMS, [0, 1, 0, 1])
+    # With one feature per point the points themselves outweigh the features.
+    with pytest.raises(ValueError, match="set max_samples"):
+        HilbertMap(free_spacing=1e-9, max_samples=None, n_components=1).fit(
+            _TWO_BEAMS, [0, 1, 0, 1]
+        )
     est = HilbertMap(free_spacing=1e-9, n_components=20).fit(_TWO_BEAMS, [0, 1, 0, 1])
     assert est.n_training_points_ == 50_000
 

@@ -265,7 +265,7 @@ def _log_joint(X, labels, prior, alpha):
 def test_greedy_merge_takes_the_best_merge_of_the_log_joint_until_none_gains(alpha):
     # Brute force: at each step the pair whose merge raises the CRP-times-NIW log joint
     # most, until no merge raises it. Four groups 2.5 apart: alpha decides how many stay
-    # apart (about 2 at 0.1, 4 at 10).
+    # apart (2 at 0.1, 3 at 10).
     rng = np.random.default_rng(4)
     corners = [[0, 0], [2.5, 0], [0, 2.5], [2.5, 2.5]]
     X = np.vstack([rng.normal(c, 0.5, size=(4, 2)) for c in corners])
@@ -292,7 +292,7 @@ def test_greedy_merge_takes_the_best_merge_of_the_log_joint_until_none_gains(alp
 @pytest.mark.parametrize("alpha", [0.2, 5.0])
 def test_seating_a_new_point_follows_the_crp_conditional(alpha):
     # partial_fit seats each new point in a cluster drawn with probability proportional to
-    # the log joint with it there (an existing cluster or a new one), by brute force.
+    # the joint with it there (an existing cluster or a new one), by brute force.
     rng = np.random.default_rng(5)
     old = rng.normal(size=(7, 2)) * 2
     old_labels = np.array([0, 0, 1, 1, 1, 2, 0])

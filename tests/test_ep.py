@@ -96,7 +96,8 @@ def test_site_update_far_into_the_wrong_tail_stays_a_proper_site(nu_cav):
     # tau = r / (2 - r) <= 1. Against the asymptotic series z + lambda = 1/x - 2/x^3 +
     # 10/x^5 - 74/x^7 (x = -z, exact to 1e-12 here) up to |z| ~ 1e3, a cavity a thousand
     # standard deviations on the wrong side; beyond, z + lambda cancels to a relative error
-    # of about z^2 eps, and the bounds hold (unclipped, r came out 1.6 and tau negative).
+    # of about z^4 eps in 1 - tau, and the bounds hold (unclipped, r came out above 1 and
+    # tau negative).
     tau, nu, log_Z = probit_site_update(np.array([1.0]), np.array([1.0]), np.array([nu_cav]))
     assert np.isfinite(tau[0]) and np.isfinite(nu[0]) and np.isfinite(log_Z[0])
     assert 0.0 <= tau[0] <= 1.0

@@ -480,7 +480,6 @@ def test_expected_calibration_error_matches_calibration_curve():
     assert_allclose(expected_calibration_error(y, p, n_bins=8), expected)
 
 
-
 def test_expected_calibration_error_many_bins():
     # Bins finer than the probabilities' spacing hold one sample each: |p - y| per sample.
     # The bins are counted where samples fall, not allocated (10**12 of them).
@@ -488,6 +487,12 @@ def test_expected_calibration_error_many_bins():
     p = np.linspace(0.0005, 0.9995, 1000)
     y = (rng.uniform(size=1000) < p).astype(int)
     assert_allclose(expected_calibration_error(y, p, n_bins=10**12), np.mean(np.abs(p - y)))
+    # More bins (8) than samples (5), each sample alone in its bin (0, 1, 4, 5, 7).
+    p5, y5 = [0.05, 0.15, 0.62, 0.68, 0.95], [0, 0, 1, 1, 0]
+    assert_allclose(
+        expected_calibration_error(y5, p5, n_bins=8), (0.05 + 0.15 + 0.38 + 0.32 + 0.95) / 5
+    )
+
 
 @pytest.mark.parametrize(
     "y, p, kwargs, match",
