@@ -149,6 +149,13 @@ def test_log_crp_against_sequential_seating():
     assert log_crp(np.array(counts), alpha) == pytest.approx(log_p)
 
 
+def _log_joint(X, labels, prior, alpha):
+    """CRP prior times NIW marginal likelihoods of the partition ``labels`` (any numbering)."""
+    _, z = np.unique(labels, return_inverse=True)
+    n, s, S = sufficient_statistics(X, z, z.max() + 1)
+    return log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum()
+
+
 def test_gibbs_conditionals_match_brute_force_log_joint():
     # The draws of the vectorised sweep use p(z_i = k | z_-i) proportional to the log joint
     # with z_i = k; check the conditional against brute force on tiny data.
@@ -163,9 +170,7 @@ def test_gibbs_conditionals_match_brute_force_log_joint():
         for k in range(4):
             z = labels.copy()
             z[i] = k
-            _, z = np.unique(z, return_inverse=True)
-            n, s, S = sufficient_statistics(X, z, z.max() + 1)
-            joint.append(log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum())
+            joint.append(_log_joint(X, z, prior, alpha))
         joint = np.array(joint)
         if np.sum(labels == labels[i]) == 1:
             joint[labels[i]] = -np.inf  # a singleton staying is the new-cluster option
@@ -220,9 +225,8 @@ def _exact_partition_posterior(X, prior, alpha):
         z = np.empty(len(X), dtype=np.intp)
         for k, block in enumerate(blocks):
             z[block] = k
-        n, s, S = sufficient_statistics(X, z, len(blocks))
         keys.append(_canonical(z))
-        log_joint.append(log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum())
+        log_joint.append(_log_joint(X, z, prior, alpha))
     log_joint = np.array(log_joint)
     return keys, np.exp(log_joint - np.logaddexp.reduce(log_joint))
 
@@ -253,12 +257,6 @@ def test_split_merge_moves_leave_the_exact_posterior_invariant(alpha):
     empirical = np.array([counts[k] for k in keys]) / n_proposals
     total_variation = 0.5 * np.abs(empirical - exact).sum()
     assert total_variation < 0.1, total_variation
-
-
-def _log_joint(X, labels, prior, alpha):
-    _, z = np.unique(labels, return_inverse=True)
-    n, s, S = sufficient_statistics(X, z, z.max() + 1)
-    return log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum()
 
 
 @pytest.mark.parametrize("alpha", [0.1, 10.0])
