@@ -7,13 +7,13 @@ The paper's world (``make_paper_scans``) is scanned with more beams and more pos
 number of observations grows while the map stays the same; every size is mapped on the same
 0.2 m grid of the observed cells. Fit time includes clustering, assignment and learning
 the (shared) hyperparameters. The reference, measured in the same run, is one
-``EPGaussianProcessClassifier`` with the same kernel on all observations (at sizes up to
-``--single-max``, it is cubic). The log-log slope of fit time against n is fitted over the
-sizes from 2000 up (the target is <= 1.2: expert sizes are capped by ``max_expert_size``),
-and from 300k to 3M (target <= 1: linear). Each size also maps the whole world at 0.1 m
-(``OccupancyGrid.from_estimator``, probability and variance), and reports the peak resident
-memory of the process and its workers (sampled every 0.1 s with psutil, when installed)
-during fit and map.
+``EPGaussianProcessClassifier``, the same as the experts (kernel and EP tolerance), on all
+observations (at sizes up to ``--single-max``, it is cubic). The log-log slope of fit time
+against n is fitted over the sizes from 2000 up (the target is <= 1.2: expert sizes are
+capped by ``max_expert_size``), and from 300k to 3M (target <= 1: linear). Each size also
+maps the whole world at 0.1 m (``OccupancyGrid.from_estimator``, probability and
+variance), and reports the peak resident memory of the process and its workers (sampled
+every 0.1 s with psutil, when installed) during fit and map.
 """
 
 import argparse
@@ -31,9 +31,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
-from skoccmap import EPGaussianProcessClassifier, OccupancyGrid  # noqa: E402
+from skoccmap import OccupancyGrid  # noqa: E402
 from skoccmap.datasets import make_paper_scans  # noqa: E402
-from skoccmap.mixture import MixtureGPOccupancyMap, _default_kernel  # noqa: E402
+from skoccmap.mixture import MixtureGPOccupancyMap, _default_expert  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
 
 PAPER_N = 701  # observations of make_paper_scans() with its defaults
@@ -124,7 +124,7 @@ def run_size(n, args, grid):
         "auc": float(roc_auc_score(truth, proba)),
     }
     if row["n"] <= args.single_max:
-        single = EPGaussianProcessClassifier(kernel=_default_kernel())
+        single = _default_expert()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             _, single_fit = timed(lambda: single.fit(data.X, data.y))

@@ -86,11 +86,10 @@ from bench_quality import (  # noqa: E402
 from sklearn.gaussian_process.kernels import ConstantKernel  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
-from skoccmap.classifier import EPGaussianProcessClassifier  # noqa: E402
 from skoccmap.datasets import load_carmen  # noqa: E402
 from skoccmap.kernels import IntegralKernel  # noqa: E402
 from skoccmap.metrics import blocks_protocol, map_quality  # noqa: E402
-from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
+from skoccmap.mixture import MixtureGPOccupancyMap, _default_expert  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -131,7 +130,7 @@ def _expert(constant):
         kernel = ConstantKernel(1e3, constant) * IntegralKernel()
     else:
         kernel = ConstantKernel(constant, "fixed") * IntegralKernel()
-    return EPGaussianProcessClassifier(kernel=kernel)
+    return _default_expert(kernel)
 
 
 LEARNED_SIGNAL_BOUNDS = (1e-2, 1e5)
@@ -143,7 +142,7 @@ def _two_scale_expert():
     kernel = ConstantKernel(1e3, "fixed") * IntegralKernel(0.5) + ConstantKernel(
         1e2, (1.0, 1e5)
     ) * IntegralKernel(2.0)
-    return EPGaussianProcessClassifier(kernel=kernel)
+    return _default_expert(kernel)
 
 
 # Fits: key -> (constructor parameters, description). "default" is the estimator's defaults.

@@ -204,9 +204,10 @@ def test_a_one_class_ep_expert_is_the_gp_posterior_and_counts_under_the_robust_b
     one_class = [e for e in model.experts_ if np.all(getattr(e, "y_train_", [0]) == 1)]
     assert len(one_class) == 1 and one_class[0].classes_.tolist() == [0, 1]
     expert = one_class[0]
-    # EP on the expert's rows alone, computed here, with the expert's (shared) kernel.
+    # EP on the expert's rows alone, computed here, with the expert's (shared) kernel and
+    # its stopping tolerance.
     K = expert.kernel_(expert.X_train_)
-    res = expectation_propagation(K, np.ones(len(K)))
+    res = expectation_propagation(K, np.ones(len(K)), tol=expert.tol)
     Q = as_segments([[10.0, 10.0], [10.5, 9.5]])
     mean, var = ep_latent_predictive(
         expert.kernel_(Q, expert.X_train_), expert.kernel_.diag(Q), res.posterior
@@ -762,6 +763,26 @@ def test_dask_backend_matches_local(paper, grid):
 @pytest.fixture(scope="module")
 def default_model(paper):
     return MixtureGPOccupancyMap(random_state=0).fit(paper.X, paper.y)
+
+
+def test_default_expert_ep_tolerance_moves_the_map_by_under_1e_3(default_model, paper, grid):
+    # The default experts stop EP at 1e-4 of a site's marginal: against experts run to
+    # 1e-9, with fewer sweeps, and the map within 1e-3 (EP at 1e-2 moves it by ~1e-2).
+    from skoccmap import EPGaussianProcessClassifier
+    from skoccmap.mixture import _default_kernel
+
+    _, Q = grid
+    experts = [e for e in default_model.experts_ if hasattr(e, "n_iter_")]
+    assert experts and all(e.tol == 1e-4 for e in experts)
+    tight_expert = EPGaussianProcessClassifier(kernel=_default_kernel(), tol=1e-9)
+    tight = MixtureGPOccupancyMap(expert=tight_expert, random_state=0).fit(paper.X, paper.y)
+    assert tight.n_experts_ == default_model.n_experts_
+    sweeps = [np.sum([e.n_iter_ for e in m.experts_ if hasattr(e, "n_iter_")])
+              for m in (default_model, tight)]  # fmt: skip
+    assert sweeps[0] < sweeps[1]
+    np.testing.assert_allclose(
+        default_model.predict_proba(Q), tight.predict_proba(Q), rtol=0, atol=1e-3
+    )
 
 
 @pytest.mark.parametrize("combiner", sorted(COMBINERS))
