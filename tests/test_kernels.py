@@ -190,3 +190,15 @@ def test_gaussian_process_classifier_fits_and_optimises():
     proba = gpc.predict_proba(queries)
     assert proba[0, 1] > 0.5 > proba[1, 1]
     np.testing.assert_array_equal(gpc.predict(queries), [1.0, 0.0])
+
+
+def test_one_element_length_scale_is_isotropic():
+    # As RBF: a length scale given as a one-element list is one length scale for every
+    # dimension, with one gradient column, not an anisotropic kernel.
+    X = _segments(np.random.default_rng(7), 12)
+    kernel = IntegralKernel([0.7])
+    assert not kernel.anisotropic and kernel.n_dims == 1
+    K, G = kernel(X, eval_gradient=True)
+    assert G.shape == (12, 12, 1)
+    np.testing.assert_allclose(K, IntegralKernel(0.7)(X), rtol=1e-14)
+    np.testing.assert_allclose(G, _fd_gradient(kernel, X), rtol=1e-5, atol=1e-8)
