@@ -202,3 +202,25 @@ def test_one_element_length_scale_is_isotropic():
     assert G.shape == (12, 12, 1)
     np.testing.assert_allclose(K, IntegralKernel(0.7)(X), rtol=1e-14)
     np.testing.assert_allclose(G, _fd_gradient(kernel, X), rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    "length_scale, columns, match",
+    [
+        (0.0, 4, "positive and finite"),
+        ([0.5, 0.0], 4, "positive and finite"),
+        (np.inf, 4, "positive and finite"),
+        ([1.0, np.nan], 4, "positive and finite"),
+        ([[0.5, 1.0], [1.0, 2.0]], 4, "scalar or a 1-D array"),
+        ([1.0, 2.0], 6, "has 2 entries but the segments have 3 spatial"),
+    ],
+    ids=["zero", "one zero", "inf", "nan", "2-D", "too few entries"],
+)
+def test_bad_length_scales_raise(length_scale, columns, match):
+    X = np.zeros((2, columns))
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(length_scale)(X)
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(length_scale).diag(X)
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(length_scale)(X, X)
