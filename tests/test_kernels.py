@@ -224,3 +224,29 @@ def test_bad_length_scales_raise(length_scale, columns, match):
         IntegralKernel(length_scale).diag(X)
     with pytest.raises(ValueError, match=match):
         IntegralKernel(length_scale)(X, X)
+
+
+def test_anisotropic_cross_kernel_matches_quadrature_and_the_joint_matrix():
+    length_scale = [0.5, 1.3]
+    kernel = IntegralKernel(length_scale)
+    # A 2 m beam along x against a point, by quadrature of the anisotropic RBF kernel.
+    beam = np.array([[0.0, 0.0, 2.0, 0.0]])
+    point = np.array([[1.3, 0.4, 1.3, 0.4]])
+    rbf = RBF(length_scale)
+
+    def f(u):
+        return rbf(np.array([[2.0 * u, 0.0]]), point[:, :2])[0, 0]
+
+    expected = integrate.quad(f, 0, 1, points=[0.65], epsabs=1e-15, epsrel=1e-12)[0]
+    assert kernel(beam, point)[0, 0] == pytest.approx(expected, rel=1e-10)
+    assert kernel(point, beam)[0, 0] == pytest.approx(expected, rel=1e-10)
+    # Points against points: the anisotropic RBF kernel.
+    rng = np.random.default_rng(8)
+    P, Q = rng.normal(size=(6, 2)), rng.normal(size=(5, 2))
+    np.testing.assert_allclose(
+        kernel(np.hstack([P, P]), np.hstack([Q, Q])), rbf(P, Q), rtol=1e-13, atol=1e-300
+    )
+    # Segments: the off-diagonal block of the kernel of both sets together.
+    X, Y = _segments(rng, 9), _segments(rng, 7)
+    joint = kernel(np.vstack([X, Y]))
+    np.testing.assert_allclose(kernel(X, Y), joint[:9, 9:], rtol=1e-12, atol=1e-15)
