@@ -451,6 +451,7 @@ def test_bad_training_input(X, y, match):
         (RBF(-1.0), "kernel's length_scale must be positive and finite to be learned, got -1.0"),
         (C(1.0) * RBF([1.0, np.nan]), r"k2__length_scale must be positive.*\[1.0, nan\]"),
         (C(-2.0) * RBF(1.0), "k1__constant_value must be positive and finite"),
+        (C(0.0) * RBF(1.0), "k1__constant_value must be positive and finite.*got 0.0"),
         (RBF(1.0, (5.0, 1.0)), r"bounds of the kernel's length_scale .* got \[5.0, 1.0\]"),
         (RBF(1.0, (0.0, 1.0)), r"0 < low < high \(high may be inf\), got \[0.0, 1.0\]"),
         (RBF(1.0, (1.0, 1.0)), r"0 < low < high \(high may be inf\), got \[1.0, 1.0\]"),
