@@ -683,6 +683,26 @@ def test_lbfgs_first_step_moves_at_most_one_log_unit():
     assert value == pytest.approx(0.0, abs=1e-6)
 
 
+def _site_log_normalisers(K, y, tau, nu):
+    """log Z~_i of EP's probit sites given their cavities in the posterior of ``K`` and all
+    sites (R&W eqs. 3.56, 3.58): dense, every site with tau > 0."""
+    Sigma = np.linalg.inv(np.linalg.inv(K) + np.diag(tau))
+    mu, s2 = Sigma @ nu, np.diag(Sigma)
+    cavity_var = 1.0 / (1.0 / s2 - tau)
+    cavity_mean = cavity_var * (mu / s2 - nu)
+    v = cavity_var + 1.0 / tau
+    log_Z_hat = norm.logcdf(y * cavity_mean / np.sqrt(1.0 + cavity_var))
+    return log_Z_hat + 0.5 * np.log(2 * np.pi * v) + (cavity_mean - nu / tau) ** 2 / (2 * v)
+
+
+def _dense_ep_evidence(K, tau, nu, log_Z):
+    """log of int N(f | 0, K) prod_i Z~_i N(f_i | nu_i / tau_i, 1 / tau_i) df."""
+    S = K + np.diag(1.0 / tau)
+    r = nu / tau
+    _, logdet = np.linalg.slogdet(2 * np.pi * S)
+    return log_Z.sum() - 0.5 * logdet - 0.5 * r @ np.linalg.solve(S, r)
+
+
 def _holding(clf, X, y, tau, nu, n_held):
     """``clf`` fitted on ``X`` with the first ``n_held`` rows' sites held at ``tau``, ``nu``."""
     tau = np.r_[tau[:n_held], np.zeros(len(X) - n_held)]
@@ -755,6 +775,23 @@ def test_absorbed_rows_land_on_the_fixed_point_of_the_whole_fit():
     queries = _data(n=30, seed=4)[0]
     np.testing.assert_allclose(absorbed.predict_proba(queries), whole.predict_proba(queries))
     np.testing.assert_allclose(absorbed.predict_var(queries), whole.predict_var(queries))
+    # The evidence is that of the held sites (their normalisers from the 45 rows' cavities)
+    # times that of the new sites given them (their cavities in the posterior of all rows).
+    K, yy = kernel(X), np.where(y == 1, 1.0, -1.0)
+    log_Z = _site_log_normalisers(K, yy, whole.site_precision_, whole.site_nu_)
+    np.testing.assert_allclose(  # the reference itself, on the whole fit
+        whole.log_marginal_likelihood_value_,
+        _dense_ep_evidence(K, whole.site_precision_, whole.site_nu_, log_Z),
+        rtol=1e-9,
+    )
+    tau, nu = absorbed.site_precision_, absorbed.site_nu_
+    log_Z = np.r_[
+        _site_log_normalisers(K[:45, :45], yy[:45], tau[:45], nu[:45]),
+        _site_log_normalisers(K, yy, tau, nu)[45:],
+    ]
+    np.testing.assert_allclose(
+        absorbed.log_marginal_likelihood_value_, _dense_ep_evidence(K, tau, nu, log_Z), rtol=1e-9
+    )
     np.testing.assert_array_equal(absorbed.X_train_, X)
     assert old.X_train_.shape[0] == 45  # the original is unchanged
 
