@@ -833,3 +833,18 @@ def test_a_refused_one_class_fit_leaves_no_classes_behind():
     assert clf.classes_.tolist() == [0, 1]
     one = EPGaussianProcessClassifier(optimizer=None)._fit_one_class(X, np.ones(6), [0, 1])
     assert one.classes_.tolist() == [0, 1] and np.all(one.predict(X) == 1)
+
+
+def test_bound_warning_names_each_dimensions_own_bound():
+    from skoccmap.classifier import _warn_at_bounds
+
+    kernel = RBF([1.0, 1.0], length_scale_bounds=[[1e-2, 1e2], [1e-1, 1e1]])
+    kernel.theta = np.log([1.0, 1e-1])  # dimension 1 at its own lower bound, 0.1
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _warn_at_bounds(kernel)
+    assert [str(w.message) for w in caught] == [
+        "The optimal value found for dimension 1 of parameter length_scale is close to the "
+        "specified lower bound 0.1. Decreasing the bound and calling fit again may find a "
+        "better value."
+    ]
