@@ -848,3 +848,17 @@ def test_bound_warning_names_each_dimensions_own_bound():
         "specified lower bound 0.1. Decreasing the bound and calling fit again may find a "
         "better value."
     ]
+
+
+def test_lbfgs_returns_the_unscaled_minimum_value():
+    # The objective is divided by its largest initial gradient component while minimising;
+    # the value handed back (which restarts compare) must be the objective's own.
+    def obj(theta, eval_gradient=True):
+        x = theta - 0.5
+        return 7.0 + 400.0 * np.sum(x**2), 800.0 * x
+
+    bounds = np.array([[-11.5, 11.5]])
+    theta, value = _minimize_in_bounds("fmin_l_bfgs_b", obj, np.zeros(1), bounds)
+    np.testing.assert_allclose(theta, [0.5], atol=1e-5)
+    assert value == pytest.approx(obj(theta)[0], rel=1e-12)
+    assert value == pytest.approx(7.0, rel=1e-8)
