@@ -862,3 +862,19 @@ def test_lbfgs_returns_the_unscaled_minimum_value():
     np.testing.assert_allclose(theta, [0.5], atol=1e-5)
     assert value == pytest.approx(obj(theta)[0], rel=1e-12)
     assert value == pytest.approx(7.0, rel=1e-8)
+
+
+def test_kernel_matrix_of_a_warm_start_is_ignored_when_hyperparameters_are_learned():
+    # The matrix handed in is K(X, X) of the initial kernel: stale once the kernel is learnt.
+    X, y = _data(n=30, seed=2, noise=0.8)
+    kernel = C(1.0, (1e-2, 1e2)) * RBF(1.0, (1e-2, 1e2))
+    plain = EPGaussianProcessClassifier(kernel, random_state=0).fit(X, y)
+    warm = EPGaussianProcessClassifier(kernel, random_state=0)._fit_warm_start(
+        X, y, kernel_matrix=kernel(X)
+    )
+    assert not np.allclose(warm.kernel_.theta, kernel.theta, atol=1e-2)
+    np.testing.assert_allclose(warm.kernel_.theta, plain.kernel_.theta, rtol=1e-6, atol=1e-6)
+    # The evidence stored is that of the learnt kernel, evaluated afresh.
+    lml = warm.log_marginal_likelihood(warm.kernel_.theta)
+    np.testing.assert_allclose(warm.log_marginal_likelihood_value_, lml, rtol=1e-6)
+    np.testing.assert_allclose(warm.predict_proba(X), plain.predict_proba(X), atol=1e-6)
