@@ -878,3 +878,15 @@ def test_kernel_matrix_of_a_warm_start_is_ignored_when_hyperparameters_are_learn
     lml = warm.log_marginal_likelihood(warm.kernel_.theta)
     np.testing.assert_allclose(warm.log_marginal_likelihood_value_, lml, rtol=1e-6)
     np.testing.assert_allclose(warm.predict_proba(X), plain.predict_proba(X), atol=1e-6)
+
+
+def test_held_and_free_sites_at_the_fixed_point_need_one_sweep():
+    # Every row's sites at EP's fixed point on all rows, the first 45 held: the free rows'
+    # starting sites (given in the latent) are their fixed point in the centred latent too,
+    # so one sweep confirms them.
+    X, y, kernel, whole = _whole_fit()
+    held = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10)._fit_warm_start(
+        X, y, whole.site_precision_, whole.site_nu_, hold=np.arange(len(X)) < 45
+    )
+    assert held.n_iter_ == 1
+    np.testing.assert_allclose(held.site_nu_, whole.site_nu_, atol=1e-8)
