@@ -890,3 +890,21 @@ def test_held_and_free_sites_at_the_fixed_point_need_one_sweep():
     )
     assert held.n_iter_ == 1
     np.testing.assert_allclose(held.site_nu_, whole.site_nu_, atol=1e-8)
+
+
+def test_a_warm_start_that_does_not_converge_restarts_from_zero_sites():
+    X, y = _data(n=40, seed=5)
+    kernel = C(3.0) * RBF(0.8)
+    cold = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+    signs = np.where(y == 1, 1.0, -1.0)
+    bad = (np.full(40, 1e3), -3e3 * signs)  # confident sites on the wrong side
+    slow = EPGaussianProcessClassifier(kernel, optimizer=None, max_iter=1000)
+    assert slow._fit_warm_start(X, y, *bad).n_iter_ > cold.n_iter_
+    # With max_iter the sweeps of a cold start, the warm start fails and EP starts over.
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, max_iter=cold.n_iter_)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ConvergenceWarning)
+        clf._fit_warm_start(X, y, *bad)
+    assert clf.n_iter_ == cold.n_iter_
+    np.testing.assert_allclose(clf.site_precision_, cold.site_precision_, rtol=1e-12)
+    np.testing.assert_allclose(clf.site_nu_, cold.site_nu_, rtol=1e-12)
