@@ -908,3 +908,13 @@ def test_a_warm_start_that_does_not_converge_restarts_from_zero_sites():
     assert clf.n_iter_ == cold.n_iter_
     np.testing.assert_allclose(clf.site_precision_, cold.site_precision_, rtol=1e-12)
     np.testing.assert_allclose(clf.site_nu_, cold.site_nu_, rtol=1e-12)
+
+
+def test_final_ep_run_after_learning_starts_from_the_optimisers_sites():
+    X, y = _data(n=40, seed=5)
+    learned = EPGaussianProcessClassifier().fit(X, y)
+    cold = EPGaussianProcessClassifier(learned.kernel_, optimizer=None).fit(X, y)
+    # Warm from the sites of the optimiser's last evaluations: far fewer sweeps.
+    assert 2 * learned.n_iter_ < cold.n_iter_
+    np.testing.assert_allclose(learned.site_precision_, cold.site_precision_, atol=1e-4)
+    np.testing.assert_allclose(learned.site_nu_, cold.site_nu_, atol=1e-4)
