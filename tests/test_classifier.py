@@ -918,3 +918,10 @@ def test_final_ep_run_after_learning_starts_from_the_optimisers_sites():
     assert 2 * learned.n_iter_ < cold.n_iter_
     np.testing.assert_allclose(learned.site_precision_, cold.site_precision_, atol=1e-4)
     np.testing.assert_allclose(learned.site_nu_, cold.site_nu_, atol=1e-4)
+
+
+def test_restarts_need_finite_bounds():
+    X, y = _data(n=20)
+    kernel = C(1.0, (1e-2, np.inf)) * RBF(1.0, (1e-2, 1e2))
+    with pytest.raises(ValueError, match="needs finite bounds"):
+        EPGaussianProcessClassifier(kernel, n_restarts_optimizer=1, random_state=0).fit(X, y)
