@@ -925,3 +925,18 @@ def test_restarts_need_finite_bounds():
     kernel = C(1.0, (1e-2, np.inf)) * RBF(1.0, (1e-2, 1e2))
     with pytest.raises(ValueError, match="needs finite bounds"):
         EPGaussianProcessClassifier(kernel, n_restarts_optimizer=1, random_state=0).fit(X, y)
+
+
+@pytest.mark.parametrize("n_restarts", [1, 2])
+def test_each_restart_is_one_more_optimiser_run(n_restarts):
+    X, y = _data(n=20)
+    starts = []
+
+    def optimizer(obj_func, initial_theta, bounds):
+        starts.append(np.array(initial_theta))
+        return initial_theta, obj_func(initial_theta, eval_gradient=False)
+
+    EPGaussianProcessClassifier(
+        optimizer=optimizer, n_restarts_optimizer=n_restarts, random_state=0
+    ).fit(X, y)
+    assert len(starts) == 1 + n_restarts
