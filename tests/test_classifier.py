@@ -940,3 +940,24 @@ def test_each_restart_is_one_more_optimiser_run(n_restarts):
         optimizer=optimizer, n_restarts_optimizer=n_restarts, random_state=0
     ).fit(X, y)
     assert len(starts) == 1 + n_restarts
+
+
+def test_restart_starts_cover_asymmetric_log_bounds():
+    X, y = _data(n=20)
+    starts = []
+
+    def optimizer(obj_func, initial_theta, bounds):
+        starts.append(np.array(initial_theta))
+        return initial_theta, obj_func(initial_theta, eval_gradient=False)
+
+    kernel = C(1.0, (1e-1, 1e3)) * RBF(1.0, (1e-3, 1e1))
+    EPGaussianProcessClassifier(
+        kernel, optimizer=optimizer, n_restarts_optimizer=40, random_state=0
+    ).fit(X, y)
+    low, high = kernel.bounds.T
+    drawn = np.array(starts[1:])
+    assert np.all(drawn >= low) and np.all(drawn <= high)
+    # Uniform over each log range: 40 draws reach its outer sixths (miss: 0.83**40 < 1e-3).
+    width = high - low
+    assert np.all(drawn.min(axis=0) < low + width / 6)
+    assert np.all(drawn.max(axis=0) > high - width / 6)
