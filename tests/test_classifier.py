@@ -961,3 +961,11 @@ def test_restart_starts_cover_asymmetric_log_bounds():
     width = high - low
     assert np.all(drawn.min(axis=0) < low + width / 6)
     assert np.all(drawn.max(axis=0) > high - width / 6)
+
+
+def test_one_class_fit_refuses_labels_outside_the_two_classes():
+    X = np.linspace(0, 1, 6)[:, None]
+    clf = EPGaussianProcessClassifier(optimizer=None)
+    with pytest.raises(ValueError, match="two labels holding y's"):
+        clf._fit_one_class(X, [0, 0, 0, 2, 2, 2], classes=[0, 1])
+    assert not hasattr(clf, "classes_")
