@@ -969,3 +969,14 @@ def test_one_class_fit_refuses_labels_outside_the_two_classes():
     with pytest.raises(ValueError, match="two labels holding y's"):
         clf._fit_one_class(X, [0, 0, 0, 2, 2, 2], classes=[0, 1])
     assert not hasattr(clf, "classes_")
+
+
+@pytest.mark.parametrize(
+    "params, name",
+    [({"damping": 1.0}, "damping"), ({"tol": 0.0}, "tol"), ({"max_iter": 0}, "max_iter")],
+)
+def test_out_of_range_ep_parameters_are_refused(params, name):
+    # damping 1 would never move a site, tol 0 never stop short of max_iter.
+    X, y = _data(n=10)
+    with pytest.raises(ValueError, match=f"'{name}' parameter"):
+        EPGaussianProcessClassifier(optimizer=None, **params).fit(X, y)
