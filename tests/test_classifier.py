@@ -980,3 +980,19 @@ def test_out_of_range_ep_parameters_are_refused(params, name):
     X, y = _data(n=10)
     with pytest.raises(ValueError, match=f"'{name}' parameter"):
         EPGaussianProcessClassifier(optimizer=None, **params).fit(X, y)
+
+
+def test_a_kernel_matrix_given_to_a_multi_class_fit_is_ignored_and_not_kept():
+    # Only a binary fit takes the matrix; a multi-class fit ignores it, and the next fit of
+    # the same estimator must not find it.
+    X, y3 = _data3(n=30)
+    kernel = C(1.0) * RBF(1.0)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None)
+    clf._fit_warm_start(X, y3, kernel_matrix=np.eye(30))
+    plain = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y3)
+    np.testing.assert_array_equal(clf.predict_proba(X), plain.predict_proba(X))
+    y = (y3 == 0).astype(int)
+    clf.fit(X, y)
+    fresh = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+    np.testing.assert_array_equal(clf.site_precision_, fresh.site_precision_)
+    assert clf.log_marginal_likelihood_value_ == fresh.log_marginal_likelihood_value_
