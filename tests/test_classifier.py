@@ -996,3 +996,20 @@ def test_a_kernel_matrix_given_to_a_multi_class_fit_is_ignored_and_not_kept():
     fresh = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
     np.testing.assert_array_equal(clf.site_precision_, fresh.site_precision_)
     assert clf.log_marginal_likelihood_value_ == fresh.log_marginal_likelihood_value_
+
+
+def test_a_kernel_matrix_given_to_a_binary_fit_replaces_the_kernels_evaluation():
+    # The caller's K(X, X) is the matrix EP runs on: twice the kernel's matrix gives the
+    # sites and evidence of the kernel with twice the signal variance.
+    X, y = _data(n=30)
+    kernel = C(1.0) * RBF(0.8)
+    given = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10)._fit_warm_start(
+        X, y, kernel_matrix=2.0 * kernel(X)
+    )
+    doubled = EPGaussianProcessClassifier(C(2.0) * RBF(0.8), optimizer=None, tol=1e-10)
+    doubled.fit(X, y)
+    np.testing.assert_allclose(given.site_precision_, doubled.site_precision_, rtol=1e-10)
+    np.testing.assert_allclose(given.site_nu_, doubled.site_nu_, rtol=1e-10)
+    np.testing.assert_allclose(
+        given.log_marginal_likelihood_value_, doubled.log_marginal_likelihood_value_, rtol=1e-10
+    )
