@@ -250,3 +250,19 @@ def test_anisotropic_cross_kernel_matches_quadrature_and_the_joint_matrix():
     X, Y = _segments(rng, 9), _segments(rng, 7)
     joint = kernel(np.vstack([X, Y]))
     np.testing.assert_allclose(kernel(X, Y), joint[:9, 9:], rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "Y, match",
+    [
+        (np.array([[0.0, np.nan, 1.0, 1.0]]), "NaN"),
+        (np.array([[0.0, np.inf, 1.0, 1.0]]), "infinite"),
+        (np.zeros(4), "2-D"),
+        (np.zeros((0, 4)), "no rows"),
+    ],
+    ids=["nan", "inf", "1-D", "empty"],
+)
+def test_bad_cross_input_raises(Y, match):
+    X = np.zeros((2, 4))
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(1.0)(X, Y)
