@@ -1013,3 +1013,18 @@ def test_a_kernel_matrix_given_to_a_binary_fit_replaces_the_kernels_evaluation()
     np.testing.assert_allclose(
         given.log_marginal_likelihood_value_, doubled.log_marginal_likelihood_value_, rtol=1e-10
     )
+
+
+def test_stationarity_tolerance_is_absolute_below_a_unit_value():
+    from scipy.optimize import OptimizeResult
+
+    bounds = np.array([[-7.0, 7.0]])
+
+    def result(jac, fun):
+        return OptimizeResult(x=np.array([1.0]), jac=np.array([jac]), fun=fun, success=False)
+
+    # Relative to max(1, |value|): 1e-4 at a value of 0.01, 1e-2 at a value of 100.
+    assert _is_stationary(result(5e-5, 0.01), bounds)
+    assert not _is_stationary(result(2e-4, 0.01), bounds)
+    assert _is_stationary(result(5e-3, -100.0), bounds)
+    assert not _is_stationary(result(2e-2, -100.0), bounds)
