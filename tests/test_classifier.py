@@ -1028,3 +1028,18 @@ def test_stationarity_tolerance_is_absolute_below_a_unit_value():
     assert not _is_stationary(result(2e-4, 0.01), bounds)
     assert _is_stationary(result(5e-3, -100.0), bounds)
     assert not _is_stationary(result(2e-2, -100.0), bounds)
+
+
+@pytest.mark.parametrize("copy_X_train", [True, False])
+def test_copy_x_train(copy_X_train):
+    X, y = _data(n=20)
+    clf = EPGaussianProcessClassifier(optimizer=None, copy_X_train=copy_X_train).fit(X, y)
+    assert (clf.X_train_ is X) is not copy_X_train
+    np.testing.assert_array_equal(clf.X_train_, X)
+    before = clf.predict_proba(X[:3].copy())
+    X += 1.0  # the caller changes its array after fit
+    after = clf.predict_proba(X[:3] - 1.0)
+    if copy_X_train:
+        np.testing.assert_array_equal(after, before)
+    else:
+        assert not np.allclose(after, before)
