@@ -1043,3 +1043,16 @@ def test_copy_x_train(copy_X_train):
         np.testing.assert_array_equal(after, before)
     else:
         assert not np.allclose(after, before)
+
+
+def test_multi_class_queries_are_validated_as_in_fit():
+    pd = pytest.importorskip("pandas")
+    X, y = _data3(n=30)
+    frame = pd.DataFrame(X, columns=["x", "y"])
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(frame, y)
+    renamed = pd.DataFrame(X[:4], columns=["a", "b"])
+    for method in (clf.predict_proba, clf.predict):
+        with pytest.raises(ValueError, match="feature names should match"):
+            method(renamed)
+        with pytest.raises(ValueError, match="NaN"):
+            method(pd.DataFrame([[0.0, np.nan]], columns=["x", "y"]))
