@@ -1056,3 +1056,23 @@ def test_multi_class_queries_are_validated_as_in_fit():
             method(renamed)
         with pytest.raises(ValueError, match="NaN"):
             method(pd.DataFrame([[0.0, np.nan]], columns=["x", "y"]))
+
+
+def test_random_state_draws_the_restart_starts():
+    X, y = _data(n=20)
+
+    def starts(random_state):
+        drawn = []
+
+        def optimizer(obj_func, initial_theta, bounds):
+            drawn.append(np.array(initial_theta))
+            return initial_theta, obj_func(initial_theta, eval_gradient=False)
+
+        EPGaussianProcessClassifier(
+            optimizer=optimizer, n_restarts_optimizer=3, random_state=random_state
+        ).fit(X, y)
+        return np.array(drawn[1:])
+
+    np.testing.assert_array_equal(starts(0), starts(0))
+    np.testing.assert_array_equal(starts(np.random.RandomState(0)), starts(0))
+    assert not np.any(np.isclose(starts(0), starts(1)))
