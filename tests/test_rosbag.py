@@ -771,3 +771,123 @@ def test_a_write_whose_close_fails_leaves_no_bag(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="close failed"):
         grid.write_rosbag(tmp_path / "m", stamp=1.0)
     assert not (tmp_path / "m").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Transforms: composition in 3-D, repeated stamps, static and dynamic samples of one edge
+# --------------------------------------------------------------------------------------------
+
+
+def _rot_x(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_tf_chain_composes_rotations_about_different_axes(tmp_path):
+    # A turned robot carrying a rolled laser: the laser's orientation is R_z(yaw) R_x(roll),
+    # not R_x(roll) R_z(yaw) (rotations about z alone would not tell the two apart).
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.2, 0.1, 0.3), roll=0.3, static=True)
+    for stamp in (0.0, 1.0):
+        bag.tf(stamp, "map", "base_link", (1.0, 2.0, 0.0), yaw=0.5)
+    bag.scan(0.5, [1.0, 2.0, 3.0])  # angles -0.5, 0, 0.5
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    assert scans.n_dims == 3
+    rotation = _rot_z(0.5) @ _rot_x(0.3)
+    position = np.array([1.0, 2.0, 0.0]) + _rot_z(0.5) @ np.array([0.2, 0.1, 0.3])
+    angles = np.array([-0.5, 0.0, 0.5])
+    beams = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(3)])
+    expected = position + np.array([1.0, 2.0, 3.0])[:, None] * (beams @ rotation.T)
+    np.testing.assert_allclose(scans.hit_points(), expected, atol=1e-6)
+
+
+def test_a_stamp_sent_twice_keeps_its_last_sample(tmp_path):
+    # The transform at t=1 is sent again (recorded later) with a corrected translation; tf2
+    # keeps the last one sent.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(1.0, "map", "laser", (5.0, 0.0, 0.0))
+    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.0))
+    topic, msgtype, _, message = bag.messages[-1]
+    bag.messages[-1] = (topic, msgtype, 1.5, message)  # recorded at 1.5, stamped 1.0
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
+
+
+def test_a_republished_static_transform_replaces_the_first(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.1, 0.0, 0.0), static=True)
+    bag.tf(0.2, "base_link", "laser", (0.3, 0.0, 0.0), static=True)  # the corrected offset
+    for stamp in (0.0, 2.0):
+        bag.tf(stamp, "map", "base_link", (1.0, 0.0, 0.0))
+    bag.scan(1.0, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.poses, [[1.3, 0.0, 0.0]], atol=1e-12)
+
+
+def test_tf_static_fixes_an_edge_whatever_tf_says(tmp_path):
+    # On /tf_static before /tf: the /tf samples are left out. On /tf before /tf_static:
+    # the static transform replaces them, at every time.
+    for first_static in (True, False):
+        bag = _Bag(2)
+        if first_static:
+            bag.tf(0.0, "map", "laser", (1.0, 2.0, 0.0), yaw=0.5, static=True)
+        bag.tf(0.1, "map", "laser", (5.0, 0.0, 0.0))
+        bag.tf(1.0, "map", "laser", (6.0, 0.0, 0.0))
+        if not first_static:
+            bag.tf(1.5, "map", "laser", (1.0, 2.0, 0.0), yaw=0.5, static=True)
+        bag.scan(0.5, [1.0, 2.0, 3.0])
+        bag.scan(3.0, [1.0, 2.0, 3.0])  # after the /tf samples
+        scans = load_rosbag(bag.write(tmp_path / f"b{first_static}"))
+        np.testing.assert_allclose(scans.poses, [[1.0, 2.0, 0.5]] * 2, atol=1e-12)
+
+
+def test_a_dynamic_laser_offset_limits_the_scans_of_a_pose_topic(tmp_path):
+    # The pose topic covers both scans; the base_link -> laser offset on /tf only the first:
+    # the second is skipped, not placed with an extrapolated offset.
+    bag = _Bag(2)
+    bag.odometry(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.odometry(10.0, (10.0, 0.0, 0.0), 0.0)
+    bag.tf(0.0, "base_link", "laser", (0.5, 0.0, 0.0))
+    bag.tf(1.0, "base_link", "laser", (0.5, 0.0, 0.0))
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    bag.scan(5.0, [1.0, 2.0, 3.0])
+    with pytest.warns(UserWarning, match=r"skipped 1 of 2 scans .*outside the time range"):
+        scans = load_rosbag(bag.write(tmp_path / "b"), pose_topic="/odom")
+    np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(scans.timestamps, [0.5])
+
+
+def test_a_zero_quaternion_places_nothing(tmp_path):
+    # ROS 1's default Quaternion is all zeros: such a sample is left out, not interpolated.
+    bag = _Bag(2)
+    bag.tf(10.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(10.1, "map", "laser", (7.0, 0.0, 0.0))
+    bag.tf(10.2, "map", "laser", (2.0, 0.0, 0.0))
+    zero = bag.store.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0)
+    bag.messages[1][3].transforms[0].transform.rotation = zero
+    bag.scan(10.05, [1.0, 2.0, 3.0])
+    with pytest.warns(UserWarning, match=r"left out 1 transform sample.*map -> laser at 10.1"):
+        scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-9)
+
+
+def test_scans_come_back_in_header_stamp_order(tmp_path):
+    # Recorded in the other order (a driver's buffer): the header stamps decide.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(4.0, "map", "laser", (4.0, 0.0, 0.0))
+    bag.scan(3.0, [3.0, 3.0, 3.0])
+    bag.scan(1.0, [1.0, 1.0, 1.0])
+    topic, msgtype, _, message = bag.messages[-2]
+    bag.messages[-2] = (topic, msgtype, 0.5, message)  # stamped 3.0, recorded first
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.timestamps, [1.0, 3.0])
+    np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_array_equal(scans.ranges, [[1.0] * 3, [3.0] * 3])
