@@ -891,3 +891,30 @@ def test_scans_come_back_in_header_stamp_order(tmp_path):
     np.testing.assert_allclose(scans.timestamps, [1.0, 3.0])
     np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]], atol=1e-12)
     np.testing.assert_array_equal(scans.ranges, [[1.0] * 3, [3.0] * 3])
+
+
+# --------------------------------------------------------------------------------------------
+# Readings: the limits themselves
+# --------------------------------------------------------------------------------------------
+
+
+def test_readings_at_range_min_and_range_max_are_hits(tmp_path):
+    # REP 117: range_min <= r <= range_max is a valid measurement; with a max_range above
+    # the laser's range_max, a reading of range_max is a hit like any other.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [0.1, 1.0, 5.0], range_min=0.1, range_max=5.0)  # float32 0.1 both times
+    scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
+    np.testing.assert_allclose(scans.angles, [-0.5, 0.0, 0.5], atol=1e-6)
+    np.testing.assert_allclose(scans.ranges, [[0.1, 1.0, 5.0]], atol=1e-6)
+
+
+def test_max_range_is_the_smallest_range_max_stated(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 6.0, 2.0], range_max=8.0)
+    bag.scan(1.0, [1.0, 4.0, 2.0], range_max=5.0)
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    assert scans.max_range == 5.0
+    # The 6 m reading of the 8 m laser reaches the map's maximum range: no return.
+    np.testing.assert_array_equal(scans.ranges, [[1.0, np.inf, 2.0], [1.0, 4.0, 2.0]])
