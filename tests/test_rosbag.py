@@ -918,3 +918,45 @@ def test_max_range_is_the_smallest_range_max_stated(tmp_path):
     assert scans.max_range == 5.0
     # The 6 m reading of the 8 m laser reaches the map's maximum range: no return.
     np.testing.assert_array_equal(scans.ranges, [[1.0, np.inf, 2.0], [1.0, 4.0, 2.0]])
+
+
+# --------------------------------------------------------------------------------------------
+# Writing scans: the fields a ROS tool reads
+# --------------------------------------------------------------------------------------------
+
+
+def test_written_laser_scans_state_their_last_beam_and_exact_stamps(tmp_path):
+    angles = np.linspace(-0.6, 0.6, 5)
+    scans = Scans(poses=[[0.0, 0.0, 0.0], [1.0, 0.0, 0.5]], ranges=[[1.0] * 5] * 2,
+                  angles=angles, max_range=4.0, timestamps=[1.001, 2.001])  # fmt: skip
+    path = write_rosbag(scans, tmp_path / "b")
+    with AnyReader([path]) as reader:
+        (conn,) = [c for c in reader.connections if c.topic == "/scan"]
+        messages = [reader.deserialize(raw, conn.msgtype)
+                    for _, _, raw in reader.messages(connections=[conn])]  # fmt: skip
+    assert len(messages) == 2
+    for msg, sec in zip(messages, (1, 2), strict=True):
+        # angle_max is the angle of the last beam (sensor_msgs/LaserScan).
+        np.testing.assert_allclose(msg.angle_min, -0.6, atol=1e-6)
+        np.testing.assert_allclose(msg.angle_max, 0.6, atol=1e-6)
+        np.testing.assert_allclose(msg.angle_increment, 0.3, atol=1e-6)
+        # 1.001 s is 1 s and 1 000 000 ns (1.001 * 1e9 is 1000999999.9999999 in floats).
+        assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (sec, 1_000_000)
+
+
+def test_write_rosbag_refuses_ros2_times_past_2_to_the_31(tmp_path):
+    # ROS 2 stamps are signed 32-bit seconds.
+    scans = Scans(poses=[[0.0, 0.0, 0.0], [5.0, 5.0, 1.0]], ranges=[[1.0, 2.0, 3.0]] * 2,
+                  angles=[-0.1, 0.0, 0.1], max_range=4.0, timestamps=[3e9, 3e9 + 1])  # fmt: skip
+    with pytest.raises(ValueError, match="for a ROS 2 bag.*got 3e"):
+        write_rosbag(scans, tmp_path / "late", ros_version=2)
+    assert not (tmp_path / "late").exists()
+
+
+def test_write_rosbag_refuses_two_headings_at_one_stamp(tmp_path):
+    # Same place, different heading: still two poses at one time.
+    scans = Scans(poses=[[1.0, 2.0, 0.0], [1.0, 2.0, 1.0]], ranges=[[1.0, 2.0, 3.0]] * 2,
+                  angles=[-0.1, 0.0, 0.1], max_range=4.0, timestamps=[1.0, 1.0])  # fmt: skip
+    with pytest.raises(ValueError, match="scans 0 and 1 share the timestamp 1 s"):
+        write_rosbag(scans, tmp_path / "dup")
+    assert not (tmp_path / "dup").exists()
