@@ -960,3 +960,18 @@ def test_write_rosbag_refuses_two_headings_at_one_stamp(tmp_path):
     with pytest.raises(ValueError, match="scans 0 and 1 share the timestamp 1 s"):
         write_rosbag(scans, tmp_path / "dup")
     assert not (tmp_path / "dup").exists()
+
+
+def test_cli_max_range_reaches_the_bag_reader(tmp_path, capsys):
+    from skoccmap._cmd_map import load_scans
+    from skoccmap.cli import build_parser
+
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 3.0, 2.0], range_max=5.0)
+    path = bag.write(tmp_path / "b")
+    args = build_parser().parse_args(["map", str(path), "--max-range", "2.5"])
+    scans = load_scans(args)
+    assert f"{path}: 1 scans x 3 beams, max range 2.5 m" in capsys.readouterr().out
+    assert scans.max_range == 2.5
+    np.testing.assert_array_equal(scans.ranges, [[1.0, np.inf, 2.0]])
