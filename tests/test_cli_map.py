@@ -289,3 +289,18 @@ def test_map_warns_of_a_max_range_above_the_logs_sentinel(tmp_path, capsys):
     assert "12 readings equal 40 m" in err
     assert "with --max-range 100 they are hits" in err
     assert "Pass --max-range 40, or leave it out" in err
+
+
+def test_model_options_reach_the_mixture():
+    from skoccmap._cmd_map import make_mixture
+    from skoccmap.cli import build_parser
+
+    argv = ["map", "log.txt", "--combiner", "poe", "--max-expert-size", "50",
+            "--learn-all-hyperparameters", "--seed", "7", "--n-jobs", "1"]  # fmt: skip
+    model = make_mixture(build_parser().parse_args(argv))
+    assert (model.combiner, model.max_expert_size, model.share_hyperparameters) == (
+        "poe", 50, False)  # fmt: skip
+    assert (model.random_state, model.n_jobs) == (7, 1)
+    default = make_mixture(build_parser().parse_args(["map", "log.txt"]))
+    assert default.share_hyperparameters is True and default.random_state == 0
+
