@@ -59,6 +59,7 @@ def test_evaluate_prints_both_models(paper_log, capsys):
         (["map", "{log}", "--resolution", "-1"], "--resolution must be a positive number"),
         (["map", "{log}", "--resolution", "inf"], "--resolution must be a positive number"),
         (["map", "{log}", "--unknown-variance", "big"], "--unknown-variance"),
+        (["map", "{log}", "--unknown-variance", "0"], "--unknown-variance must be positive"),
         (["map", "{missing}"], "No such file"),
         (["evaluate", "{log}", "--holdout-every", "1"], "--holdout-every must be >= 2"),
         # Before the log is read (they used to surface after it, in the estimator's words).
@@ -303,4 +304,45 @@ def test_model_options_reach_the_mixture():
     assert (model.random_state, model.n_jobs) == (7, 1)
     default = make_mixture(build_parser().parse_args(["map", "log.txt"]))
     assert default.share_hyperparameters is True and default.random_state == 0
+
+
+class _AtThePrior:
+    """P(occupied) 1/2 and variance 10 everywhere: every cell at the prior."""
+
+    def predict_proba(self, X):
+        return np.full((len(X), 2), 0.5)
+
+    def predict_var(self, X):
+        return np.full(len(X), 10.0)
+
+
+def test_unknown_cell_options_reach_the_map():
+    from skoccmap._cmd_map import _grid, _unknown_variance
+    from skoccmap.cli import build_parser
+    from skoccmap.observations import Scans
+
+    # Two beams from (0.1, 0.1), along +x and +y: the cells between them are unseen.
+    train = Scans([[0.1, 0.1, 0.0]], [[2.0, 2.0]], [0.0, np.pi / 2], max_range=5.0)
+
+    def unknown(*options):
+        args = build_parser().parse_args(["map", "log.txt", "--resolution", "0.5", *options])
+        grid = _grid(args, _AtThePrior(), train, _unknown_variance(args.unknown_variance), False)
+        if grid.unknown is None:
+            return lambda x, y: False
+        cell = lambda x, y: grid.unknown[  # noqa: E731
+            int((y - grid.origin[1]) // 0.5), int((x - grid.origin[0]) // 0.5)
+        ]
+        return cell
+
+    # Every cell at the prior variance: 'auto' (90 % of it) and 5 call them all unknown.
+    for options in ([], ["--unknown-variance", "5"], ["--keep-unobserved"]):
+        cell = unknown(*options)
+        assert cell(1.0, 0.1) and cell(1.5, 1.5)
+    # No variance rule (or one no cell exceeds): only the cells no beam crossed.
+    for value in ("none", "NONE", "20"):
+        cell = unknown("--unknown-variance", value)
+        assert not cell(1.0, 0.1) and not cell(0.1, 1.0) and cell(1.5, 1.5)
+    # Neither rule: no cell is unknown.
+    cell = unknown("--unknown-variance", "none", "--keep-unobserved")
+    assert not cell(1.0, 0.1) and not cell(1.5, 1.5)
 
