@@ -346,3 +346,16 @@ def test_unknown_cell_options_reach_the_map():
     cell = unknown("--unknown-variance", "none", "--keep-unobserved")
     assert not cell(1.0, 0.1) and not cell(1.5, 1.5)
 
+
+def test_a_log_with_a_single_hit_is_refused(tmp_path, capsys):
+    # One hit cannot be clustered: the map needs two.
+    log = tmp_path / "onehit.log"
+    lines = [f"FLASER 3 8.0 8.0 8.0 {t} 0 0 {t} 0 0 {t}.0 h {t}.0\n" for t in range(3)]
+    lines[1] = lines[1].replace(" 8.0 8.0 ", " 2.0 8.0 ", 1)
+    log.write_text("".join(lines))
+    out = tmp_path / "o"
+    assert main(["map", str(log), "--max-range", "8", "--quiet", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "1 beam(s) of the 3 training scans return a hit" in err
+    assert "a map needs at least 2 hits" in err
+    assert not out.exists()
