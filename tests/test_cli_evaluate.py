@@ -1,5 +1,6 @@
 import re
 
+import numpy as np
 import pytest
 
 from skoccmap.cli import main
@@ -104,3 +105,30 @@ def test_evaluate_help_names_bags():
     log = next(a for a in evaluate._actions if a.dest == "log")
     assert "ROS bag" in log.help and ".bag" in log.help and "CARMEN" in log.help
     assert "--skip-bad-lines" in evaluate.format_help()
+
+
+def _parsed(paper_log, *options):
+    from skoccmap._cmd_evaluate import _check_options
+    from skoccmap.cli import build_parser
+
+    args = build_parser().parse_args(["evaluate", str(paper_log[0]), *options])
+    _check_options(args)
+    return args
+
+
+@pytest.mark.parametrize(
+    "protocol", [["--holdout-every", "4"], ["--protocol", "blocks", "--block-size", "4"]]
+)
+def test_evaluate_each_seed_draws_its_own_split_points_and_mixture(paper_log, protocol):
+    # Each seed repeats the whole run: the same seed draws the same test points, and the
+    # seeds between them draw different ones (and seed the mixture).
+    from skoccmap._cmd_evaluate import _models, _split
+    from skoccmap.datasets import load_carmen
+
+    scans = load_carmen(paper_log[0])
+    args = _parsed(paper_log, *protocol)
+    points = [_split(scans, args, seed)[2] for seed in (0, 1, 2, 0)]
+    np.testing.assert_array_equal(points[0], points[3])
+    assert not all(p.shape == points[0].shape and np.array_equal(p, points[0])
+                   for p in points[1:3])  # fmt: skip
+    assert _models(args, 5)["mixture of GP experts"].random_state == 5
