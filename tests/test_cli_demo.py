@@ -147,3 +147,22 @@ def test_full_demo(tmp_path):
     check_maps(tmp_path, ["moe", "bcm", "single"])
     for name in FIGURES:
         assert (tmp_path / name).read_bytes()[:8] == PNG_MAGIC
+
+
+def test_demo_options_reach_the_experiment(tmp_path, monkeypatch):
+    seen = {}
+
+    def fake(methods, **kwargs):
+        seen.update(kwargs, methods=methods)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr("skoccmap.experiment.run_paper_experiment", fake)
+    argv = ["--methods", "moe, bcm", "--resolution", "0.5", "--noise-std", "0.05", "--seed", "7",
+            "--n-jobs", "2", "--quiet", "--out", str(tmp_path)]  # fmt: skip
+    rc, _, stderr = run_demo(argv)
+    assert rc == 2 and "stop here" in stderr
+    assert seen == {"methods": ["moe", "bcm"], "resolution": 0.5, "noise_std": 0.05,
+                    "single_hyperparameters": "learn", "random_state": 7, "n_jobs": 2,
+                    "verbose": 0}  # fmt: skip
+    run_demo([*argv, "--quick"])
+    assert seen["single_hyperparameters"] == "from_mixture"
