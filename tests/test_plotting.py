@@ -167,3 +167,26 @@ def test_import_does_not_load_matplotlib():
     code = "import sys, skoccmap.plotting, skoccmap.grid; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_every_panel_is_drawn_the_same_way_up_over_the_same_extent():
+    # A map whose top row alone is occupied: on every panel the top of the picture is the
+    # largest y, over the grid's extent, and probabilities keep the fixed [0, 1] scale.
+    probability = np.array([[0.2, 0.3], [0.4, 0.5], [0.9, 0.95]])
+    grid = OccupancyGrid(probability, (1.0, -1.0), 0.5, variance=np.full((3, 2), 0.3))
+    disp = OccupancyMapDisplay.from_grid(grid)
+    assert disp.ax_.get_ylim()[1] > disp.ax_.get_ylim()[0]
+    for image in disp.images_:
+        assert image.origin == "lower"
+        np.testing.assert_allclose(image.get_extent(), (1.0, 2.0, -1.0, 0.5))
+    assert disp.im_.get_clim() == (0.0, 1.0)
+
+
+@pytest.mark.parametrize("z, k", [(2.0, 2), (2.9, 2), (1.999, 1), (0.0, 0)])
+def test_3d_slice_is_the_layer_holding_z(z, k):
+    # Layer k spans [k, k + 1) m: z = 2.9 lies in layer 2 (not the nearest centre's 3).
+    rng = np.random.default_rng(2)
+    grid = OccupancyGrid(rng.uniform(size=(4, 2, 3)), (0.0, 0.0, 0.0), 1.0)
+    disp = OccupancyMapDisplay.from_grid(grid, z=z)
+    np.testing.assert_allclose(disp.im_.get_array(), grid.probability[k])
+    assert disp.ax_.get_title() == f"P(occupied), slice at z = {k + 0.5:.2f} m"
