@@ -526,9 +526,10 @@ def test_clusterer_partial_fit_is_reproducible():
 
 
 def test_cli_online_replay_writes_snapshots(paper_log, tmp_path, capsys):
+    from skoccmap import OccupancyGrid
     from skoccmap.cli import main
 
-    log, _ = paper_log
+    log, data = paper_log
     snaps = tmp_path / "snaps"
     argv = ["map", str(log), "--online", "--batch-scans", "9", "--snapshots", str(snaps),
             "--snapshot-every", "2", "--resolution", "1.0", "--max-expert-size", "150",
@@ -543,6 +544,13 @@ def test_cli_online_replay_writes_snapshots(paper_log, tmp_path, capsys):
     assert all(int(line.split("|")[5]) > 0 for line in table)
     assert sorted(p.name for p in snaps.glob("*.npz")) == ["batch_00002.npz", "batch_00003.npz"]
     assert (tmp_path / "out" / "paper.npz").is_file()
+    # A snapshot knows only the scans seen so far: the cells the first 18 scans never
+    # crossed are unknown in the snapshot after them, whatever later scans saw.
+    snapshot = OccupancyGrid.load(snaps / "batch_00002.npz")
+    seen_so_far = data.environment.ground_truth_grid(1.0, extent=snapshot.extent,
+                                                     scans=data.scans[:18])  # fmt: skip
+    assert not seen_so_far.observed.all()
+    assert np.all(snapshot.unknown.ravel()[~seen_so_far.observed])
     assert "| online replay |" in stdout
 
 
