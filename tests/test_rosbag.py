@@ -953,6 +953,25 @@ def test_write_rosbag_refuses_ros2_times_past_2_to_the_31(tmp_path):
     assert not (tmp_path / "late").exists()
 
 
+@pytest.mark.parametrize("seconds", [2.0**31, 3e9])
+def test_ros1_bags_refuse_times_from_2_to_the_31_with_a_value_error(tmp_path, seconds):
+    # ROS 1 times are unsigned, but the rosbags writer packs their seconds as a signed
+    # 32-bit integer: past 2**31 s it failed with a struct.error inside rosbags.
+    scans = Scans(poses=[[0.0, 0.0, 0.0]], ranges=[[1.0, 2.0, 3.0]], angles=[-0.1, 0.0, 0.1],
+                  max_range=4.0, timestamps=[seconds])  # fmt: skip
+    with pytest.raises(ValueError, match=r"\[0, 2147483648\) seconds for a ROS 1 bag"):
+        write_rosbag(scans, tmp_path / "late.bag", ros_version=1)
+    assert not (tmp_path / "late.bag").exists()
+    grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=1.0)
+    with pytest.raises(ValueError, match="stamp must lie in"):
+        grid.write_rosbag(tmp_path / "map.bag", stamp=seconds, ros_version=1)
+    # The last second that fits is written and read back.
+    last = Scans(poses=[[0.0, 0.0, 0.0]], ranges=[[1.0, 2.0, 3.0]], angles=[-0.1, 0.0, 0.1],
+                 max_range=4.0, timestamps=[2.0**31 - 1])  # fmt: skip
+    back = load_rosbag(write_rosbag(last, tmp_path / "last.bag", ros_version=1))
+    assert back.timestamps.tolist() == [2.0**31 - 1]
+
+
 def test_write_rosbag_refuses_two_headings_at_one_stamp(tmp_path):
     # Same place, different heading: still two poses at one time.
     scans = Scans(poses=[[1.0, 2.0, 0.0], [1.0, 2.0, 1.0]], ranges=[[1.0, 2.0, 3.0]] * 2,

@@ -961,9 +961,10 @@ def write_rosbag(
     Notes
     -----
     Each scan is stamped with its timestamp (``0, 1, 2, ..`` seconds when ``scans`` has
-    none), which must fit the bag's time type (ROS 1: ``[0, 2**32)`` s, ROS 2: ``[0,
-    2**31)`` s; a ValueError otherwise, and for two scans at one stamp in different poses,
-    since the bag holds one laser pose per time). Ranges are stored as float32 (as
+    none), which must lie in ``[0, 2**31)`` s (ROS 2 stamps are signed 32-bit seconds, and
+    the ``rosbags`` writer packs ROS 1 seconds as signed 32-bit too); a ValueError
+    otherwise, and for two scans at one stamp in different poses, since the bag holds one
+    laser pose per time). Ranges are stored as float32 (as
     LaserScan defines them); no-return beams as ``+inf``, ``range_min`` 0 and ``range_max``
     the scans' ``max_range``.
     """
@@ -1066,10 +1067,11 @@ def _stamp_to_ns(stamp, ros_version):
 
 
 def _check_stamps(seconds, ros_version, what):
-    """ValueError for times a bag of ``ros_version`` cannot hold: ROS 1 stamps are unsigned
-    32-bit seconds; ROS 2 stamps signed 32-bit seconds, but its bags' own (mcap) times are
-    unsigned."""
-    lo, hi = (0.0, 2.0**32) if ros_version == 1 else (0.0, 2.0**31)
+    """ValueError for times a bag of ``ros_version`` cannot hold: ROS 2 stamps are signed
+    32-bit seconds (its bags' own mcap times are unsigned). ROS 1 defines unsigned 32-bit
+    seconds, but the ``rosbags`` writer packs them as signed: from 2**31 s (2038) it would
+    fail with a ``struct.error`` half-way through the bag."""
+    lo, hi = 0.0, 2.0**31
     bad = ~((seconds >= lo) & (seconds < hi))
     if np.any(bad):
         raise ValueError(
