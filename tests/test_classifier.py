@@ -133,14 +133,20 @@ def test_restarts_never_worse_than_single_start(seed):
     assert multi.log_marginal_likelihood_value_ >= lml_single - 1e-8 * abs(lml_single)
 
 
-def test_restart_starts_are_drawn_in_log_space_within_bounds():
-    X, y = _data(n=20)
-    starts = []
+def _recording_optimizer(starts):
+    """An optimiser that stays at its starting point and appends each start to ``starts``."""
 
     def optimizer(obj_func, initial_theta, bounds):
         starts.append(np.array(initial_theta))
         return initial_theta, obj_func(initial_theta, eval_gradient=False)
 
+    return optimizer
+
+
+def test_restart_starts_are_drawn_in_log_space_within_bounds():
+    X, y = _data(n=20)
+    starts = []
+    optimizer = _recording_optimizer(starts)
     kernel = C(1.0, (1e-3, 1e3)) * RBF(1.0, (1e-3, 1e3))
     clf = EPGaussianProcessClassifier(
         kernel, optimizer=optimizer, n_restarts_optimizer=40, random_state=0
@@ -931,11 +937,7 @@ def test_restarts_need_finite_bounds():
 def test_each_restart_is_one_more_optimiser_run(n_restarts):
     X, y = _data(n=20)
     starts = []
-
-    def optimizer(obj_func, initial_theta, bounds):
-        starts.append(np.array(initial_theta))
-        return initial_theta, obj_func(initial_theta, eval_gradient=False)
-
+    optimizer = _recording_optimizer(starts)
     EPGaussianProcessClassifier(
         optimizer=optimizer, n_restarts_optimizer=n_restarts, random_state=0
     ).fit(X, y)
@@ -945,11 +947,7 @@ def test_each_restart_is_one_more_optimiser_run(n_restarts):
 def test_restart_starts_cover_asymmetric_log_bounds():
     X, y = _data(n=20)
     starts = []
-
-    def optimizer(obj_func, initial_theta, bounds):
-        starts.append(np.array(initial_theta))
-        return initial_theta, obj_func(initial_theta, eval_gradient=False)
-
+    optimizer = _recording_optimizer(starts)
     kernel = C(1.0, (1e-1, 1e3)) * RBF(1.0, (1e-3, 1e1))
     EPGaussianProcessClassifier(
         kernel, optimizer=optimizer, n_restarts_optimizer=40, random_state=0
@@ -1063,11 +1061,7 @@ def test_random_state_draws_the_restart_starts():
 
     def starts(random_state):
         drawn = []
-
-        def optimizer(obj_func, initial_theta, bounds):
-            drawn.append(np.array(initial_theta))
-            return initial_theta, obj_func(initial_theta, eval_gradient=False)
-
+        optimizer = _recording_optimizer(drawn)
         EPGaussianProcessClassifier(
             optimizer=optimizer, n_restarts_optimizer=3, random_state=random_state
         ).fit(X, y)
