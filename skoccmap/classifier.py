@@ -217,8 +217,7 @@ def _check_learnable(kernel):
             )
         if not np.all(np.isfinite(value) & (value > 0)):
             raise ValueError(
-                f"The kernel's {hyp.name} must be positive and finite to be learned, got "
-                f"{shown}."
+                f"The kernel's {hyp.name} must be positive and finite to be learned, got {shown}."
             )
 
 
@@ -589,8 +588,12 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         on one class would drive the signal variance to its bound: set ``optimizer=None``.
         """
         given = np.asarray(classes)
-        if given.size != 2 or not np.all(np.isin(y, given)):
-            raise ValueError(f"classes must be two labels holding y's, got {classes!r}.")
+        # Sorted, as np.unique gives them to fit: classes_[1] is the positive class.
+        if given.size != 2 or not given[0] < given[1] or not np.all(np.isin(y, given)):
+            raise ValueError(
+                f"classes must be two distinct labels in increasing order holding y's, "
+                f"got {classes!r}."
+            )
         self._given_classes = given
         try:
             return self.fit(X, y)

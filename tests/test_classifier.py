@@ -833,7 +833,7 @@ def test_packed_factor_unpacks_to_its_lower_triangle_with_zeros_above(n):
 def test_a_refused_one_class_fit_leaves_no_classes_behind():
     X = np.linspace(0, 1, 6)[:, None]
     clf = EPGaussianProcessClassifier(optimizer=None)
-    with pytest.raises(ValueError, match="two labels"):
+    with pytest.raises(ValueError, match="two distinct labels"):
         clf._fit_one_class(X, np.ones(6), classes=[1])
     clf.fit(X, [0, 0, 0, 1, 1, 1])
     assert clf.classes_.tolist() == [0, 1]
@@ -961,11 +961,15 @@ def test_restart_starts_cover_asymmetric_log_bounds():
     assert np.all(drawn.max(axis=0) > high - width / 6)
 
 
-def test_one_class_fit_refuses_labels_outside_the_two_classes():
+@pytest.mark.parametrize(
+    "y, classes", [([0, 0, 0, 2, 2, 2], [0, 1]), ([1] * 6, [1, 1]), ([1] * 6, [1, 0])]
+)
+def test_one_class_fit_refuses_labels_outside_two_sorted_classes(y, classes):
+    # Repeated or reversed classes would make the positive class (classes_[1]) wrong.
     X = np.linspace(0, 1, 6)[:, None]
     clf = EPGaussianProcessClassifier(optimizer=None)
-    with pytest.raises(ValueError, match="two labels holding y's"):
-        clf._fit_one_class(X, [0, 0, 0, 2, 2, 2], classes=[0, 1])
+    with pytest.raises(ValueError, match="two distinct labels in increasing order"):
+        clf._fit_one_class(X, y, classes=classes)
     assert not hasattr(clf, "classes_")
 
 
