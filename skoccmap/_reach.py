@@ -172,6 +172,13 @@ def _segment_samples(segments, spacing):
     return start[row] + t[:, None] * delta[row], row
 
 
+def _midpoint_rows(segments):
+    """Zero-length segment rows at the segments' midpoints."""
+    dim = segments.shape[1] // 2
+    mids = 0.5 * (segments[:, :dim] + segments[:, dim:])
+    return np.hstack([mids, mids])
+
+
 def _extent(segments):
     """Diagonal of the bounding box of the segment rows' ends."""
     d = segments.shape[1] // 2
@@ -208,7 +215,8 @@ class ExpertReach:
     larger than the reach, never misses an expert within it, and keeps the index's size
     bounded. Candidates depend only on the query and the index, not on
     which other queries are asked with it. Query segments of non-zero length are answered
-    by a KD-tree over the cells, within their half-length more.
+    by a KD-tree over the cells, within their half-length more. The cells of the
+    segments' midpoints are kept apart, for :meth:`coverage`.
 
     Parameters
     ----------
@@ -241,9 +249,18 @@ class ExpertReach:
         self._set_geometry()
         everyone = np.arange(self.n_experts)
         self._cells = self._cells_of(segments, np.asarray(expert), everyone)
+        self._centres = self._cells_of(_midpoint_rows(segments), np.asarray(expert), everyone)
         self._blocks = self._blocks_of(self._cells)
         self._expert_trees = [self._tree_of(cells) for cells in self._cells]
+        self._centre_trees = [self._tree_of(cells) for cells in self._centres]
         self._assemble()
+
+    def __setstate__(self, state):
+        # An index pickled before the midpoint cells existed covers by its cells, as then.
+        self.__dict__.update(state)
+        if "_centres" not in state and "_cells" in state:
+            self._centres, self._centre_trees = self._cells, self._expert_trees
+            self.centre_expert, self._centre_tree = self.cell_expert, state.get("_tree")
 
     def _set_geometry(self):
         """Cell and block sizes, slack and block stencils, all proportional to ``scale``."""
@@ -359,16 +376,26 @@ class ExpertReach:
     def _tree_of(self, cells):
         return cKDTree(self.origin + (cells + 0.5) * self.cell) if len(cells) else None
 
+    def _all_cells_tree(self, cells):
+        cells = np.concatenate(cells + [np.empty((0, self.dim), dtype=np.int64)])
+        return cKDTree(
+            self.origin + (cells + 0.5) * self.cell, balanced_tree=False, compact_nodes=False
+        )
+
     @property
     def tree(self):
         """KD-tree over all cells (for query segments), built at its first use: an update
         of a few experts (:meth:`updated`) should not cost a tree over the whole map."""
         if getattr(self, "_tree", None) is None:
-            cells = np.concatenate(self._cells + [np.empty((0, self.dim), dtype=np.int64)])
-            self._tree = cKDTree(
-                self.origin + (cells + 0.5) * self.cell, balanced_tree=False, compact_nodes=False
-            )
+            self._tree = self._all_cells_tree(self._cells)
         return self._tree
+
+    @property
+    def centre_tree(self):
+        """KD-tree over all midpoint cells (for :meth:`coverage`), built at its first use."""
+        if getattr(self, "_centre_tree", None) is None:
+            self._centre_tree = self._all_cells_tree(self._centres)
+        return self._centre_tree
 
     def _search_all_cells(self, expert_index):
         """Whether :meth:`coverage` should search the tree of all cells for a few queries.
@@ -379,16 +406,17 @@ class ExpertReach:
         made apart since the index was made have cost as much: at most twice the time of
         the better choice made in hindsight.
         """
-        if getattr(self, "_tree", None) is not None:
+        if getattr(self, "_centre_tree", None) is not None:
             return True
         self._searched = getattr(self, "_searched", 0) + np.unique(expert_index).size
-        return self._searched * _CELLS_PER_EXPERT_SEARCH >= self.cell_expert.size
+        return self._searched * _CELLS_PER_EXPERT_SEARCH >= self.centre_expert.size
 
     def _assemble(self):
         """The expert of each cell and the CSR table block code -> candidate experts."""
-        self._tree, self._searched = None, 0
-        counts = [len(c) for c in self._cells]
-        self.cell_expert = np.repeat(np.arange(self.n_experts), counts)
+        self._tree, self._centre_tree, self._searched = None, None, 0
+        everyone = np.arange(self.n_experts)
+        self.cell_expert = np.repeat(everyone, [len(c) for c in self._cells])
+        self.centre_expert = np.repeat(everyone, [len(c) for c in self._centres])
         codes = np.concatenate(self._blocks + [np.empty(0, dtype=np.int64)])
         owners = np.repeat(np.arange(self.n_experts), [len(b) for b in self._blocks])
         # Sorted by block, then expert (the stable sort keeps the experts' order).
@@ -431,15 +459,14 @@ class ExpertReach:
         new._set_geometry()
         touched = np.unique(np.asarray(touched, dtype=np.intp))
         cells = new._cells_of(segments, np.asarray(expert), touched)
-        new._cells, new._blocks, new._expert_trees = [], [], []
-        for k in range(new.n_experts):
-            j = previous[k]
-            new._cells.append(self._cells[j] if j >= 0 else None)
-            new._blocks.append(self._blocks[j] if j >= 0 else None)
-            new._expert_trees.append(self._expert_trees[j] if j >= 0 else None)
+        centres = new._cells_of(_midpoint_rows(segments), np.asarray(expert), touched)
+        for name in ("_cells", "_centres", "_blocks", "_expert_trees", "_centre_trees"):
+            old = getattr(self, name)
+            setattr(new, name, [old[j] if j >= 0 else None for j in previous[: new.n_experts]])
         blocks = new._blocks_of(cells)
-        for k, c, b in zip(touched, cells, blocks, strict=True):
+        for k, c, m, b in zip(touched, cells, centres, blocks, strict=True):
             new._cells[k], new._blocks[k], new._expert_trees[k] = c, b, new._tree_of(c)
+            new._centres[k], new._centre_trees[k] = m, new._tree_of(m)
         new._assemble()
         return new
 
@@ -481,12 +508,16 @@ class ExpertReach:
     def coverage(self, queries, query_index, expert_index, width, n_jobs=None):
         """How much of the space near each pair's query the pair's expert has data in.
 
-        The expert's cells (of side ``cell``) near the query, each weighted by
-        ``exp(-d**2 / (2 width**2))`` of its centre's distance ``d`` to the query (less
-        half the query segment's length, measured from its midpoint), up to three widths
-        or the reach: a kernel density of the area the expert's training segments cover,
-        smooth in the query. It counts where the data are, not how many rows lie there:
-        repeated beams through a cell add nothing, as they add little to a GP's posterior.
+        The cells (of side ``cell``) of the expert's segments' midpoints near the query,
+        each weighted by ``exp(-d**2 / (2 width**2))`` of its centre's distance ``d`` to the
+        query (less half the query segment's length, measured from its midpoint), up to
+        three widths or the reach: a kernel density of where the expert's training
+        segments lie, smooth in the query. It counts where the data are, not how many rows
+        lie there: repeated beams through a cell add nothing, as they add little to a GP's
+        posterior. A segment counts at its midpoint, not along its length: on a dense log
+        the free pieces (a metre long) of a dozen experts pass through every corridor
+        point, and counted along their length each of those experts covered the point
+        about as well as the experts whose data lie around it, so the gate kept them all.
         Zero for every pair when the reach is infinite (no cells are indexed).
 
         Up to ``_COVERAGE_ALL_CELLS`` queries are searched against the tree of all cells
@@ -508,7 +539,7 @@ class ExpertReach:
             return self._coverage_all_cells(mids, half, query_index, expert_index, cut, width)
 
         def cover_of(k, pairs):
-            tree = self._expert_trees[k]
+            tree = self._centre_trees[k]
             if tree is None:
                 return
             q = query_index[pairs]
@@ -540,7 +571,7 @@ class ExpertReach:
         asked = np.unique(query_index)
         queries_tree = cKDTree(mids[asked], balanced_tree=False, compact_nodes=False)
         near = queries_tree.sparse_distance_matrix(
-            self.tree, cut + half[asked].max(), output_type="ndarray"
+            self.centre_tree, cut + half[asked].max(), output_type="ndarray"
         )
         query = asked[near["i"]]
         d = near["v"] - half[query]
@@ -551,7 +582,7 @@ class ExpertReach:
         pair_key = query_index.astype(np.int64) * self.n_experts + expert_index
         order = np.argsort(pair_key, kind="stable")
         sorted_key = pair_key[order]
-        key = query.astype(np.int64) * self.n_experts + self.cell_expert[near["j"][inside]]
+        key = query.astype(np.int64) * self.n_experts + self.centre_expert[near["j"][inside]]
         pos = np.searchsorted(sorted_key, key).clip(max=order.size - 1)
         found = sorted_key[pos] == key
         weight = _cell_weights(d[found], width)

@@ -486,6 +486,7 @@ def test_updated_index_equals_a_rebuilt_one(office):
         for got, want in zip(index.candidates(queries), rebuilt.candidates(queries), strict=True):
             np.testing.assert_array_equal(got, want)
         np.testing.assert_array_equal(index._table_experts, rebuilt._table_experts)
+        np.testing.assert_array_equal(index.centre_expert, rebuilt.centre_expert)
 
 
 # -- DPGMMClusterer.partial_fit ----------------------------------------------------------

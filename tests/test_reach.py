@@ -172,6 +172,8 @@ def test_building_the_index_in_batches_changes_nothing(dim, monkeypatch):
     batched = ExpertReach(segments, expert, n_experts, reach=1.5)
     np.testing.assert_array_equal(batched.cell_expert, whole.cell_expert)
     np.testing.assert_array_equal(batched.tree.data, whole.tree.data)
+    np.testing.assert_array_equal(batched.centre_expert, whole.centre_expert)
+    np.testing.assert_array_equal(batched.centre_tree.data, whole.centre_tree.data)
     np.testing.assert_array_equal(batched._table_codes, whole._table_codes)
     np.testing.assert_array_equal(batched._table_experts, whole._table_experts)
     queries = np.hstack([segments[:, :dim], segments[:, :dim]]) + 0.3
@@ -195,9 +197,11 @@ def test_updated_index_equals_a_rebuilt_one(dim):
     touched = [number[3], number[7], n_experts]
     updated = index.updated(all_segments, all_expert, n_experts + 1, touched, previous)
     rebuilt = ExpertReach(all_segments, all_expert, n_experts + 1, 1.5, origin=index.origin)
-    for name in ("cell_expert", "_table_codes", "_table_experts", "_table_start"):
+    names = ("cell_expert", "centre_expert", "_table_codes", "_table_experts", "_table_start")
+    for name in names:
         np.testing.assert_array_equal(getattr(updated, name), getattr(rebuilt, name))
     np.testing.assert_array_equal(updated.tree.data, rebuilt.tree.data)
+    np.testing.assert_array_equal(updated.centre_tree.data, rebuilt.centre_tree.data)
     assert updated.max_candidates == rebuilt.max_candidates
     queries = np.hstack([all_segments[:, :dim], all_segments[:, :dim]]) + 0.3
     queries[::5, dim:] += 0.5  # some query segments
@@ -206,6 +210,9 @@ def test_updated_index_equals_a_rebuilt_one(dim):
     pairs = updated.candidates(queries)
     np.testing.assert_array_equal(
         updated.within_reach(queries, *pairs), rebuilt.within_reach(queries, *pairs)
+    )
+    np.testing.assert_array_equal(
+        updated.coverage(queries, *pairs, 0.4), rebuilt.coverage(queries, *pairs, 0.4)
     )
     # The old index is unchanged.
     assert index.n_experts == n_experts and index.cell_expert.max() == n_experts - 1
@@ -276,7 +283,9 @@ def test_the_grid_follows_the_reach_where_the_reach_is_long_enough():
 
 @pytest.mark.parametrize("all_cells", [True, False], ids=["all-cells", "per-expert"])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim, all_cells, monkeypatch):
+def test_coverage_is_the_gaussian_weighted_count_of_the_midpoint_cells(
+    dim, all_cells, monkeypatch
+):
     # Few queries search all cells at once, many each expert's cells: the same coverage.
     monkeypatch.setattr(_reach, "_COVERAGE_ALL_CELLS", 10**9 if all_cells else 0)
     monkeypatch.setattr(_reach, "_CELLS_PER_EXPERT_SEARCH", 10**9)
@@ -290,12 +299,17 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim, all_c
     shuffle = rng.permutation(query.size)
     got = np.empty(query.size)
     got[shuffle] = index.coverage(queries, query[shuffle], cand[shuffle], width)
-    # Cell centres of each expert, their distance to the query's midpoint less half its
-    # length, weighted up to three widths (within the reach here).
+    # Centres of the cells holding the midpoints of each expert's segments, their
+    # distance to the query's midpoint less half its length, weighted up to three widths
+    # (within the reach here).
     mids, half = 0.5 * (points + ends), 0.5 * np.linalg.norm(ends - points, axis=1)
+    segment_mids = 0.5 * (segments[:, :dim] + segments[:, dim:])
     expected, terms = np.empty(query.size), np.empty(query.size)
     for j, (i, k) in enumerate(zip(query, cand, strict=True)):
-        centres = index.origin + (index._cells[k] + 0.5) * index.cell
+        cells = np.unique(
+            np.floor((segment_mids[expert == k] - index.origin) / index.cell), axis=0
+        )
+        centres = index.origin + (cells + 0.5) * index.cell
         d = np.linalg.norm(centres - mids[i], axis=1)
         d = np.maximum(d[d <= 3 * width + half[i]] - half[i], 0.0)
         expected[j] = np.sum(np.exp(-0.5 * (d / width) ** 2))
@@ -312,12 +326,12 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_experts_cells(dim, all_c
     np.testing.assert_array_equal(threaded, got)
 
 
-def test_tree_of_all_cells_is_built_once_searches_apart_cost_as_much(monkeypatch):
+def test_tree_of_all_midpoint_cells_is_built_once_searches_apart_cost_as_much(monkeypatch):
     # Ski rental: a few queries search each expert's cells apart until that has cost as
     # much as building the tree of all cells, then the tree; the coverage is the same.
     segments, expert, n_experts = _random_experts(2, seed=40)
     index = ExpertReach(segments, expert, n_experts, reach=2.0)
-    n_cells = index.cell_expert.size
+    n_cells = index.centre_expert.size
     rng = np.random.default_rng(41)
     points = rng.uniform(0, 10, (30, 2))
     queries = np.hstack([points, points])
@@ -328,7 +342,7 @@ def test_tree_of_all_cells_is_built_once_searches_apart_cost_as_much(monkeypatch
     covers, built = [], []
     for _ in range(4):
         covers.append(index.coverage(queries, query, cand, 0.4))
-        built.append(index._tree is not None)
+        built.append(index._centre_tree is not None)
     assert built == [False, False, True, True]
     for cover in covers[1:]:
         np.testing.assert_array_equal(cover, covers[0])
