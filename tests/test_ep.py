@@ -132,6 +132,7 @@ def _dense_posterior(K, tau, nu):
     [
         np.array([0.5, 2.0, 0.0, 1e-9, 3.0, 1e-14, 0.7, 10.0]),  # flat and vanishing sites
         np.array([0.5, -0.3, 1.0, 2.0, -0.2, 0.4, 1.5, 0.8]),  # negative precisions (LU path)
+        np.zeros(8),  # all sites flat: the prior, with nu still entering the mean
     ],
 )
 def test_posterior_matches_dense_inverse(tau):
@@ -144,6 +145,10 @@ def test_posterior_matches_dense_inverse(tau):
     assert np.all(np.isfinite(post.var))
     np.testing.assert_allclose(post.var, np.diag(Sigma), rtol=1e-10)
     np.testing.assert_allclose(post.mean, mean, rtol=1e-10, atol=1e-12)
+    # det(I + S^1/2 K S^1/2) = det(I + K S) (Sylvester), also for negative precisions.
+    sign, log_det = np.linalg.slogdet(np.eye(8) + K * tau)
+    assert sign > 0
+    np.testing.assert_allclose(post.log_det_B, log_det, rtol=1e-10, atol=1e-12)
     # Predictions at new points from the joint Gaussian of (f, f_*).
     B = rng.standard_normal((3, 8))
     K_star = B @ A.T / 8
@@ -154,6 +159,31 @@ def test_posterior_matches_dense_inverse(tau):
     v_ref = k_ss - np.einsum("ij,ji->i", K_star, K_inv_Ks)
     v_ref += np.einsum("ji,jk,ki->i", K_inv_Ks, Sigma, K_inv_Ks)
     np.testing.assert_allclose(v_star, v_ref, rtol=1e-9)
+
+
+def test_variances_of_nearly_flat_sites_are_not_lost_to_cancellation():
+    # Sites so weak that 1 - [B^-1]_ii is between 1e-7 and 1e-4: the posterior variance is
+    # within a hair of the prior's, and is recomputed rather than taken from the difference.
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((8, 8))
+    K = A @ A.T / 8 + 0.8 * np.eye(8)
+    tau = np.array([2e-7, 1e-6, 3e-6, 1e-5, 3e-5, 2.0, 0.5, 1e-4])
+    nu = rng.standard_normal(8)
+    _, Sigma = _dense_posterior(K, tau, nu)
+    np.testing.assert_allclose(ep_posterior(K, tau, nu).var, np.diag(Sigma), rtol=1e-11)
+
+
+def test_negative_precisions_that_need_row_exchanges_match_dense_inverse():
+    # I + K S = [[0, 0.9], [-0.9, 2]]: its LU factorisation exchanges the rows and has a
+    # negative pivot, yet K^-1 + S is positive definite and det(I + K S) = 0.81.
+    K = np.array([[1.0, 0.9], [0.9, 1.0]])
+    tau, nu = np.array([-1.0, 1.0]), np.array([0.3, -0.7])
+    assert np.all(np.linalg.eigvalsh(np.linalg.inv(K) + np.diag(tau)) > 0)
+    post = ep_posterior(K, tau, nu)
+    mean, Sigma = _dense_posterior(K, tau, nu)
+    np.testing.assert_allclose(post.var, np.diag(Sigma), rtol=1e-12)
+    np.testing.assert_allclose(post.mean, mean, rtol=1e-12)
+    np.testing.assert_allclose(post.log_det_B, np.log(0.81), rtol=1e-12)
 
 
 @pytest.mark.parametrize("n", [1, 64, 65, 130, 301])
@@ -271,6 +301,17 @@ def test_appended_evidence_is_that_of_the_new_points_given_the_current_sites():
     assert log_new < 0
 
 
+def test_appended_sites_that_do_not_converge_give_none():
+    kernel, X, y = _problem(n=14, seed=4)
+    K = kernel(X)
+    part = expectation_propagation(K[:10, :10], y[:10], tol=1e-12)
+    # One sweep of EP on the new points' prior does not reach its fixed point.
+    mean, cov = ep_latent_joint_predictive(K[10:, :10], K[10:, 10:], part.posterior)
+    assert not expectation_propagation(cov, y[10:], mean=mean, max_iter=1).converged
+    result = ep_append_sites(part.posterior, K[10:, :10], K[10:, 10:], y[10:], max_iter=1)
+    assert result == (None, -np.inf)
+
+
 def test_append_needs_the_cholesky_form():
     kernel, X, y = _problem(n=10)
     K = kernel(X)
@@ -299,10 +340,28 @@ def test_new_point_covariances_of_the_wrong_shape_are_refused(func):
                 func(posterior, K_cross, K_new, y[8:])
 
 
-def test_improper_sites_raise_linalg_error():
+@pytest.mark.parametrize(
+    "tau",
+    [
+        [1.0, -2.0, 1.0],  # det(I + K S) < 0
+        [-2.0, -2.0, 1.0],  # det(I + K S) > 0, two negative directions
+    ],
+)
+def test_improper_sites_raise_linalg_error(tau):
     K = np.eye(3)
+    assert np.linalg.eigvalsh(np.linalg.inv(K) + np.diag(tau))[0] < 0
     with pytest.raises(np.linalg.LinAlgError, match="proper Gaussian"):
-        ep_posterior(K, np.array([1.0, -2.0, 1.0]), np.zeros(3))
+        ep_posterior(K, np.array(tau), np.zeros(3))
+
+
+def test_evidence_of_sites_with_an_improper_cavity_is_minus_infinity():
+    # A proper posterior, but without the second site K^-1 + diag(-3, 0) is indefinite:
+    # the cavity of that site has a negative precision, and these are no EP sites.
+    K = np.array([[1.0, 0.9], [0.9, 1.0]])
+    tau = np.array([-3.0, 20.0])
+    assert np.all(np.linalg.eigvalsh(np.linalg.inv(K) + np.diag(tau)) > 0)
+    assert np.linalg.eigvalsh(np.linalg.inv(K) + np.diag([-3.0, 0.0]))[0] < 0
+    assert ep_log_marginal_likelihood(K, [1.0, 1.0], tau, [0.5, 1.0]) == -np.inf
 
 
 def test_negative_initial_sites_reach_the_same_fixed_point():
@@ -317,6 +376,25 @@ def test_negative_initial_sites_reach_the_same_fixed_point():
     assert res.converged and np.all(res.site_precision >= 0)
     np.testing.assert_allclose(res.site_precision, ref.site_precision, rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(res.site_nu, ref.site_nu, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_parallel_steps_never_propose_negative_site_precisions(monkeypatch, seed):
+    # Anderson steps that would make a site precision negative fall back to the plain
+    # damped step: every posterior on the way has non-negative sites (on these problems
+    # the unguarded extrapolation goes below zero).
+    kernel, X, y = _problem(n=30, signal=1e3, seed=seed)
+    lowest = []
+    posterior = ep_module.ep_posterior
+
+    def spy(K, tau, nu):
+        lowest.append(np.min(tau))
+        return posterior(K, tau, nu)
+
+    monkeypatch.setattr(ep_module, "ep_posterior", spy)
+    res = expectation_propagation(kernel(X), y, tol=1e-10)
+    assert res.converged and len(lowest) > 5
+    assert min(lowest) >= 0.0
 
 
 def test_large_signal_variance_with_label_noise_stays_finite():
@@ -534,10 +612,49 @@ def test_gradient_matches_finite_differences(ard):
     np.testing.assert_allclose(grad, fd, rtol=1e-5)
 
 
+@pytest.mark.parametrize("negative", [False, True])
+def test_gradient_is_that_of_the_site_gaussian_for_given_sites(negative):
+    # Sites held fixed, log Z_EP depends on K only through log N(nu/tau | 0, K + S^-1)
+    # (R&W eq. 3.65): its derivative, by finite differences of the dense form, is the
+    # gradient, also in the general (LU) form for negative precisions.
+    kernel, X, _ = _problem(n=8, seed=2)
+    rng = np.random.default_rng(3)
+    tau, nu = rng.uniform(0.3, 2.0, 8), rng.standard_normal(8)
+    if negative:
+        tau[[1, 5]] = -0.05
+    K, dK = kernel(X, eval_gradient=True)
+    posterior = ep_posterior(K, tau, nu)
+    assert (posterior.lu is not None) == negative
+
+    def log_gauss(theta):
+        A = kernel.clone_with_theta(theta)(X) + np.diag(1 / tau)
+        return -0.5 * np.linalg.slogdet(A)[1] - 0.5 * (nu / tau) @ np.linalg.solve(A, nu / tau)
+
+    h = 1e-5
+    theta = kernel.theta
+    fd = [(log_gauss(theta + h * e) - log_gauss(theta - h * e)) / (2 * h) for e in np.eye(2)]
+    grad = ep_log_marginal_likelihood_gradient(dK, posterior)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
 def test_not_converged_is_reported():
     kernel, X, y = _problem(n=15)
-    res = expectation_propagation(kernel(X), y, max_iter=2)
+    K = kernel(X)
+    res = expectation_propagation(K, y, max_iter=2)
     assert not res.converged and res.n_iter == 2 and res.residual > 1e-6
+    # The residual is that of the last sweep: how far the sites after the first sweep
+    # were from their tilted-moment updates, in units of the marginals (dense, quadrature).
+    first = expectation_propagation(K, y, max_iter=1)
+    tau, nu = first.site_precision, first.site_nu
+    Sigma = np.linalg.solve(np.eye(15) + K * tau, K)
+    mu, var = Sigma @ nu, np.diag(Sigma)
+    tau_cav, nu_cav = 1 / var - tau, mu / var - nu
+    change = 0.0
+    for i in range(15):
+        _, m, v = _tilted_moments(y[i], nu_cav[i] / tau_cav[i], 1 / tau_cav[i])
+        d_tau, d_nu = 1 / v - tau_cav[i] - tau[i], m / v - nu_cav[i] - nu[i]
+        change = max(change, abs(d_tau) * var[i], abs(d_nu) * np.sqrt(var[i]))
+    np.testing.assert_allclose(res.residual, change, rtol=1e-6)
 
 
 @pytest.mark.parametrize(
@@ -551,6 +668,8 @@ def test_not_converged_is_reported():
         ({"K": np.eye(2), "y": [1, -1], "damping": 1.0}, "damping"),
         ({"K": np.eye(2), "y": [1, -1], "update": "async"}, "update"),
         ({"K": np.eye(2), "y": [1, -1], "site_precision": [1.0]}, "site_precision"),
+        ({"K": np.eye(2), "y": [1, -1], "site_nu": [0.0, np.nan]}, "site_nu"),
+        ({"K": np.eye(2), "y": [1, -1], "acceleration": -1}, "acceleration"),
         ({"K": np.eye(2), "y": [1, -1], "mean": [0.0, np.inf]}, "mean"),
     ],
 )
