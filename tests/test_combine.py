@@ -163,6 +163,22 @@ def test_bcm_per_expert_priors_reduce_to_shared_prior(experts):
     np.testing.assert_allclose(shared.variance, per_expert.variance, rtol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["bcm", "rbcm"])
+def test_committee_machines_with_different_priors_per_expert(method):
+    # Two experts with their own priors, written out: the common prior precision is the
+    # mean of theirs, and each adds its (rBCM: entropy-weighted) gain over its own prior.
+    mu, var, prior = np.array([0.8, -0.3]), np.array([0.5, 1.2]), np.array([1.0, 4.0])
+    merged = combine([mu], [var], method=method, prior_variance=[prior])
+    if method == "bcm":
+        b1 = b2 = 1.0
+    else:
+        b1, b2 = 0.5 * np.log(1.0 / 0.5), 0.5 * np.log(4.0 / 1.2)
+    precision = 0.5 * (1 / 1.0 + 1 / 4.0) + b1 * (1 / 0.5 - 1 / 1.0) + b2 * (1 / 1.2 - 1 / 4.0)
+    mean = (b1 * 0.8 / 0.5 + b2 * -0.3 / 1.2) / precision
+    np.testing.assert_allclose(merged.variance, [1 / precision], rtol=1e-12)
+    np.testing.assert_allclose(merged.mean, [mean], rtol=1e-12)
+
+
 @pytest.mark.parametrize("method", sorted(COMBINERS))
 def test_zero_weight_skips_expert_even_if_nan(experts, method):
     means, variances, weights, prior = experts
@@ -279,6 +295,10 @@ def test_bad_inputs_raise_clear_errors():
         combine([[np.nan, 0], [0, 0]], v)
     with pytest.raises(ValueError, match="variances must be finite and positive"):
         combine(m, [[0, 1], [1, 1]])
+    with pytest.raises(ValueError, match="variances must be finite and positive"):
+        combine(m, [[np.inf, 1], [1, 1]])
+    with pytest.raises(ValueError, match="prior_variance must be finite and positive"):
+        combine(m, v, method="bcm", prior_variance=[1.0, 0.0])
     with pytest.raises(ValueError, match="prior_variance is required"):
         combine(m, v, method="bcm")
     with pytest.raises(ValueError, match="prior_variance has shape"):
@@ -303,19 +323,19 @@ def test_pairs_equal_the_dense_rule_on_a_sparse_mask(method):
     skipped = weights == 0
     means[skipped] = variances[skipped] = prior[skipped] = np.nan
     dense = combine(means, variances, weights, method=method, prior_variance=prior)
-    # Pairs in a shuffled order, plus zero-weight pairs that must be dropped.
+    # Pairs in a shuffled order, plus zero-weight pairs that must be dropped unread.
     q, e = np.nonzero(~skipped)
     order = rng.permutation(q.size)
     q, e = q[order], e[order]
     zero_q = rng.integers(0, n, 5)
     merged = combine_pairs(
         np.r_[q, zero_q],
-        np.r_[means[q, e], np.zeros(5)],
-        np.r_[variances[q, e], np.ones(5)],
+        np.r_[means[q, e], np.full(5, np.nan)],
+        np.r_[variances[q, e], np.full(5, np.nan)],
         np.r_[weights[q, e], np.zeros(5)],
         n_queries=n,
         method=method,
-        prior_variance=np.r_[prior[q, e], np.ones(5)],
+        prior_variance=np.r_[prior[q, e], np.full(5, np.nan)],
     )
     for got, want in zip(merged, dense, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-15)
@@ -327,6 +347,8 @@ def test_pairs_refuse_bad_input():
         combine_pairs([0, 0], [1.0, 2.0], [1.0, 1.0], **ok)
     with pytest.raises(ValueError, match=r"\[0, n_queries=2\)"):
         combine_pairs([0, 2], [1.0, 2.0], [1.0, 1.0], **ok)
+    with pytest.raises(ValueError, match=r"\[0, n_queries=2\)"):
+        combine_pairs([-1, 1], [1.0, 2.0], [1.0, 1.0], **ok)
     with pytest.raises(ValueError, match="shape"):
         combine_pairs([0, 1], [1.0], [1.0, 1.0], **ok)
     with pytest.raises(ValueError, match="integers"):
@@ -337,6 +359,10 @@ def test_pairs_refuse_bad_input():
         combine_pairs([0, 1], [1.0, np.nan], [1.0, 1.0], **ok)
     with pytest.raises(ValueError, match="prior_variance is required"):
         combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="rbcm")
+    with pytest.raises(ValueError, match="prior_variance must be positive"):
+        combine_pairs(
+            [0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="bcm", prior_variance=[1.0, 0.0]
+        )
     with pytest.raises(ValueError, match="method must be one of"):
         combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], n_queries=2, method="mean")
 
