@@ -289,6 +289,9 @@ def test_bad_inputs_raise_clear_errors():
         combine(m, v, np.ones((3, 2)))
     with pytest.raises(ValueError, match="non-negative"):
         combine(m, v, [[1, -1], [1, 1]])
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="weights must be finite"):
+            combine(m, v, [[bad, 1], [1, 1]])
     with pytest.raises(ValueError, match="row of zeros"):
         combine(m, v, [[0, 0], [1, 1]])
     with pytest.raises(ValueError, match="means contains NaN"):
