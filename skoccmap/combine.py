@@ -49,6 +49,9 @@ __all__ = [
 # Floor for merged latent variances: a mixture of identical experts with tiny variances
 # could otherwise round to zero or below.
 _VARIANCE_FLOOR = 1e-12
+# Smallest merged precision: the smallest normal float, whose reciprocal is finite (that of
+# 1 / finfo.max, a subnormal, is infinite: variances at the largest float gave NaN maps).
+_PRECISION_FLOOR = np.finfo(np.float64).tiny
 
 
 class MergedPrediction(NamedTuple):
@@ -187,7 +190,7 @@ def _gaussian_product(pairs, betas):
     """
     # Floored as the experts' own variances are: 1 / a subnormal is infinite.
     inv_var = 1.0 / np.maximum(pairs.variances, _VARIANCE_FLOOR)
-    precision = np.maximum(_sum(pairs, betas * inv_var), 1.0 / np.finfo(np.float64).max)
+    precision = np.maximum(_sum(pairs, betas * inv_var), _PRECISION_FLOOR)
     variance = 1.0 / precision
     mean = variance * _sum(pairs, betas * inv_var * pairs.means)
     variance = np.maximum(variance, _VARIANCE_FLOOR)
@@ -207,7 +210,9 @@ def _bcm(pairs, betas):
     # removes information.
     gain = np.maximum(inv_var - inv_prior, 0.0)
     used = np.bincount(pairs.query, minlength=pairs.n_queries)
-    precision = _sum(pairs, inv_prior) / used + _sum(pairs, betas * gain)
+    precision = np.maximum(
+        _sum(pairs, inv_prior) / used + _sum(pairs, betas * gain), _PRECISION_FLOOR
+    )
     variance = 1.0 / precision
     # Zero prior mean: only the experts' linear natural parameters enter the mean.
     mean = variance * _sum(pairs, betas * inv_var * pairs.means)

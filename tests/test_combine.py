@@ -276,6 +276,17 @@ def test_extreme_finite_inputs_stay_finite(method):
         np.testing.assert_allclose(tiny.mean, [1.0])
 
 
+@pytest.mark.parametrize("method", ["moe", "poe", "gpoe", "bcm", "rbcm"])
+def test_variances_at_the_largest_float_give_an_uninformed_finite_answer(method):
+    # Experts that know nothing (variance and prior at the largest float): probability 1/2,
+    # a finite mean and variance, never NaN.
+    big = np.finfo(np.float64).max
+    out = combine([[1.0, -2.0]], [[big, big]], method=method, prior_variance=[big])
+    assert np.all(np.isfinite(out.mean)) and np.all(np.isfinite(out.variance))
+    assert np.all(out.variance > 1e300)
+    np.testing.assert_allclose(out.proba, [0.5], atol=1e-12)
+
+
 def test_bad_inputs_raise_clear_errors():
     m = np.zeros((2, 2))
     v = np.ones((2, 2))
