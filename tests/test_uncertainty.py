@@ -39,7 +39,13 @@ def test_probability_std_limits():
 
 @pytest.mark.parametrize(
     "proba, var, match",
-    [(np.nan, 1.0, "proba"), (1.5, 1.0, "proba"), (0.5, -1.0, "latent_variance")],
+    [
+        (np.nan, 1.0, "proba"),
+        (1.5, 1.0, "proba"),
+        (-0.1, 1.0, "proba"),
+        (0.5, -1.0, "latent_variance"),
+        (0.5, np.nan, "latent_variance"),
+    ],
 )
 def test_probability_std_rejects_bad_input(proba, var, match):
     with pytest.raises(ValueError, match=match):
