@@ -61,15 +61,24 @@ def test_split_scans(paper):
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"every_nth": 1}, "every_nth"),
-        ({"every_nth": 2.5}, "every_nth"),
-        ({"every_nth": 3, "offset": 3}, "offset"),
+        ({"every_nth": 1}, "every_nth must be an integer >= 2"),
+        ({"every_nth": 2.5}, "every_nth must be an integer >= 2"),
+        ({"every_nth": 3, "offset": 3}, r"offset must be an integer in \[0, every_nth\)"),
         ({"every_nth": 100, "offset": 50}, "empty"),
     ],
 )
 def test_split_scans_bad_input(paper, kwargs, match):
     with pytest.raises(ValueError, match=match):
         split_scans(paper.scans, **kwargs)
+
+
+def test_split_scans_of_one_scan_leaves_nothing_to_train_on(paper):
+    # Scan 0 is held out from offset 0: a one-scan log has no training scan left.
+    with pytest.raises(ValueError, match="training or the test set empty"):
+        split_scans(paper.scans[:1], every_nth=2)
+    train, test = split_scans(paper.scans[:2], every_nth=2)
+    assert_array_equal(train.poses, paper.scans.poses[[1]])
+    assert_array_equal(test.poses, paper.scans.poses[[0]])
 
 
 def test_split_scans_rejects_arrays():
@@ -118,6 +127,28 @@ def test_zero_readings_give_no_heldout_point():
     # The two beams read: along directions 0.5 and 1.0 only.
     angles = np.arctan2(points[:, 1], points[:, 0])
     assert np.all(np.isclose(angles, 0.5) | np.isclose(angles, 1.0))
+
+
+def test_heldout_points_draw_major_order():
+    # n free points per beam are n rounds over the usable beams (scan and beam order), each
+    # at a uniform fraction of its beam's free length: for a given seed, more points per
+    # beam extend the set drawn with fewer.
+    ranges = [[2.0, 3.0, np.inf], [1.0, 0.02, 4.0]]
+    scans = Scans([[0.0, 0.0, 0.0], [1.0, 0.0, 0.5]], ranges, [0.0, 1.0, 2.0], max_range=8.0)
+    # (scan, beam) and free length: range - margin, max_range without a return; the 0.02 m
+    # beam is within the margin.
+    usable = [(0, 0, 1.95), (0, 1, 2.95), (0, 2, 8.0), (1, 0, 0.95), (1, 2, 3.95)]
+    u = np.random.RandomState(0).uniform(size=(3, len(usable)))
+    origins, directions = scans.origins(), scans.directions()
+    expected = [
+        origins[s] + u[j, i] * length * directions[s, b]
+        for j in range(3)
+        for i, (s, b, length) in enumerate(usable)
+    ]
+    points, labels = heldout_points(scans, n_free_per_beam=3, free_margin=0.05, random_state=0)
+    assert_allclose(points[labels == 0], expected, rtol=1e-12)
+    fewer, labels1 = heldout_points(scans, n_free_per_beam=1, free_margin=0.05, random_state=0)
+    assert_array_equal(fewer[labels1 == 0], points[labels == 0][: len(usable)])
 
 
 def test_heldout_points_deterministic_and_3d():
@@ -187,9 +218,14 @@ def test_heldout_auc_rejects_nan_and_one_class():
         def predict_proba(self, X):
             return np.full((len(X), 2), np.nan)
 
+    class InfClassifier:
+        def predict_proba(self, X):
+            return np.column_stack([np.zeros(len(X)), np.full(len(X), np.inf)])
+
     scans = make_paper_scans().scans[:3]
-    with pytest.raises(ValueError, match="NaN"):
-        heldout_auc(NaNClassifier(), scans)
+    for estimator in (NaNClassifier(), InfClassifier()):
+        with pytest.raises(ValueError, match="NaN or infinite value.*cannot be scored"):
+            heldout_auc(estimator, scans)
     only_free = Scans([[0.0, 0.0, 0.0]], [[np.inf, np.inf]], [0.0, 1.0], max_range=8.0)
     with pytest.raises(ValueError, match="AUC is undefined"):
         heldout_auc(_TruthClassifier(None), only_free)
@@ -231,8 +267,10 @@ def test_ground_truth_auc_errors(paper):
     with pytest.raises(ValueError, match="AUC is undefined"):
         ground_truth_auc(np.zeros(16), env, 0.5, extent=(8, 10, 5, 7))  # open hall only
     n = len(env.ground_truth_grid(0.5).points)
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match=f"{n} NaN or infinite value.*cannot be scored"):
         ground_truth_auc(np.full(n, np.nan), env, 0.5)
+    with pytest.raises(ValueError, match="1 NaN or infinite value.*cannot be scored"):
+        ground_truth_auc(np.r_[np.zeros(n - 1), np.inf], env, 0.5)
     with pytest.raises(ValueError, match="must have shape"):
         ground_truth_auc(np.zeros(n + 1), env, 0.5)
     box = Environment2D([[0, 0, 1, 0]])
@@ -492,6 +530,10 @@ def test_expected_calibration_error_many_bins():
     assert_allclose(
         expected_calibration_error(y5, p5, n_bins=8), (0.05 + 0.15 + 0.38 + 0.32 + 0.95) / 5
     )
+    # The largest number of bins allowed, 2**52: every sample alone again.
+    assert_allclose(
+        expected_calibration_error(y5, p5, n_bins=2**52), np.mean(np.abs(np.subtract(p5, y5)))
+    )
 
 
 @pytest.mark.parametrize(
@@ -499,6 +541,7 @@ def test_expected_calibration_error_many_bins():
     [
         ([0, 1], [0.5, np.nan], {}, "NaN"),
         ([0, 1], [0.5, 1.2], {}, r"\[0, 1\]"),
+        ([0, 1], [-0.1, 0.5], {}, r"\[0, 1\]"),
         ([0, 1], [0.5], {}, "same length"),
         ([0, 2], [0.5, 0.5], {}, "labels 0 and 1"),
         ([], [], {}, "empty"),
@@ -722,6 +765,8 @@ def test_map_quality_errors(paper):
         map_quality(np.full(n, np.nan), env, resolution=0.5)
     with pytest.raises(ValueError, match=r"\[0, 1\]"):
         map_quality(np.full(n, 2.0), env, resolution=0.5)
+    with pytest.raises(ValueError, match=r"values in \[-0.5, 0\]"):
+        map_quality(np.r_[-0.5, np.zeros(n - 1)], env, resolution=0.5)
     with pytest.raises(ValueError, match="must have shape"):
         map_quality(np.zeros(n + 1), env, resolution=0.5)
     with pytest.raises(ValueError, match="Environment2D or Room3D"):
