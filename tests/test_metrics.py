@@ -4,7 +4,14 @@ from numpy.testing import assert_allclose, assert_array_equal
 from scipy import stats
 from sklearn.calibration import calibration_curve
 
-from skoccmap.datasets import Environment2D, Room3D, make_paper_scans, make_room3d_scans
+from skoccmap.datasets import (
+    Environment2D,
+    Room3D,
+    make_paper_scans,
+    make_room3d_scans,
+    simulate_scans,
+)
+from skoccmap.grid import ROS_FREE_THRESH, ROS_OCCUPIED_THRESH
 from skoccmap.metrics import (
     HILBERT_BLOCK_SIZE,
     HILBERT_FREE_MARGIN,
@@ -719,6 +726,95 @@ def test_map_quality_no_band():
     assert (q["walls_found"], q["free_found"], q["phantom_rate"]) == (0.0, 1.0, 0.0)
 
 
+def test_map_quality_thresholds_are_strict(paper):
+    # As map_server reads them: occupied when p > 0.65, free when p < 0.196. A map sitting
+    # on a threshold marks nothing; a step past it marks every cell.
+    env = paper.environment
+    n = len(env.ground_truth_grid(0.2).points)
+    on, past = ROS_OCCUPIED_THRESH, np.nextafter(ROS_OCCUPIED_THRESH, 1)
+    q = map_quality(np.full(n, on), env, resolution=0.2)
+    marked = (q["phantom_rate"], q["free_found"], q["walls_found"], q["n_wall_bands"])
+    assert marked == (0, 0, 0, 0)
+    assert np.isnan(q["wall_thickness"]) and q["n_wall_samples"] > 0
+    q = map_quality(np.full(n, past), env, resolution=0.2)
+    assert (q["phantom_rate"], q["walls_found"], q["n_wall_bands"]) == (1, 1, q["n_wall_samples"])
+    on, past = ROS_FREE_THRESH, np.nextafter(ROS_FREE_THRESH, 0)
+    assert map_quality(np.full(n, on), env, resolution=0.2)["free_found"] == 0.0
+    assert map_quality(np.full(n, past), env, resolution=0.2)["free_found"] == 1.0
+
+
+def test_map_quality_thick_wall_seen_from_one_side():
+    # A 0.3 m wall along y = 0.05 (surfaces on cell edges), scanned from below only. The true
+    # grid marks the wall's three rows of cells and the row touching each surface occupied:
+    # 0.5 m. Scored on what the scans saw, the wall's inside (never observed) keeps the map's
+    # value and the unobserved row above it ends the band: 0.4 m.
+    env = Environment2D([[0.0, 0.05, 4.0, 0.05]], wall_thickness=0.3)
+    poses = [[x, -1.5, 0.0] for x in np.linspace(0.5, 3.5, 7)]
+    scans = simulate_scans(env, poses, np.linspace(-np.pi, np.pi, 360, endpoint=False), 8.0)
+    extent = (-1, 5, -2.5, 2.5)
+    truth = env.ground_truth_grid(0.1, extent).occupied
+    everywhere = map_quality(truth, env, extent=extent)
+    seen = map_quality(truth, env, extent=extent, scans=scans)
+    assert_allclose(everywhere["wall_thickness"], 0.5)
+    assert_allclose(seen["wall_thickness"], 0.4)
+    assert seen["n_wall_bands"] == seen["n_wall_samples"] == 40  # 4 m in 0.1 m steps
+
+
+def test_walls_found_counts_cells_touching_a_wall_along_a_side():
+    # A 0.2 m wall from (0, 0.1) to (4, 0.1), surfaces at y = 0 and 0.2 on the edges of 0.2 m
+    # cells: the row inside the wall (22 cells, x from -0.2 to 4.2 with the round ends) and
+    # the 20 cells along each surface, whose centres are 0.1 m from it, are near the wall.
+    # The 4 cells touching the round ends at a corner are occupied too, their centres
+    # 0.1 * (sqrt(5) - 1) m away.
+    env = Environment2D([[0.0, 0.1, 4.0, 0.1]], wall_thickness=0.2)
+    extent = (-1, 5, -2, 2.6)
+    grid = env.ground_truth_grid(0.2, extent)
+    assert grid.occupied.sum() == 22 + 2 * 20 + 4
+    inside = (np.abs(grid.points[:, 1] - 0.1) < 0.05).astype(float)
+    q = map_quality(inside, env, resolution=0.2, extent=extent)
+    assert q["n_near_wall_cells"] == 22 + 2 * 20
+    assert_allclose(q["walls_found"], 22 / 62)
+    assert map_quality(grid.occupied, env, resolution=0.2, extent=extent)["walls_found"] == 1.0
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_map_quality_skips_bands_next_to_space_nearer_another_wall(reverse):
+    # Two 0.1 m walls 0.4 m apart, at y = 0.05 and 0.45 (steps on cell centres). A map
+    # occupied from y = 0.25 to 0.45 gives the upper wall a band ending at y = 0.25, where
+    # both walls are 0.15 m away; the step beyond it, y = 0.15, is nearer the lower wall: the
+    # band cannot be told from that wall's, and the sample is skipped. The lower wall's
+    # samples are counted, with no band (the map is free on it). Walls drawn either way walk
+    # their normals either way.
+    walls = np.array([[0.0, 0.05, 4.0, 0.05], [0.0, 0.45, 4.0, 0.45]])
+    if reverse:
+        walls = walls[:, [2, 3, 0, 1]]
+    env = Environment2D(walls, wall_thickness=0.1)
+    extent = (-1, 5, -2.5, 3.0)
+    grid = env.ground_truth_grid(0.1, extent)
+    x, y = grid.points.T
+    band = ((y > 0.2) & (y < 0.5) & (x > 0) & (x < 4)).astype(float)
+    q = map_quality(band, env, extent=extent)
+    assert (q["n_wall_samples"], q["n_wall_bands"]) == (40, 0)
+    assert np.isnan(q["wall_thickness"])
+    # The true map: both walls measured, 0.1 m plus the cell touching each side.
+    q = map_quality(grid.occupied, env, extent=extent)
+    assert q["n_wall_samples"] == q["n_wall_bands"] == 80
+    assert_allclose(q["wall_thickness"], 0.3)
+
+
+def test_map_quality_samples_a_wall_shorter_than_a_step():
+    # Every wall of non-zero length has at least one sample, at its middle: a 0.04 m post
+    # beside a 4 m wall adds one to its 40.
+    extent = (-1, 5, -2.5, 3.0)
+    counts = []
+    for walls in ([[0.0, 0.05, 4.0, 0.05]], [[0.0, 0.05, 4.0, 0.05], [2.0, -1.45, 2.04, -1.45]]):
+        env = Environment2D(walls, wall_thickness=0.1)
+        q = map_quality(env.ground_truth_grid(0.1, extent).occupied, env, extent=extent)
+        assert_allclose(q["wall_thickness"], 0.3)
+        counts.append((q["n_wall_samples"], q["n_wall_bands"]))
+    assert counts == [(40, 40), (41, 41)]
+
+
 @pytest.fixture(scope="module")
 def room():
     return make_room3d_scans()
@@ -739,6 +835,31 @@ def test_map_quality_room3d(room):
     assert (exact["phantom_rate"], exact["free_found"]) == (0.0, 1.0)
     assert (exact["auc"], exact["walls_found"], exact["ece"]) == (1.0, 1.0, 0.0)
     assert 0 < exact["n_wall_samples"] < thick["n_wall_samples"]
+
+
+def test_map_quality_empty_room3d_walks_every_face_into_the_room():
+    # A 2 m room without obstacles, 0.1 m steps: 6 faces of 20 x 20 samples. The walk goes
+    # from half a step inside the wall into the room; samples in the ring along the room's
+    # edges (within a step of the next face) are skipped: 6 x 18 x 18 counted.
+    env = Room3D(size=(2, 2, 2), obstacles=np.zeros((0, 6)), wall_thickness=0.2)
+    q = map_quality(env.ground_truth_grid(0.1).occupied, env)
+    assert q["n_wall_samples"] == q["n_wall_bands"] == 6 * 18 * 18
+    assert_allclose(q["wall_thickness"], 0.2)
+
+    class Shell:
+        """Occupied up to a step out from the faces, free inside the walls."""
+
+        classes_ = np.array([0, 1])
+
+        def predict_proba(self, X):
+            d = env.distance(X[:, :3])
+            p = ((d > 0) & (d <= 0.1)).astype(float)
+            return np.column_stack([1 - p, p])
+
+    # A band may start on either side of the face: here at the step just outside it.
+    q = map_quality(Shell(), env)
+    assert q["n_wall_samples"] == q["n_wall_bands"] == 6 * 18 * 18
+    assert_allclose(q["wall_thickness"], 0.1)
 
 
 def test_map_quality_room3d_skips_covered_faces():
@@ -797,9 +918,10 @@ def test_walls_found_counts_truly_occupied_cells_only(make):
     grid = data.environment.ground_truth_grid(res, scans=data.scans)
     truth = grid.occupied.astype(float)
     # The true map finds every wall, however thin.
-    assert map_quality(truth, data.environment, resolution=res, scans=data.scans)[
-        "walls_found"
-    ] == 1.0
+    assert (
+        map_quality(truth, data.environment, resolution=res, scans=data.scans)["walls_found"]
+        == 1.0
+    )
     # Marking the free cells beside the walls occupied too finds no more walls ...
     near = data.environment.distance(grid.points) <= 0.1 + 1e-9
     thick = map_quality(
