@@ -236,11 +236,11 @@ SWEEPS = [
         "gating",
         "`gating` with its `gating_threshold` (predict time, one fit)",
         [
-            Entry("coverage, auto (0.5)", "default", default=True),
+            Entry("coverage, auto (0.35)", "default", default=True),
             Entry("clusterer, 1e-3", "default", {"gating": "clusterer", "gating_threshold": 1e-3}),
             Entry("clusterer, 0", "default", {"gating": "clusterer", "gating_threshold": 0.0}),
         ],
-        quick=("coverage, auto (0.5)", "clusterer, 1e-3"),
+        quick=("coverage, auto (0.35)", "clusterer, 1e-3"),
         extra=("predict", "consulted"),
     ),
     Sweep(
@@ -252,7 +252,8 @@ SWEEPS = [
                 ("0.8", 0.8),
                 ("0.7", 0.7),
                 ("0.6", 0.6),
-                ("auto (0.5)", "auto"),
+                ("0.5", 0.5),
+                ("auto (0.35)", "auto"),
                 ("0.2", 0.2),
                 ("0.1", 0.1),
                 ("0.05", 0.05),
@@ -261,7 +262,7 @@ SWEEPS = [
             ],
             "auto",
         ),
-        quick=("0.7", "auto (0.5)", "0.1"),
+        quick=("0.7", "auto (0.35)", "0.1"),
         extra=("predict", "consulted"),
     ),
     Sweep(

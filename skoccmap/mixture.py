@@ -127,7 +127,7 @@ _COVERAGE_TOLERANCE = float(np.exp(-1.0 / 8.0))
 
 # gating_threshold="auto", by gate (see the parameter's docstring for the measurements):
 # relative to the best-covered expert's share for the coverage gate, absolute otherwise.
-_AUTO_GATING_THRESHOLD = {"coverage": 0.5, "clusterer": 1e-3, "gpc": 1e-3}
+_AUTO_GATING_THRESHOLD = {"coverage": 0.35, "clusterer": 1e-3, "gpc": 1e-3}
 
 # EP's stopping tolerance in the default expert (site changes in units of their marginal;
 # EPGaussianProcessClassifier's own default is 1e-6): see the ``expert`` parameter.
@@ -864,7 +864,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         the experts consulted (see ``gating_threshold``), and weighs them under
         ``combiner="moe"`` (the product rules weigh by confidence). ``"coverage"``: the
         expert's share of the training data near the query, counted as the index's cells
-        (an eighth of ``reach_`` wide) that its segments pass through, each weighted by
+        (an eighth of ``reach_`` wide) that hold its segments' midpoints, each weighted by
         ``exp(-d**2 / (2 w**2))`` of its distance ``d`` to the query, with ``w =
         coverage_width_`` (half a length scale for the default kernel) and up to three
         widths; where no expert has data that near, equal weights (and the clusterer's
@@ -879,8 +879,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         corridor wall's expert) lie where its cluster's density, thin along its wall, is
         below the threshold, and queries there were sent to experts with no data near
         them (grey fans behind the doors of the dense office). On the tuning data
-        (``benchmarks/bench_tuning.py --only gating``, seed 100) ``"coverage"`` (the
-        default threshold) / ``"clusterer"`` (threshold 1e-3) give ACES held-out AUC
+        (``benchmarks/bench_tuning.py --only gating``, seed 100, 2026-12-02, when the
+        coverage counted the cells along the segments, at threshold 0.5; the midpoints'
+        count is compared under ``gating_threshold``) ``"coverage"`` / ``"clusterer"``
+        (threshold 1e-3) give ACES held-out AUC
         0.963 / 0.962 with 2.3 / 5.2 experts per query trained on every 10th scan, 0.978
         / 0.977 with 13.8 / 11.8 trained on every scan; the dense office finds 100.0 /
         92.5 % of its far free cells at ECE 0.025 / 0.051 (6.0 / 6.3 experts per query),
@@ -1175,28 +1177,30 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         Of the experts within reach of a query (see ``reach_tolerance``), those whose
         gating weight there is below this are skipped (the one with the largest weight is
         always kept); with ``gating="coverage"`` the threshold is relative to the largest
-        weight at the query (0.5 skips the experts with less than half the data near the
-        query of the best-covered one), with the other gates absolute. 0 consults every
+        weight at the query (0.35 skips the experts with less than 35 % of the data near
+        the query of the best-covered one), with the other gates absolute. 0 consults every
         expert within reach. PoE, BCM and rBCM use the gate only to choose experts: under
         them a ``"clusterer"`` or ``"gpc"`` gate's threshold drops experts that hold data
         near the query, and the map jumps where they drop out (a seam of 0.24 in
         P(occupied) across the paper's world with ``combiner="bcm"`` and 1e-3, none with 0;
-        :func:`skoccmap.experiment.make_models`). ``"auto"``: 0.5 with
+        :func:`skoccmap.experiment.make_models`). ``"auto"``: 0.35 with
         ``gating="coverage"``, 1e-3 with the other gates. With the coverage gate, on the
-        tuning data (``benchmarks/bench_tuning.py --only gating``) 0.5 / 0.2 / 0.1 / 0.05 /
-        0.02 give ACES held-out AUC 0.9634 / 0.9636 / 0.9635 / 0.9634 / 0.9633 with 2.3 /
-        4.1 / 5.2 / 6.1 / 7.2 experts per query (44 / 66 / 78 / 90 / 104 us per point),
-        trained on every scan 0.9775 / 0.9781 / 0.9781 / 0.9781 / 0.9781 with 13.8 / 34.4 /
-        47.0 / 57.8 / 70.1 experts per query (314 / 562 / 678 / 818 / 934 us per point),
-        and the same walls, free space and ECE (to 0.003) on the dense office and paper's
-        world: 0.5 takes under half the time of 0.1 for 0.0006 of AUC on the densest data.
-        An absolute threshold on the coverage shares fails where dozens of experts overlap,
-        every one of them holding a few percent of the data: 0.05 kept 2.2 experts per
-        query on the full Intel log (B3) and scored held-out AUC 0.893 against the
-        clusterer's 0.989; relative, 0.5 keeps 21.8 and scores 0.988. Higher relative
-        thresholds lose the dense logs (ACES with every scan: 0.6 / 0.7 / 0.8 give 0.9770 /
-        0.9723 / 0.9647 with 9.8 / 6.5 / 4.0 experts per query): where hundreds of poses
-        saw a corridor its data fill many experts of equal coverage.
+        tuning data (``benchmarks/bench_tuning.py --only gating_threshold``, seed 100) 0.5
+        / 0.35 / 0.2 / 0.1 give ACES held-out AUC 0.9744 / 0.9755 / 0.9765 / 0.9772 with
+        3.5 / 4.9 / 7.1 / 10.1 experts per query trained on every scan, 0.9665 / 0.9669 /
+        0.9674 / 0.9671 with 1.5 / 1.8 / 2.3 / 3.0 trained on every 10th; the sparse
+        office's ECE is 0.045 / 0.042 / 0.040 / 0.039, the dense office's 0.026 / 0.025 /
+        0.025 / 0.025, and walls, free space and phantoms move by at most 0.2 % in the
+        office and paper's world, sparse and dense. 0.35 keeps the scores of the gate that
+        counted cells along the segments at 0.5 (ACES 0.9761 / 0.9673, office ECE 0.042)
+        to 0.0006 of AUC with 4.9 experts per query against 7.1 on every ACES scan; that
+        gate needed 0.6 to consult 5.4, at 0.9746. An absolute threshold on the coverage
+        shares fails where dozens of experts overlap, every one of them holding a few
+        percent of the data: 0.05 kept 2.2 experts per query on the full Intel log (B3)
+        and scored held-out AUC 0.893 against the clusterer's 0.989. Higher relative
+        thresholds lose the dense logs (ACES with every scan: 0.6 / 0.7 / 0.8 give 0.9734 /
+        0.9721 / 0.9703 with 2.8 / 2.2 / 1.7 experts per query): where hundreds of poses
+        saw a corridor its data fill several experts of about equal coverage.
     reach_tolerance : float, default=1e-2
         Sets the *reach* ``reach_``: the distance beyond which the fitted kernel between
         two points stays below ``reach_tolerance`` times its value at distance 0. An
