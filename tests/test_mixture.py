@@ -403,7 +403,7 @@ def test_clusters_of_min_size_are_kept_and_smaller_ones_merged_into_the_nearest(
 def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, grid):
     _, Q = grid
     model = _mixture(gating="coverage", max_expert_size=100).fit(paper.X, paper.y)
-    assert model._gating_threshold() == 0.5
+    assert model._gating_threshold() == 0.35
     # The width is where the kernel falls to exp(-1/8) of its peak (half a length scale
     # for the squared exponential between points; this RBF over segment rows sees a point
     # at distance r at sqrt(2) r).
