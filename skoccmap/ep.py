@@ -274,15 +274,9 @@ def _posterior_lu(K, tau, nu):
     n = tau.shape[0]
     M = K * tau[None, :]  # I + K S, so that Sigma = (I + K S)^-1 K and (I + S K) = M^T
     M.flat[:: n + 1] += 1.0
+    _check_proper(K, tau)
     lu = lu_factor(M, check_finite=False)
     diag_U = np.diagonal(lu[0])
-    n_swaps = np.count_nonzero(lu[1] != np.arange(n))
-    sign = (-1.0) ** n_swaps * np.prod(np.sign(diag_U))
-    if sign <= 0.0:
-        raise np.linalg.LinAlgError(
-            "The EP sites do not define a proper Gaussian: det(I + K S) <= 0 with negative site "
-            "precisions."
-        )
     var = np.diagonal(lu_solve(lu, K, check_finite=False)).copy()
     if not np.all(var > 0.0):
         raise np.linalg.LinAlgError(
@@ -292,6 +286,35 @@ def _posterior_lu(K, tau, nu):
     mean = K @ alpha
     log_det_B = float(np.sum(np.log(np.abs(diag_U))))
     return EPPosterior(mean, var, alpha, log_det_B, None, None, lu, tau)
+
+
+def _check_proper(K, tau):
+    """Raise ``LinAlgError`` unless the sites with prior ``K`` define a proper Gaussian.
+
+    A sign of ``det(I + K S)`` misses an even number of negative directions. With the sites
+    split as ``S = S+ - S-`` and ``P = (K^-1 + S+)^-1`` (R&W's stable form, proper), the
+    precision ``P^-1 - S-`` is positive definite iff ``I - S-^1/2 P S-^1/2`` is (congruence
+    by ``P^1/2``): a Cholesky test over the m negative sites, which needs no ``K^-1``.
+    """
+    negative = np.flatnonzero(tau < 0.0)
+    P = K[np.ix_(negative, negative)]
+    if np.any(tau > 0.0):
+        sqrt_tau = np.sqrt(np.maximum(tau, 0.0))
+        B = np.multiply(K, sqrt_tau[:, None])
+        B *= sqrt_tau[None, :]
+        B.flat[:: tau.size + 1] += 1.0
+        L = cholesky(B, lower=True, overwrite_a=True, check_finite=False)
+        V = solve_triangular(L, sqrt_tau[:, None] * K[:, negative], lower=True, check_finite=False)
+        P = P - V.T @ V
+    scale = np.sqrt(-tau[negative])
+    C = np.eye(negative.size) - scale[:, None] * P * scale[None, :]
+    try:
+        cholesky(C, lower=True, overwrite_a=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        raise np.linalg.LinAlgError(
+            "The EP sites do not define a proper Gaussian: K^-1 + S is not positive definite "
+            "(negative site precisions)."
+        ) from None
 
 
 def _cavity(posterior, tau, nu):

@@ -354,6 +354,47 @@ def test_improper_sites_raise_linalg_error(tau):
         ep_posterior(K, np.array(tau), np.zeros(3))
 
 
+def test_two_negative_directions_with_positive_marginals_are_refused():
+    # det(I + K S) > 0 and every marginal of (K^-1 + S)^-1 positive: only the inertia of
+    # K^-1 + S tells that this is no Gaussian.
+    K = np.array(
+        [
+            [4.256, -2.41, -0.217, -1.299],
+            [-2.41, 4.57, 3.149, 1.993],
+            [-0.217, 3.149, 5.037, 0.985],
+            [-1.299, 1.993, 0.985, 1.923],
+        ]
+    )
+    tau = np.array([-1.413, -1.141, 2.292, -2.026])
+    precision = np.linalg.inv(K) + np.diag(tau)
+    assert np.sum(np.linalg.eigvalsh(precision) < 0) == 2
+    assert np.all(np.diagonal(np.linalg.inv(precision)) > 0)
+    with pytest.raises(np.linalg.LinAlgError, match="proper Gaussian"):
+        ep_posterior(K, tau, np.zeros(4))
+
+
+def test_sites_are_refused_exactly_when_the_precision_is_indefinite():
+    rng = np.random.default_rng(5)
+    refused = accepted = 0
+    for _ in range(300):
+        n = int(rng.integers(2, 6))
+        G = rng.normal(size=(n, n))
+        K = G @ G.T + 0.1 * np.eye(n)
+        tau = rng.normal(0.0, 2.0, n)
+        smallest = np.linalg.eigvalsh(np.linalg.inv(K) + np.diag(tau))[0]
+        if abs(smallest) < 1e-6 or np.all(tau >= 0):
+            continue
+        if smallest < 0:
+            with pytest.raises(np.linalg.LinAlgError, match="proper Gaussian"):
+                ep_posterior(K, tau, np.zeros(n))
+            refused += 1
+        else:
+            Sigma = np.linalg.inv(np.linalg.inv(K) + np.diag(tau))
+            np.testing.assert_allclose(ep_posterior(K, tau, np.zeros(n)).var, np.diag(Sigma))
+            accepted += 1
+    assert refused > 20 and accepted > 20
+
+
 def test_evidence_of_sites_with_an_improper_cavity_is_minus_infinity():
     # A proper posterior, but without the second site K^-1 + diag(-3, 0) is indefinite:
     # the cavity of that site has a negative precision, and these are no EP sites.
