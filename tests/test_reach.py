@@ -162,6 +162,29 @@ def test_spatial_order_is_a_permutation_grouping_blocks():
     assert np.median(step) < 0.25 * np.median(np.linalg.norm(np.diff(points, axis=0), axis=1))
 
 
+def test_chunks_of_consecutive_queries_are_compact_regions():
+    # The map is predicted chunk by chunk in this order: a chunk of a few hundred queries
+    # (of 20000 over a map 20 reaches wide) is a patch a few reaches across, not a strip
+    # across the map.
+    segments, expert, n_experts = _random_experts(2, seed=2)
+    index = ExpertReach(segments, expert, n_experts, reach=1.0)
+    points = np.random.default_rng(4).uniform(0, 20, size=(20000, 2))
+    order = index.spatial_order(np.hstack([points, points]))
+    chunks = points[order].reshape(-1, 250, 2)
+    across = np.ptp(chunks, axis=1).max(axis=1)
+    assert np.median(across) < 5.0
+
+
+def test_default_origin_is_the_smallest_coordinate_of_either_end():
+    segments, expert, n_experts = _random_experts(3, seed=3)
+    segments[:, 3:] -= 1.0  # ends below the starts on every axis
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    np.testing.assert_array_equal(
+        index.origin, np.minimum(segments[:, :3], segments[:, 3:]).min(axis=0)
+    )
+    assert all(cells.min() >= 0 for cells in index._cells + index._centres if len(cells))
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_building_the_index_in_batches_changes_nothing(dim, monkeypatch):
     import skoccmap._reach as reach_module
@@ -371,3 +394,272 @@ def test_segment_samples_reach_both_ends_and_cover_the_segment():
         along = start + np.linspace(0, 1, 1001)[:, None] * (end - start)
         gaps = np.linalg.norm(along[:, None, :] - mine[None, :, :], axis=2).min(axis=1)
         assert gaps.max() <= 0.1 + 1e-12
+
+
+def _on_segments(segments, expert, n_t):
+    """Points at ``n_t`` even steps along every segment, with their segment's expert."""
+    dim = segments.shape[1] // 2
+    t = np.linspace(0.0, 1.0, n_t)[None, :, None]
+    a, b = segments[:, None, :dim], segments[:, None, dim:]
+    return (a + t * (b - a)).reshape(-1, dim), np.repeat(expert, n_t)
+
+
+def _holds(query, cand, n_queries, n_experts):
+    got = np.zeros((n_queries, n_experts), dtype=bool)
+    got[query, cand] = True
+    return got
+
+
+def test_threads_pay_from_enough_pairs_in_all_and_per_expert():
+    # At least _THREADED_PAIRS pairs, and at least _THREADED_PAIRS_PER_EXPERT per expert.
+    pairs, per_expert = _reach._THREADED_PAIRS, _reach._THREADED_PAIRS_PER_EXPERT
+    assert not _reach.threads_pay(pairs - 1, 1)
+    assert _reach.threads_pay(pairs, 1)
+    many = 4 * pairs // per_expert  # experts enough that the per-expert count decides
+    assert not _reach.threads_pay(per_expert * many - 1, many)
+    assert _reach.threads_pay(per_expert * many, many)
+
+
+class _MexicanHat:
+    """(1 - r^2) exp(-r^2 / 2) of the distance r (in length scales) between the rows'
+    starts: a kernel with a negative lobe, whose magnitude reaches 2 exp(-3/2) at r^2 = 3."""
+
+    def __init__(self, length_scale):
+        self.length_scale = length_scale
+
+    def __call__(self, X, Y=None):
+        Y = X if Y is None else Y
+        dim = X.shape[1] // 2
+        r2 = np.sum((X[:, None, :dim] - Y[None, :, :dim]) ** 2, axis=-1) / self.length_scale**2
+        return (1.0 - r2) * np.exp(-0.5 * r2)
+
+
+def test_reach_of_a_kernel_with_a_negative_lobe_is_past_the_lobe():
+    from scipy.optimize import brentq
+
+    # |k| falls below 0.1 k(0) for good on the negative lobe, beyond its minimum at sqrt(3).
+    tolerance, length_scale = 0.1, 0.7
+    exact = length_scale * brentq(
+        lambda r: (r**2 - 1.0) * np.exp(-0.5 * r**2) - tolerance, np.sqrt(3.0), 10.0
+    )
+    reach = kernel_reach(_MexicanHat(length_scale), 2, tolerance, extent=20.0)
+    assert exact <= reach <= 1.03 * exact
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_block_codes_are_ordered_distinct_and_minus_one_out_of_range(dim):
+    from skoccmap._reach import _codes
+
+    # Coordinates in [-2**20, 2**20) are coded (non-negative, ordered like the blocks
+    # lexicographically), all others are -1.
+    half = 2 ** (_reach._CODE_BITS - 1)
+    edges = np.array([-(2**40), -half - 1, -half, -half + 1, -1, 0, 1, half - 1, half, 2**40])
+    blocks = np.stack(np.meshgrid(*[edges] * dim, indexing="ij"), axis=-1).reshape(-1, dim)
+    code = _codes(blocks)
+    inside = np.all((blocks >= -half) & (blocks < half), axis=1)
+    np.testing.assert_array_equal(code[~inside], -1)
+    # The meshgrid lists the blocks in lexicographic order: their codes strictly increase.
+    assert code[inside][0] >= 0 and np.all(np.diff(code[inside]) > 0)
+
+
+def test_unique_rows_whose_codes_would_overflow_int64():
+    # Three columns of spans near 2**28 (84 bits together): numpy's row-wise unique.
+    rng = np.random.RandomState(1)
+    keys = rng.randint(-3, 4, size=(500, 3)).astype(np.int64) * 2**26
+    np.testing.assert_array_equal(_unique_rows(keys), np.unique(keys, axis=0))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_points_far_apart_for_a_tiny_reach_are_indexed_and_pruned(dim):
+    # Point data (no segment length to set the grid) 20 m across and a reach of 1e-7 m:
+    # a grid of reach / 8 would put most points beyond the blocks a code can hold. Each
+    # point is within reach of itself, and its candidates within reach + slack.
+    rng = np.random.default_rng(50 + dim)
+    points = rng.uniform(0, 20, size=(200, dim))
+    expert = rng.integers(0, 10, size=200)
+    index = ExpertReach(np.hstack([points, points]), expert, 10, reach=1e-7)
+    queries = np.hstack([points, points])
+    query, cand = index.candidates(queries)
+    got = _holds(query, cand, 200, 10)
+    assert np.all(got[np.arange(200), expert])
+    dist = np.full((200, 10), np.inf)
+    np.minimum.at(dist.T, expert, np.linalg.norm(points[:, None] - points[None], axis=-1))
+    assert np.all(dist[got] <= index.reach + index.slack)
+    np.testing.assert_array_equal(
+        index.within_reach(queries, np.arange(200), expert), np.ones(200, dtype=bool)
+    )
+
+
+def test_all_data_at_one_point_with_a_zero_reach():
+    segments = np.tile([1.0, 2.0, 1.0, 2.0], (6, 1))
+    expert = np.array([0, 0, 2, 2, 2, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        index = ExpertReach(segments, expert, 3, reach=0.0)
+        query, cand = index.candidates(np.array([[1.0, 2.0, 1.0, 2.0], [9.0, 9.0, 9.0, 9.0]]))
+    # The point's experts (1 has no data), nothing far away.
+    np.testing.assert_array_equal(query, [0, 0])
+    np.testing.assert_array_equal(cand, [0, 2])
+
+
+def test_candidates_stay_within_the_reach_plus_the_slack_on_a_dense_grid():
+    # Short segments, one expert each, and point queries every sixteenth of a reach: a
+    # candidate's data lie within reach + slack (the block's diagonal, and a cell's
+    # half-diagonal and half sample spacing on either side), which the grid comes near.
+    rng = np.random.default_rng(60)
+    n, reach = 200, 1.0
+    start = rng.uniform(0, 10, (n, 2))
+    direction = rng.normal(size=(n, 2))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    segments = np.hstack([start, start + rng.uniform(0, 0.3, (n, 1)) * direction])
+    index = ExpertReach(segments, np.arange(n), n, reach, origin=np.zeros(2))
+    g = np.arange(-1.0, 11.0, reach / 16) + 1e-9
+    points = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    query, cand = index.candidates(np.hstack([points, points]))
+    a, d = segments[cand, :2], segments[cand, 2:] - segments[cand, :2]
+    w = points[query] - a
+    t = np.clip(np.einsum("ij,ij->i", w, d) / np.einsum("ij,ij->i", d, d).clip(1e-300), 0, 1)
+    dist = np.linalg.norm(w - t[:, None] * d, axis=1)
+    assert np.all(dist <= reach + index.slack)
+    assert dist.max() > reach + 0.75 * index.slack
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_data_and_queries_below_the_origin_are_indexed_exactly(dim):
+    # The grid's origin in the middle of the data (as after updates with data below it),
+    # and a reach short against the cells, so that a cell off by one loses data in reach:
+    # every point of every segment is within reach of its expert.
+    segments, expert, n_experts = _random_experts(dim, seed=70 + dim, n_rows=200)
+    index = ExpertReach(segments, expert, n_experts, reach=1e-5, origin=np.full(dim, 10.0))
+    assert index.cell > 1e3 * index.reach
+    points, own = _on_segments(segments, expert, 41)
+    queries = np.hstack([points, points])
+    query, cand = index.candidates(queries)
+    got = _holds(query, cand, len(points), n_experts)
+    assert np.all(got[np.arange(len(points)), own])
+    keep = index.within_reach(queries, np.arange(len(points)), own)
+    np.testing.assert_array_equal(keep, np.ones(len(points), dtype=bool))
+
+
+def test_updated_index_keeps_the_grid_of_a_reach_too_short_to_set_it():
+    # The grid is set by the segments' mean length (the reach is far shorter); an update
+    # adds an expert of long beams, which would set a coarser grid: the update keeps the
+    # old one, on which the unchanged experts' cells lie, and loses no data in reach.
+    dim = 2
+    segments, expert, n_experts = _random_experts(dim, seed=80, n_rows=200)
+    index = ExpertReach(segments, expert, n_experts, reach=1e-5)
+    rng = np.random.default_rng(81)
+    start = rng.uniform(0, 20, (20, dim))
+    beams = np.hstack([start, start + [60.0, 0.0]])
+    all_segments = np.vstack([segments, beams])
+    all_expert = np.r_[expert, np.full(20, n_experts)]
+    updated = index.updated(
+        all_segments, all_expert, n_experts + 1, [n_experts], np.r_[np.arange(n_experts), -1]
+    )
+    assert updated.scale == index.scale
+    points, own = _on_segments(all_segments, all_expert, 21)
+    queries = np.hstack([points, points])
+    query, cand = updated.candidates(queries)
+    got = _holds(query, cand, len(points), n_experts + 1)
+    assert np.all(got[np.arange(len(points)), own])
+    assert np.all(updated.within_reach(queries, np.arange(len(points)), own))
+
+
+def test_an_expert_without_data_is_never_within_reach():
+    segments, expert, _ = _random_experts(2, seed=90, n_experts=4)
+    index = ExpertReach(segments, expert, 5, reach=1.5)  # expert 4 has no rows
+    on = np.hstack([segments[:3, :2], segments[:3, :2]])
+    keep = index.within_reach(on, np.array([0, 1, 2, 0]), np.r_[expert[:3], 4])
+    np.testing.assert_array_equal(keep, [True, True, True, False])
+    query, cand = index.candidates(on)
+    assert 4 not in cand
+
+
+def test_within_reach_of_query_segments_matches_exact_distances():
+    # Points and segments up to 8 reaches long, each against every expert, with experts
+    # searched for queries of different lengths at once: kept where the exact distance is
+    # within the reach, dropped beyond reach + 2 * grown (+ the half-length, measured from
+    # the query's midpoint).
+    segments, expert, n_experts = _random_experts(2, seed=100)
+    reach = 1.0
+    index = ExpertReach(segments, expert, n_experts, reach=reach)
+    rng = np.random.default_rng(101)
+    n = 60
+    start = rng.uniform(-2, 22, size=(n, 2))
+    length = np.where(np.arange(n) % 3 == 0, 0.0, rng.uniform(0, 8, n))
+    angle = rng.uniform(0, 2 * np.pi, n)
+    end = start + length[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+    queries = np.hstack([start, end])
+    query, cand = np.repeat(np.arange(n), n_experts), np.tile(np.arange(n_experts), n)
+    keep = index.within_reach(queries, query, cand)
+    # Distance from query segments, sampled every reach / 100 (no shorter than the exact).
+    dist = np.full((n, n_experts), np.inf)
+    for i in range(n):
+        along = start[i] + np.linspace(0, 1, 801)[:, None] * (end[i] - start[i])
+        np.minimum.at(dist[i], expert, _segment_distance(along, segments).min(axis=0))
+    mid = np.full((n, n_experts), np.inf)
+    np.minimum.at(mid.T, expert, _segment_distance(0.5 * (start + end), segments).T)
+    assert np.any(~keep) and np.any(keep & (length[query] > 0))
+    assert np.all(keep[dist[query, cand] <= reach])
+    assert np.all(
+        mid[query[keep], cand[keep]] <= reach + 2 * index._grown + length[query[keep]] / 2
+    )
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_candidates_are_sorted_by_query_then_expert(dim):
+    segments, expert, n_experts = _random_experts(dim, seed=110 + dim, n_experts=60)
+    index = ExpertReach(segments, expert, n_experts, reach=3.0)
+    points, ends = _point_and_segment_queries(np.random.default_rng(111), 200, 20, dim)
+    query, cand = index.candidates(np.hstack([points, ends]))
+    assert np.all((np.diff(query) > 0) | ((np.diff(query) == 0) & (np.diff(cand) > 0)))
+    assert np.bincount(query).max() > 16  # lists longer than a sort's insertion runs
+
+
+def test_max_candidates_bounds_the_candidates_of_every_point_query():
+    # Chunks of queries are sized by it: no point query has more candidates.
+    segments, expert, n_experts = _random_experts(2, seed=120)
+    index = ExpertReach(segments, expert, n_experts, reach=1.5)
+    g = np.arange(-2.0, 22.0, index.block / 2)
+    points = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+    query, _ = index.candidates(np.hstack([points, points]))
+    counts = np.bincount(query, minlength=len(points))
+    assert counts.max() <= index.max_candidates
+    assert counts.min() < counts.max()
+
+
+def test_tree_of_all_midpoint_cells_is_built_once_searches_cost_exactly_as_much(monkeypatch):
+    # Searches apart that have cost exactly as much as the tree (one expert searched,
+    # costed at all the cells) pay for it at once.
+    segments, expert, n_experts = _random_experts(2, seed=130)
+    index = ExpertReach(segments, expert, n_experts, reach=2.0)
+    monkeypatch.setattr(_reach, "_CELLS_PER_EXPERT_SEARCH", index.centre_expert.size)
+    queries = np.hstack([segments[:5, :2], segments[:5, :2]])
+    index.coverage(queries, np.arange(5), np.full(5, expert[0]), 0.4)
+    assert index._centre_tree is not None
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="coverage cuts at reach + grown from midpoint cells, which need not be cells of "
+    "the segments' samples: a covered pair can be out of reach by within_reach",
+)
+def test_a_pair_with_coverage_is_within_reach():
+    # The mixture takes a pair with positive coverage as within reach without searching.
+    # A segment shorter than a cell, from cell (0, 1) to cell (1, 0): its ends are its only
+    # samples, its midpoint lies in cell (0, 0). Queries on the diagonal below cell (0, 0),
+    # up to a cell beyond reach + grown from its centre, with a width whose three widths
+    # exceed the reach: wherever covered, within reach.
+    reach = 2.0
+    cell = reach * _reach._CELL
+    segments = np.array([[0.4, 1.05, 1.05, 0.4], [120.0, 120.0, 120.0, 120.0]]) * cell
+    index = ExpertReach(segments, np.array([0, 1]), 2, reach, origin=np.zeros(2))
+    assert index.cell == cell
+    distance = np.linspace(reach - cell, reach + index._grown + cell, 101)
+    points = 0.5 * cell - distance[:, None] / np.sqrt(2) * np.ones(2)
+    queries = np.hstack([points, points])
+    pairs = np.arange(101), np.zeros(101, dtype=int)
+    cover = index.coverage(queries, *pairs, width=reach)
+    near = index.within_reach(queries, *pairs)
+    assert cover[0] > 0 and near[0]
+    np.testing.assert_array_equal(near[cover > 0], True)
