@@ -511,14 +511,17 @@ class ExpertReach:
         The cells (of side ``cell``) of the expert's segments' midpoints near the query,
         each weighted by ``exp(-d**2 / (2 width**2))`` of its centre's distance ``d`` to the
         query (less half the query segment's length, measured from its midpoint), up to
-        three widths or the reach: a kernel density of where the expert's training
-        segments lie, smooth in the query. It counts where the data are, not how many rows
-        lie there: repeated beams through a cell add nothing, as they add little to a GP's
-        posterior. A segment counts at its midpoint, not along its length: on a dense log
-        the free pieces (a metre long) of a dozen experts pass through every corridor
-        point, and counted along their length each of those experts covered the point
-        about as well as the experts whose data lie around it, so the gate kept them all.
-        Zero for every pair when the reach is infinite (no cells are indexed).
+        three widths or the reach less half a cell's diagonal: a kernel density of where the
+        expert's training segments lie, smooth in the query. A midpoint's cell need not be a
+        cell of its segment's samples (it lies up to a cell's diagonal and half the sample
+        spacing from one); at that cut a pair with positive coverage is always within reach
+        by :meth:`within_reach`, which prediction relies on. It counts where the data are,
+        not how many rows lie there: repeated beams through a cell add nothing, as they add
+        little to a GP's posterior. A segment counts at its midpoint, not along its length:
+        on a dense log the free pieces (a metre long) of a dozen experts pass through every
+        corridor point, and counted along their length each of those experts covered the
+        point about as well as the experts whose data lie around it, so the gate kept them
+        all. Zero for every pair when the reach is infinite (no cells are indexed).
 
         Up to ``_COVERAGE_ALL_CELLS`` queries are searched against the tree of all cells
         at once: a query has a hundred or more candidate experts on a dense log, and a
@@ -534,7 +537,11 @@ class ExpertReach:
         if not np.isfinite(self.reach) or query_index.size == 0:
             return cover
         mids, half = self._mids_and_half_lengths(queries)
-        cut = min(self.reach + self._grown, _COVERAGE_CUT * width)
+        cut = min(self.reach - 0.5 * self.cell * np.sqrt(self.dim), _COVERAGE_CUT * width)
+        if cut < 0.0:
+            # A grid coarser than about 11 reaches (very long segments, see _grid_scale):
+            # no cell's data are surely within reach, and every candidate weighs the same.
+            return cover
         if len(queries) <= _COVERAGE_ALL_CELLS and self._search_all_cells(expert_index):
             return self._coverage_all_cells(mids, half, query_index, expert_index, cut, width)
 

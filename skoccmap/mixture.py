@@ -2618,7 +2618,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             return query, expert, np.empty(0)
         coverage = self._gate() == "coverage"
         # Pairs known to be within reach without a search: those the coverage gate covers
-        # (it counts cells within its cut, at most the reach, of the query).
+        # (it counts only midpoint cells whose data lie within reach of the query).
         if coverage:
             weights, covered = self._coverage_gates(Xc, query, expert, return_covered=True)
         else:

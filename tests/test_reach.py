@@ -639,11 +639,6 @@ def test_tree_of_all_midpoint_cells_is_built_once_searches_cost_exactly_as_much(
     assert index._centre_tree is not None
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="coverage cuts at reach + grown from midpoint cells, which need not be cells of "
-    "the segments' samples: a covered pair can be out of reach by within_reach",
-)
 def test_a_pair_with_coverage_is_within_reach():
     # The mixture takes a pair with positive coverage as within reach without searching.
     # A segment shorter than a cell, from cell (0, 1) to cell (1, 0): its ends are its only
