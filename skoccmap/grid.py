@@ -618,13 +618,20 @@ class OccupancyGrid:
         path = Path(path)
         if not path.exists() and path.suffix != ".npz":
             path = path.with_name(path.name + ".npz")
-        with np.load(path, allow_pickle=False) as data:
+        not_saved = f"{path} is not an OccupancyGrid saved by OccupancyGrid.save (a .npz)"
+        try:
+            archive = np.load(path, allow_pickle=False)
+        except (ValueError, OSError) as exc:
+            if isinstance(exc, FileNotFoundError):
+                raise
+            hint = "; a map_server map is read by OccupancyGrid.load_map_server(yaml_path)"
+            raise ValueError(f"{not_saved}{hint}.") from None
+        if not hasattr(archive, "files"):  # a single .npy array
+            raise ValueError(f"{not_saved}: it holds one array.")
+        with archive as data:
             missing = [k for k in ("probability", "origin", "resolution") if k not in data]
             if missing:
-                raise ValueError(
-                    f"{path} is not an OccupancyGrid saved by OccupancyGrid.save: it holds no "
-                    f"{', '.join(missing)}."
-                )
+                raise ValueError(f"{not_saved}: it holds no {', '.join(missing)}.")
             return cls(
                 data["probability"],
                 data["origin"],
@@ -724,7 +731,14 @@ def _observed_by(scans, origin, resolution, counts):
 def _read_simple_yaml(path):
     """``key: value`` lines of a map_server YAML (flat; lists in brackets)."""
     meta = {}
-    for raw in path.read_text().splitlines():
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise ValueError(
+            f"{path} is not a map_server YAML file (it is not text); pass the .yaml file "
+            "that names the image."
+        ) from None
+    for raw in text.splitlines():
         line = raw.split("#", 1)[0].strip()
         if not line:
             continue

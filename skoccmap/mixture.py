@@ -37,7 +37,12 @@ from ._shared_kernel import (
 )
 from ._thinning import thin_free_pieces
 from ._transient import CellCounts
-from ._validation import fit_or_unfitted, unfitted_on_error, validate_queries
+from ._validation import (
+    caller_stacklevel,
+    fit_or_unfitted,
+    unfitted_on_error,
+    validate_queries,
+)
 from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
 from .kernels import IntegralKernel
@@ -88,6 +93,41 @@ def _as_segment_rows(X, layout):
     return X
 
 
+def _check_hits_are_points(X, occupied, classes):
+    """Refuse labels the wrong way round, and warn where the hits are not points.
+
+    Hits (``classes[1]``) are zero-length rows and beams have a length. Rows labelled
+    occupied that are mostly segments, beside free rows that are all points, are labels
+    reversed (``1 - y``, or strings whose order puts "miss" last): the map would be
+    inverted. Most occupied rows with a length otherwise (points of 2 coordinates read as
+    1-D segments, or surface segments) give a map the defaults were not made for.
+    """
+    dim = X.shape[1] // 2
+    has_length = np.any(X[:, :dim] != X[:, dim:], axis=1)
+    if not np.any(occupied) or 2 * np.count_nonzero(has_length[occupied]) <= occupied.sum():
+        return
+    if np.any(~occupied) and not np.any(has_length[~occupied]):
+        raise ValueError(
+            f"The rows labelled occupied (y == {classes[1]!r}, the larger label) are mostly "
+            f"segments of positive length, and every row labelled free (y == {classes[0]!r}) "
+            "is a point: the labels look reversed. Hits are zero-length rows [x, x] and take "
+            "the larger label; beams are segments from the sensor to the hit."
+        )
+    hint = (
+        " X has 2 columns, read as 1-D segments [start, end]: if its rows are 2-D points, "
+        "pass layout='points', or beams as segments and hits as "
+        "skoccmap.as_segments(points)."
+        if dim == 1
+        else ""
+    )
+    warnings.warn(
+        f"Most rows labelled occupied (y == {classes[1]!r}) are segments of positive "
+        f"length, where hits are zero-length rows [x, x].{hint}",
+        UserWarning,
+        stacklevel=caller_stacklevel(),
+    )
+
+
 def _check_two_classes(classes):
     if classes.size != 2:
         raise ValueError(
@@ -95,6 +135,16 @@ def _check_two_classes(classes):
             f"exactly 2 classes (free and occupied), got {classes.size} class(es): "
             f"{classes.tolist()}."
         )
+
+
+def _validated_batch(estimator, X, y):
+    """``validate_data`` of a later ``partial_fit`` batch, with :func:`validate_queries`'s
+    hint where its rows are points and the model takes segments."""
+    try:
+        return validate_data(estimator, X, y, reset=False, dtype=np.float64, ensure_min_samples=0)
+    except ValueError:
+        validate_queries(estimator, X)  # raises with the hint where X is the fault
+        raise
 
 
 def _check_known_labels(y, classes):
@@ -1484,8 +1534,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         check_classification_targets(y)
         classes, y_enc = np.unique(y, return_inverse=True)
         _check_two_classes(classes)
+        X = _as_segment_rows(X, self.layout)
+        _check_hits_are_points(X, y_enc == 1, classes)
         self.classes_ = classes
-        return self._fit(_as_segment_rows(X, self.layout), y_enc)
+        return self._fit(X, y_enc)
 
     def _fit(self, X, y_enc):
         """``fit`` on validated segment rows and encoded labels (1 = occupied)."""
@@ -1714,25 +1766,24 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 X, y = validate_data(self, X, y, dtype=np.float64)
                 check_classification_targets(y)
                 present = np.unique(y)
+                if present.size == 1:
+                    raise ValueError(
+                        "The first call to partial_fit needs both classes in y: hit points to "
+                        f"cluster and beams (free space); y holds {present.tolist()} only. "
+                        "Later calls may hold one class."
+                    )
                 if classes is None:
-                    if present.size == 1:
-                        raise ValueError(
-                            "classes must be passed on the first call to partial_fit when y "
-                            f"holds one class only ({present.tolist()})."
-                        )
                     classes = present
                 classes = np.unique(np.asarray(classes))
                 _check_two_classes(classes)
                 _check_known_labels(y, classes)
-                if present.size != 2:
-                    raise ValueError(
-                        "The first call to partial_fit needs both classes in y: hit points to "
-                        "cluster and beams (free space)."
-                    )
+                y_enc = np.searchsorted(classes, y)
+                X = _as_segment_rows(X, self.layout)
+                _check_hits_are_points(X, y_enc == 1, classes)
                 self.classes_ = classes
-                return self._fit(_as_segment_rows(X, self.layout), np.searchsorted(classes, y))
+                return self._fit(X, y_enc)
         check_is_fitted(self)
-        X, y = validate_data(self, X, y, reset=False, dtype=np.float64, ensure_min_samples=0)
+        X, y = _validated_batch(self, X, y)
         if X.shape[0] == 0:
             # A batch whose readings all failed (zeros): nothing to learn, nothing touched.
             self.touched_experts_ = np.empty(0, dtype=np.intp)

@@ -474,6 +474,22 @@ def test_load_of_an_npz_that_is_no_grid(tmp_path):
         OccupancyGrid.load(tmp_path / "a.npz")
 
 
+def test_loading_the_wrong_file_says_which_reader_to_use(tmp_path):
+    grid = OccupancyGrid(np.full((3, 4), 0.5), origin=(0.0, 0.0), resolution=0.5)
+    yaml_path, image_path = grid.save_map_server(tmp_path / "map")
+    with pytest.raises(ValueError, match="not an OccupancyGrid.*load_map_server"):
+        OccupancyGrid.load(yaml_path)
+    with pytest.raises(ValueError, match="not an OccupancyGrid.*load_map_server"):
+        OccupancyGrid.load(image_path)
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with pytest.raises(ValueError, match="holds one array"):
+        OccupancyGrid.load(tmp_path / "one.npy")
+    with pytest.raises(FileNotFoundError):
+        OccupancyGrid.load(tmp_path / "absent")
+    with pytest.raises(ValueError, match="not a map_server YAML file.*pass the .yaml"):
+        OccupancyGrid.load_map_server(image_path)
+
+
 def test_an_extent_of_two_points_one_cell_wide_warns():
     # ((xmin, xmax), (ymin, ymax)) is two points, (0, 22) and (0, 18): a strip one cell wide.
     model = OccupancyGridMap(resolution=0.5).fit(

@@ -653,10 +653,31 @@ def test_labels_are_any_two_classes(paper, grid):
     ref = _mixture().fit(paper.X, paper.y)
     np.testing.assert_array_equal(model.classes_, label_names)
     np.testing.assert_array_equal(model.predict(Q), label_names[ref.predict(Q)])
-    # Reversed meaning: the larger label is the occupied one, as documented.
-    flipped = _mixture().fit(paper.X, 5 - 4 * paper.y)  # hits -> 1, beams -> 5
-    assert flipped.classes_.tolist() == [1, 5]
-    assert np.all(flipped.observation_kind_[paper.y == 0] == HIT)
+    # The larger label is the occupied one, as documented: labels that give it to the
+    # beams and the smaller one to the hits would draw an inverted map.
+    for reversed_labels in (5 - 4 * paper.y, np.array(["hit", "miss"])[1 - paper.y]):
+        with pytest.raises(ValueError, match="labels look reversed"):
+            _mixture().fit(paper.X, reversed_labels)
+        with pytest.raises(ValueError, match="labels look reversed"):
+            _mixture().partial_fit(paper.X, reversed_labels)
+
+
+def test_occupied_rows_with_a_length_warn(paper):
+    # 2-D points read as 1-D segments: the hits' two coordinates differ.
+    hits = paper.X[paper.y == 1, :2]
+    free = 0.5 * (paper.X[paper.y == 0, :2] + paper.X[paper.y == 0, 2:])
+    P, yp = np.vstack([hits, free]), np.r_[np.ones(len(hits)), np.zeros(len(free))]
+    with pytest.warns(UserWarning, match="layout='points'"):
+        _mixture().fit(P, yp)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        _mixture(layout="points").fit(P, yp)
+    # In 2-D: occupied surface segments (a hit joined to the next), free rows beams.
+    X = paper.X.copy()
+    X[paper.y == 1, 2:] = np.roll(X[paper.y == 1, :2], 1, axis=0)
+    with pytest.warns(UserWarning, match="Most rows labelled occupied") as record:
+        _mixture().fit(X, paper.y)
+    assert not any("layout='points'" in str(w.message) for w in record)
 
 
 def test_verbose_reports_progress(paper, capsys):

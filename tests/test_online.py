@@ -232,15 +232,18 @@ def test_n_jobs_gives_the_same_map(office):
 def test_classes_rules(office):
     data, _ = office
     X, y = _batch(data, 0, 5)
-    with pytest.raises(ValueError, match="classes must be passed"):
-        _model().partial_fit(X[y == 0], y[y == 0])
-    with pytest.raises(ValueError, match="needs both classes"):
-        _model().partial_fit(X[y == 0], y[y == 0], classes=[0, 1])
+    # One class in the first batch: the same advice with or without classes.
+    for classes in (None, [0, 1]):
+        with pytest.raises(ValueError, match=r"needs both classes in y.*holds \[0\] only"):
+            _model().partial_fit(X[y == 0], y[y == 0], classes=classes)
     with pytest.raises(ValueError, match="2 classes"):
         _model().partial_fit(X, y, classes=[0, 1, 2])
     with pytest.raises(ValueError, match="not in classes"):
         _model().partial_fit(X, y, classes=[0, 5])
     model = _model().partial_fit(X, y, classes=[0, 1])
+    # A later batch of points where the model takes segment rows: the as_segments hint.
+    with pytest.raises(ValueError, match="as_segments"):
+        model.partial_fit(X[:, :2], y)
     with pytest.raises(ValueError, match="differs"):
         model.partial_fit(*_batch(data, 5, 7), classes=[0, 2])
     model.partial_fit(*_batch(data, 5, 7), classes=[1, 0])
