@@ -184,6 +184,14 @@ def test_infinite_readings_are_beams_without_a_return(tmp_path):
     nan.write_text(_flaser(["nan"] * 4, [0, 0, 0]))
     with pytest.raises(ValueError, match="no positive finite range reading.*pass max_range"):
         load_carmen(nan)
+    zeros = tmp_path / "zeros.log"
+    zeros.write_text(_flaser([0.0] * 4, [0, 0, 0]) * 12)
+    with pytest.raises(ValueError, match=r"every finite range reading is 0 \(no measurement"):
+        load_carmen(zeros)
+    # Readings of 0 are dropped, not hits: no advice to lower max_range to the "sentinel".
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.all(load_carmen(zeros, max_range=50.0).ranges == 0.0)
 
 
 def test_bad_arguments_and_empty_logs(tiny_log, tmp_path):

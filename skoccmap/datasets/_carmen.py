@@ -229,6 +229,11 @@ def _infer_flaser_max_range(readings, path):
     finite = [r.ranges[np.isfinite(r.ranges)] for r in readings]
     largest = max((f.max() for f in finite if f.size), default=None)
     if largest is None or not largest > 0:
+        if largest == 0:
+            raise ValueError(
+                f"{path}: every finite range reading is 0 (no measurement, dropped): the "
+                "log holds no beam to map."
+            )
         raise ValueError(
             f"{path}: no positive finite range reading to infer the maximum range from; "
             "pass max_range=."
@@ -252,7 +257,8 @@ def _warn_if_sentinel_below(ranges, max_range, path):
         return
     largest = finite.max()
     n = int(np.count_nonzero(finite == largest))
-    if largest < max_range and n >= _SENTINEL_REPEATS:
+    # Readings of 0 are dropped as "no measurement", not read as hits.
+    if 0 < largest < max_range and n >= _SENTINEL_REPEATS:
         warnings.warn(
             f"{path}: {n} readings equal {largest:g} m, the log's largest, as CARMEN writes "
             f"for beams without a return; with max_range={max_range:g} they are hits "
