@@ -53,6 +53,8 @@ def run(args):
         if args.noise_std < 0:
             raise ValueError("--noise-std must be >= 0")
         # Before the fits: a folder that cannot be made would fail only after them.
+        if Path(args.out).exists() and not Path(args.out).is_dir():
+            raise ValueError(f"--out {args.out} exists and is not a folder")
         Path(args.out).mkdir(parents=True, exist_ok=True)
         result = run_paper_experiment(
             methods,

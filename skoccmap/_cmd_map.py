@@ -265,6 +265,9 @@ def load_scans(args):
     """Read the log or bag, printing what was read; ValueError on a bad input or option."""
     from .datasets._rosbag import is_rosbag
 
+    if not Path(args.log).exists():
+        # Before the reader options, whose advice would assume the path is a CARMEN log.
+        raise FileNotFoundError(2, "No such file or directory", str(args.log))
     if Path(args.log).is_dir() and not is_rosbag(args.log):
         raise ValueError(
             f"{args.log} is a folder but not a ROS 2 bag (no metadata.yaml, .db3 or .mcap "
@@ -308,7 +311,8 @@ def _load_carmen(args):
             scans = load_carmen(args.log, max_range=args.max_range, errors=errors)
         except ValueError as exc:
             hint = "Pass --skip-bad-lines to skip malformed lines with a warning."
-            raise ValueError(str(exc).replace(SKIP_HINT, hint)) from None
+            message = _option_names(str(exc).replace(SKIP_HINT, hint), ["max_range"])
+            raise ValueError(message) from None
         finally:
             command = getattr(args, "command", None) or "map"
             for warning in caught:

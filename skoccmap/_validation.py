@@ -44,20 +44,47 @@ def queries_of_our_own():
         yield
 
 
-def validate_queries(estimator, X):
-    """``validate_data(estimator, X, reset=False)`` of a fitted estimator's queries, with a
-    hint where they are points while the estimator takes segment rows."""
+@contextlib.contextmanager
+def non_finite_explained(what):
+    """Around ``validate_data`` of a map estimator: scikit-learn's NaN and infinity errors
+    (whose advice is to impute) say instead what to do with observations or queries."""
+    try:
+        yield
+    except ValueError as exc:
+        text = str(exc)
+        if not text.startswith("Input") or not any(
+            word in text for word in ("contains NaN", "contains infinity")
+        ):
+            raise
+        first = text.split("\n")[0].split(" or a value too large")[0].rstrip(".")
+        advice = {
+            "observations": "Observations must be finite: drop those rows (range readings "
+            "of NaN or inf given to skoccmap.scans_to_observations become no-return beams).",
+            "queries": "Query points must be finite.",
+        }[what]
+        raise ValueError(f"{first}. {advice}") from None
+
+
+def validate_queries(estimator, X, y=None):
+    """``validate_data(estimator, X, reset=False)`` of a fitted estimator's queries (or, with
+    ``y``, of a later batch of observations), with a hint where they are points while the
+    estimator takes segment rows."""
     from sklearn.utils.validation import validate_data
 
+    what = "queries" if y is None else "observations"
+    data = (X,) if y is None else (X, y)
     try:
-        return validate_data(estimator, X, reset=False, dtype=np.float64, ensure_min_samples=0)
+        with non_finite_explained(what):
+            return validate_data(
+                estimator, *data, reset=False, dtype=np.float64, ensure_min_samples=0
+            )
     except ValueError as exc:
         n_features = getattr(estimator, "n_features_in_", None)
         shape = np.shape(X)
         segments = getattr(estimator, "layout", "segments") != "points"
         if segments and n_features and n_features % 2 == 0 and shape[1:] == (n_features // 2,):
             raise ValueError(
-                f"{exc} The queries look like points of {n_features // 2} coordinates; the "
+                f"{exc} The {what} look like points of {n_features // 2} coordinates; the "
                 "estimator takes segment rows [start, end] (a point is a zero-length "
                 "segment): pass skoccmap.as_segments(points)."
             ) from None

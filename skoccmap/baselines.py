@@ -29,7 +29,7 @@ from sklearn.utils.multiclass import check_classification_targets, type_of_targe
 from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ._validation import fit_or_unfitted, validate_queries
+from ._validation import fit_or_unfitted, non_finite_explained, validate_queries
 from .grid import _snapped_origin
 
 __all__ = ["FrequencyGridMap", "HilbertMap", "OccupancyGridMap", "traverse_cells"]
@@ -292,7 +292,8 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
     def _prepare_fit(self, X, y):
         """Validate ``X, y``; set ``classes_`` and the grid; return starts, ends, hit mask."""
         self._validate_params()
-        X, y = validate_data(self, X, y, dtype=np.float64)
+        with non_finite_explained("observations"):
+            X, y = validate_data(self, X, y, dtype=np.float64)
         self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         starts, ends = _split_rows(X, self.layout)
         res = float(self.resolution)
@@ -997,7 +998,8 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
             The fitted map.
         """
         self._validate_params()
-        X, y = validate_data(self, X, y, dtype=np.float64)
+        with non_finite_explained("observations"):
+            X, y = validate_data(self, X, y, dtype=np.float64)
         self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         class_weight = self._class_weight()
         starts, ends = _split_rows(X, self.layout)

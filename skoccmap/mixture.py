@@ -40,6 +40,7 @@ from ._transient import CellCounts
 from ._validation import (
     caller_stacklevel,
     fit_or_unfitted,
+    non_finite_explained,
     unfitted_on_error,
     validate_queries,
 )
@@ -135,16 +136,6 @@ def _check_two_classes(classes):
             f"exactly 2 classes (free and occupied), got {classes.size} class(es): "
             f"{classes.tolist()}."
         )
-
-
-def _validated_batch(estimator, X, y):
-    """``validate_data`` of a later ``partial_fit`` batch, with :func:`validate_queries`'s
-    hint where its rows are points and the model takes segments."""
-    try:
-        return validate_data(estimator, X, y, reset=False, dtype=np.float64, ensure_min_samples=0)
-    except ValueError:
-        validate_queries(estimator, X)  # raises with the hint where X is the fault
-        raise
 
 
 def _check_known_labels(y, classes):
@@ -1530,7 +1521,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         self : MixtureGPOccupancyMap
             Fitted estimator.
         """
-        X, y = validate_data(self, X, y, dtype=np.float64)
+        with non_finite_explained("observations"):
+            X, y = validate_data(self, X, y, dtype=np.float64)
         check_classification_targets(y)
         classes, y_enc = np.unique(y, return_inverse=True)
         _check_two_classes(classes)
@@ -1763,7 +1755,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         if not hasattr(self, "_pieces"):
             # A first call that raises leaves the model unfitted, as fit does.
             with unfitted_on_error(self):
-                X, y = validate_data(self, X, y, dtype=np.float64)
+                with non_finite_explained("observations"):
+                    X, y = validate_data(self, X, y, dtype=np.float64)
                 check_classification_targets(y)
                 present = np.unique(y)
                 if present.size == 1:
@@ -1783,7 +1776,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 self.classes_ = classes
                 return self._fit(X, y_enc)
         check_is_fitted(self)
-        X, y = _validated_batch(self, X, y)
+        X, y = validate_queries(self, X, y)
         if X.shape[0] == 0:
             # A batch whose readings all failed (zeros): nothing to learn, nothing touched.
             self.touched_experts_ = np.empty(0, dtype=np.intp)

@@ -61,6 +61,9 @@ def test_evaluate_prints_both_models(paper_log, capsys):
         (["map", "{log}", "--unknown-variance", "big"], "--unknown-variance"),
         (["map", "{log}", "--unknown-variance", "0"], "--unknown-variance must be positive"),
         (["map", "{missing}"], "No such file"),
+        # Not "--pose-topic applies only to ROS bags; ... is a CARMEN log".
+        (["map", "{missing}", "--pose-topic", "/odom"], "No such file"),
+        (["demo", "--out", "{log}", "--quick"], "--out {log} exists and is not a folder"),
         (["evaluate", "{log}", "--holdout-every", "1"], "--holdout-every must be >= 2"),
         # Before the log is read (they used to surface after it, in the estimator's words).
         (["map", "{log}", "--max-expert-size", "0"], "--max-expert-size must be >= 2"),
@@ -83,10 +86,11 @@ def test_evaluate_prints_both_models(paper_log, capsys):
 )
 def test_bad_options_exit_with_a_message(paper_log, tmp_path, capsys, argv, message):
     log, _ = paper_log
-    argv = [a.format(log=log, missing=tmp_path / "missing.log", tmp=tmp_path) for a in argv]
+    names = dict(log=log, missing=tmp_path / "missing.log", tmp=tmp_path)
+    argv = [a.format(**names) for a in argv]
     assert main(argv) == 2
     out, err = capsys.readouterr()
-    assert message in err
+    assert message.format(**names) in err
     assert "fitted" not in out and "training on" not in out
 
 
@@ -256,6 +260,7 @@ def test_skip_bad_lines_reaches_the_reader(monkeypatch, tmp_path):
         raise ValueError("stop here")
 
     monkeypatch.setattr("skoccmap.datasets.load_carmen", fake_load_carmen)
+    (tmp_path / "x.log").write_text("")
     for options, expected in [([], "raise"), (["--skip-bad-lines"], "skip")]:
         args = build_parser().parse_args(["map", str(tmp_path / "x.log"), *options])
         with pytest.raises(ValueError, match="stop here"):

@@ -700,7 +700,14 @@ def test_bad_input_raises_clear_errors(paper):
         model.fit(paper.X, np.arange(paper.X.shape[0]) % 3)
     X = paper.X.copy()
     X[0, 0] = np.nan
-    with pytest.raises(ValueError, match="NaN"):
+    # Not scikit-learn's advice to impute or to use HistGradientBoosting.
+    occupancy_words = "Observations must be finite: drop those rows.*scans_to_observations"
+    for fit in (model.fit, MixtureGPOccupancyMap().partial_fit):
+        with pytest.raises(ValueError, match=f"contains NaN. {occupancy_words}") as info:
+            fit(X, paper.y)
+        assert "impute" not in str(info.value)
+    X[0, 0] = np.inf
+    with pytest.raises(ValueError, match=f"contains infinity. {occupancy_words}"):
         model.fit(X, paper.y)
     one_hit = np.array([[1.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.9, 0.0], [0.0, 0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="at least 2 of them, got 1"):
@@ -708,6 +715,10 @@ def test_bad_input_raises_clear_errors(paper):
     with pytest.raises(ValueError, match="'n_jobs' parameter"):
         MixtureGPOccupancyMap(n_jobs=0).fit(paper.X, paper.y)
     model.fit(paper.X, paper.y)
+    with pytest.raises(ValueError, match="contains NaN. Observations must be finite"):
+        model.partial_fit(X[:5] * np.nan, paper.y[:5])
+    with pytest.raises(ValueError, match="contains infinity. Query points must be finite"):
+        model.predict_proba(np.full((1, 4), np.inf))
     with pytest.raises(ValueError, match="features"):
         model.predict(np.zeros((3, 6)))
     with pytest.raises(ValueError, match="combiner"):
