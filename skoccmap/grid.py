@@ -656,6 +656,14 @@ def _cell_centers(origin, resolution, counts, flat=None):
     return origin + resolution * (np.column_stack(index) + 0.5)
 
 
+def _duration(seconds):
+    """``seconds`` rounded for a progress line: "12 s", "3 min", "2 h 5 min"."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    minutes = round(seconds / 60)
+    return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60} min"
+
+
 def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose):
     """P(occupied) and (if available) variance on all cell centres, ``chunk_size`` at a time."""
     n_cells = int(np.prod(counts))
@@ -680,9 +688,14 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
                     var[lo:hi] = estimator.predict_var(queries)
         if verbose and (hi / n_cells >= next_report or hi == n_cells):
             elapsed = time.perf_counter() - tic
+            # From the first chunk on: a grid far larger than meant (an extent set by
+            # far-away hits) shows its cost before it is paid.
+            left = (
+                "" if hi == n_cells else f", about {_duration(elapsed * (n_cells - hi) / hi)} left"
+            )
             print(
                 f"[OccupancyGrid] {hi}/{n_cells} cells ({100 * hi / n_cells:.0f}%), "
-                f"{elapsed:.1f} s",
+                f"{elapsed:.1f} s{left}",
                 file=sys.stderr,
                 flush=True,
             )

@@ -1,3 +1,4 @@
+import re
 import warnings
 
 import numpy as np
@@ -202,6 +203,23 @@ def test_verbose_reports_progress(capsys):
     OccupancyGrid.from_estimator(_FieldEstimator(), (0, 1, 0, 1), 0.1, chunk_size=10, verbose=1)
     err = capsys.readouterr().err
     assert "100/100 cells (100%)" in err and err.count("[OccupancyGrid]") >= 5
+    # Every line but the last says how long the rest will take.
+    lines = err.strip().splitlines()
+    assert all(re.search(r" s, about \d+ s left$", line) for line in lines[:-1])
+    assert "left" not in lines[-1]
+
+
+def test_durations_read_as_a_person_would():
+    from skoccmap.grid import _duration
+
+    assert [_duration(s) for s in (0.4, 89, 90, 3569, 3600, 7500)] == [
+        "0 s",
+        "89 s",
+        "2 min",
+        "59 min",
+        "1 h 0 min",
+        "2 h 5 min",
+    ]
 
 
 def test_ros_layout_starts_at_origin_row():
