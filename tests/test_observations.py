@@ -157,6 +157,17 @@ def test_per_scan_angles_2d():
     assert_array_equal(kind, kind_ref)
 
 
+def test_angles_in_degrees_warn():
+    poses, ranges = [[0.0, 0.0, 0.0]], [[2.0, 3.0, 2.5]]
+    with pytest.warns(UserWarning, match=r"span 180 radians.*np.radians\(angles\)"):
+        scans_to_observations(poses, ranges, [-90.0, 0.0, 90.0], 10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        # A full turn of beams, and per-scan angles each within one turn, are radians.
+        scans_to_observations(poses, ranges, np.linspace(-np.pi, np.pi, 3), 10.0)
+        scans_to_observations(poses * 2, ranges * 2, [[0.0, 1.0, 2.0], [5.0, 6.0, 7.0]], 10.0)
+
+
 def _check_invariants(X, y, kind, scan, poses, ranges, max_range, free_margin):
     n_dims = X.shape[1] // 2
     start, end = X[:, :n_dims], X[:, n_dims:]

@@ -618,7 +618,8 @@ def test_writers_refuse_bad_arguments(grid, paper_scans, tmp_path):
         with pytest.raises(ValueError, match="a ROS 2 bag is a directory"):
             write_rosbag(scans, tmp_path / name, ros_version=2)
         assert not (tmp_path / name).exists()
-    uneven = Scans(scans.poses, scans.ranges, scans.angles**3, scans.max_range)
+    uneven_angles = scans.angles * np.abs(scans.angles) / np.pi  # within the same turn
+    uneven = Scans(scans.poses, scans.ranges, uneven_angles, scans.max_range)
     with pytest.raises(ValueError, match="evenly spaced"):
         write_rosbag(uneven, tmp_path / "uneven")
 
