@@ -543,3 +543,172 @@ def test_to_points_checks_its_threshold(threshold):
     grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=1.0)
     with pytest.raises(ValueError, match="occupied_threshold"):
         grid.to_points(threshold)
+
+
+def test_extent_equal_bounds_are_refused():
+    # max > min on every axis: a zero-width extent covers nothing.
+    with pytest.raises(ValueError, match="max > min"):
+        OccupancyGrid.from_estimator(_FieldEstimator(), (0.0, 1.0, 0.5, 0.5), 0.1)
+
+
+def test_extent_narrower_than_a_cell_gets_one_cell():
+    # (xmin, xmax) = (0, 1e-12): covered from xmin by one cell of width 1.
+    grid = OccupancyGrid.from_estimator(
+        _FieldEstimator(), (0.0, 1e-12, 0.0, 2.0), 1.0, unknown_variance=None
+    )
+    assert grid.shape == (2, 1)
+    assert grid.extent == (0.0, 1.0, 0.0, 2.0)
+
+
+class _ConstantEstimator:
+    """The same probability and variance at every query."""
+
+    def __init__(self, proba, var=1.0):
+        self.proba, self.var = proba, var
+
+    def predict_proba(self, X):
+        p = np.full(len(X), self.proba)
+        return np.column_stack([1 - p, p])
+
+    def predict_var(self, X):
+        return np.full(len(X), self.var)
+
+
+def test_probabilities_a_rounding_error_outside_0_1_are_clipped():
+    for proba, expected in ((1.0 + 1e-15, 1.0), (-1e-17, 0.0)):
+        grid = OccupancyGrid.from_estimator(_ConstantEstimator(proba), (0, 1, 0, 1), 0.5)
+        np.testing.assert_array_equal(grid.probability, np.full((2, 2), expected))
+
+
+@pytest.mark.parametrize("proba", [np.nan, np.inf, -np.inf])
+def test_non_finite_predictions_are_refused(proba):
+    with pytest.raises(ValueError, match="NaN or infinite probabilities"):
+        OccupancyGrid.from_estimator(_ConstantEstimator(proba), (0, 1, 0, 1), 0.5)
+
+
+def test_auto_unknown_uses_the_largest_prior_variance_over_the_grid():
+    # A prior variance that grows with x: the threshold is 90 % of its largest value on
+    # the grid's cell centres, the cell of largest x -- not the value at the first cell.
+    class RisingPrior(_ConstantEstimator):
+        def prior_variance(self, X):
+            return 1.0 + X[:, 0]
+
+    extent = (0.0, 4.0, 0.0, 2.0)  # centres x = 0.5 .. 3.5: prior 1.5 .. 4.5
+    # 0.9 * 4.5 = 4.05 (0.9 * 1.5 = 1.35 would be the first cell's alone).
+    for var, unknown in ((4.1, True), (4.0, False), (1.4, False)):
+        grid = OccupancyGrid.from_estimator(RisingPrior(0.5, var), extent, 1.0)
+        np.testing.assert_array_equal(grid.unknown, np.full((2, 4), unknown))
+
+
+def test_a_variance_equal_to_the_threshold_is_not_unknown():
+    # "Cells whose variance exceeds this are unknown": equal is not above.
+    grid = OccupancyGrid.from_estimator(
+        _ConstantEstimator(0.5, var=2.0), (0, 1, 0, 1), 0.5, unknown_variance=2.0
+    )
+    assert not grid.unknown.any()
+
+
+def test_ros_data_rounds_to_the_nearest_percent():
+    grid = OccupancyGrid([[0.456, 0.994, 0.005, 0.129]], origin=(0.0, 0.0), resolution=1.0)
+    np.testing.assert_array_equal(grid.to_ros_occupancy_grid()["data"], [46, 99, 0, 13])
+
+
+def _write_map(tmp_path, pixels, yaml_lines):
+    pixels = np.asarray(pixels, dtype=np.uint8)
+    height, width = pixels.shape
+    header = f"P5\n{width} {height}\n255\n".encode()
+    (tmp_path / "m.pgm").write_bytes(header + pixels.tobytes())
+    (tmp_path / "m.yaml").write_text(
+        "image: m.pgm\nresolution: 0.5\norigin: [0, 0, 0]\n"
+        + "".join(f"{s}\n" for s in yaml_lines)
+    )
+    return OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+
+
+def test_negated_map_server_image(tmp_path):
+    # negate: 1 -> occupancy v / 255: white (255) is occupied, black (0) free.
+    yaml_lines = ["negate: 1", "occupied_thresh: 0.65", "free_thresh: 0.196"]
+    grid = _write_map(tmp_path, [[0, 255, 128]], yaml_lines)
+    np.testing.assert_allclose(grid.probability, [[0.0, 1.0, 128 / 255]])
+    np.testing.assert_array_equal(grid.trinary(), [[0, 100, -1]])
+
+
+def test_map_server_thresholds_are_strict_when_loading(tmp_path):
+    # (255 - 204) / 255 = 0.2 = free_thresh and (255 - 102) / 255 = 0.6 = occupied_thresh:
+    # neither below free_thresh nor above occupied_thresh, map_server loads both as -1;
+    # 205 (p = 0.196) is free, 101 (p = 0.604) occupied.
+    yaml_lines = ["occupied_thresh: 0.6", "free_thresh: 0.2"]
+    grid = _write_map(tmp_path, [[204, 102, 205, 101]], yaml_lines)
+    np.testing.assert_array_equal(grid.unknown, [[True, True, False, False]])
+    np.testing.assert_array_equal(grid.trinary(0.2, 0.6), [[-1, -1, 0, 100]])
+
+
+def test_map_server_yaml_without_thresholds_uses_the_defaults(tmp_path):
+    # Defaults 0.196 / 0.65: the unknown pixel 205 (p = 0.196078) stays unknown, 255 is
+    # free, 0 occupied, 90 (p = 0.647) unknown, 88 (p = 0.655) occupied.
+    grid = _write_map(tmp_path, [[205, 255, 0, 90, 88]], [])
+    np.testing.assert_array_equal(grid.unknown, [[True, False, False, True, False]])
+    np.testing.assert_array_equal(grid.trinary(), [[-1, 0, 100, -1, 100]])
+
+
+def test_scale_mode_marks_no_pixel_unknown(tmp_path):
+    # In scale mode map_server scales pixels between the thresholds, none is -1.
+    grid = _write_map(tmp_path, [[0, 128, 205, 255]], ["mode: scale"])
+    assert not grid.unknown.any()
+    np.testing.assert_allclose(grid.probability, [[1.0, 127 / 255, 50 / 255, 0.0]])
+
+
+def test_map_server_yaml_with_comments_and_quotes(tmp_path):
+    _write_map(tmp_path, [[0, 255]], [])  # m.pgm
+    (tmp_path / "c.yaml").write_text(
+        "# written by hand\n"
+        'image: "m.pgm"  # the image\n'
+        "resolution: 0.25\n"
+        "origin: [1.5, -2.0, 0.0]  # lower-left corner\n"
+        "mode: 'trinary'\n"
+    )
+    grid = OccupancyGrid.load_map_server(tmp_path / "c.yaml")
+    assert grid.resolution == 0.25
+    np.testing.assert_array_equal(grid.origin, [1.5, -2.0])
+    np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
+
+
+def test_zero_variance_is_a_valid_variance():
+    grid = OccupancyGrid([[0.5, 0.9]], (0.0, 0.0), 1.0, variance=[[0.0, 1.0]])
+    np.testing.assert_array_equal(grid.variance, [[0.0, 1.0]])
+
+
+def test_to_points_leaves_out_unknown_and_threshold_cells():
+    # Cell (j, i) has its centre at origin + 0.5 * (i + 0.5, j + 0.5).
+    probability = [[0.9, 0.65, 0.2], [0.99, 0.7, 0.66]]
+    unknown = [[False, False, False], [True, False, False]]
+    grid = OccupancyGrid(probability, (1.0, -1.0), 0.5, unknown=np.array(unknown))
+    np.testing.assert_allclose(grid.to_points(), [[1.25, -0.75], [1.75, -0.25], [2.25, -0.25]])
+
+
+def test_trinary_with_equal_thresholds():
+    # free_threshold == occupied_threshold is allowed: only that exact value is unknown.
+    grid = OccupancyGrid([[0.4, 0.5, 0.6]], (0.0, 0.0), 1.0)
+    np.testing.assert_array_equal(grid.trinary(0.5, 0.5), [[0, -1, 100]])
+
+
+def test_auto_unknown_samples_the_prior_over_the_whole_grid():
+    # 64 x 32 = 2048 cells, more than the sample: the prior 1 + y peaks in the top row
+    # (y = 31.5, 0.9 * 32.5 = 29.25), which the first 1024 cells (y < 16) do not reach.
+    class PriorRisingInY(_ConstantEstimator):
+        def prior_variance(self, X):
+            return 1.0 + X[:, 1]
+
+    grid = OccupancyGrid.from_estimator(PriorRisingInY(0.5, var=20.0), (0, 64, 0, 32), 1.0)
+    assert grid.shape == (32, 64) and not grid.unknown.any()
+    grid = OccupancyGrid.from_estimator(PriorRisingInY(0.5, var=29.5), (0, 64, 0, 32), 1.0)
+    assert grid.unknown.all()
+
+
+def test_pgm_header_comments_are_skipped(tmp_path):
+    # Image editors (GIMP) write a comment line into the header; the PGM format allows it.
+    header = b"P5\n# CREATOR: GIMP PNM Filter Version 1.1\n3 1\n# max\n255\n"
+    (tmp_path / "g.pgm").write_bytes(header + bytes([0, 205, 254]))
+    (tmp_path / "g.yaml").write_text("image: g.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n")
+    grid = OccupancyGrid.load_map_server(tmp_path / "g.yaml")
+    np.testing.assert_array_equal(grid.trinary(), [[100, -1, 0]])
