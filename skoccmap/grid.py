@@ -155,7 +155,11 @@ class OccupancyGrid:
             raise ValueError(
                 f"origin must be {probability.ndim} finite coordinates, got {origin.tolist()}."
             )
-        if not isinstance(resolution, Real) or not (np.isfinite(resolution) and resolution > 0):
+        if (
+            not isinstance(resolution, Real)
+            or isinstance(resolution, bool)
+            or not (np.isfinite(resolution) and resolution > 0)
+        ):
             raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
         if variance is not None:
             variance = np.asarray(variance, dtype=np.float64)

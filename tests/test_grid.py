@@ -408,6 +408,9 @@ def test_bad_from_estimator_arguments():
     for resolution in (None, "0.1", True, np.inf):
         with pytest.raises(ValueError, match="resolution must be a positive number"):
             OccupancyGrid.from_estimator(est, (0, 1, 0, 1), resolution)
+        # The constructor too (it read True as 1 m).
+        with pytest.raises(ValueError, match="resolution must be a positive number"):
+            OccupancyGrid(np.full((2, 2), 0.5), (0.0, 0.0), resolution)
     with pytest.raises(ValueError, match="too large"):
         OccupancyGrid.from_estimator(est, (0, 10, 0, 10), 1e-6)
     with pytest.raises(ValueError, match="too large"):
