@@ -87,8 +87,9 @@ def add_arguments(parser):
     )
 
 
-# The ROS bag reader's options (load_rosbag's arguments) at their defaults: given with a
-# CARMEN log, they would be ignored.
+# The ROS bag reader's options (load_rosbag's arguments) at their defaults. The parser's
+# defaults are None, so that an option given with a CARMEN log (where it would be ignored)
+# is seen even at its default value.
 _BAG_DEFAULTS = {
     "scan_topic": "/scan",
     "pose_topic": None,
@@ -110,36 +111,36 @@ def add_model_arguments(parser):
     bag = parser.add_argument_group("ROS bags")
     bag.add_argument(
         "--scan-topic",
-        default=_BAG_DEFAULTS["scan_topic"],
+        default=None,
         help="topic of the sensor_msgs/LaserScan messages (default /scan)",
     )
     bag.add_argument(
         "--pose-topic",
-        default=_BAG_DEFAULTS["pose_topic"],
+        default=None,
         help="nav_msgs/Odometry or geometry_msgs/PoseStamped topic giving the poses (default: "
         "the transforms from --map-frame to the laser on /tf and /tf_static)",
     )
     bag.add_argument(
         "--map-frame",
-        default=_BAG_DEFAULTS["map_frame"],
+        default=None,
         help="frame of the poses read from /tf (default map; odom maps with odometry alone)",
     )
     bag.add_argument(
         "--base-frame",
-        default=_BAG_DEFAULTS["base_frame"],
+        default=None,
         help="with --pose-topic: frame whose pose the topic gives (default: an Odometry "
         "message's child frame; the laser's own frame for the pose messages, which name none)",
     )
     bag.add_argument(
         "--laser-frame",
-        default=_BAG_DEFAULTS["laser_frame"],
+        default=None,
         help="frame of the scans (default: each scan's header frame; for bags whose scans "
         "name none, or the wrong one)",
     )
     bag.add_argument(
         "--level-tolerance",
         type=float,
-        default=_BAG_DEFAULTS["level_tolerance"],
+        default=None,
         help="radians: scans whose plane lies within this angle of the map's horizontal plane "
         "(upright or upside down) are mapped in 2-D (default 0.01); a larger value projects a "
         "tilted laser's scans onto the plane, inf always does",
@@ -290,8 +291,8 @@ def _check_reader_options(args, bag):
     else:
         given = [
             "--" + name.replace("_", "-")
-            for name, default in _BAG_DEFAULTS.items()
-            if getattr(args, name, default) != default
+            for name in _BAG_DEFAULTS
+            if getattr(args, name, None) is not None
         ]
         kind, other = "ROS bags", "a CARMEN log"
     if given:
@@ -331,18 +332,24 @@ def _option_names(message, names):
     return message
 
 
+def _bag_option(args, name):
+    """A ROS bag reader option as given, or its default."""
+    value = getattr(args, name, None)
+    return _BAG_DEFAULTS[name] if value is None else value
+
+
 def _load_bag(args):
     from .datasets import load_rosbag
 
     try:
-        options = {name: getattr(args, name, default) for name, default in _BAG_DEFAULTS.items()}
+        options = {name: _bag_option(args, name) for name in _BAG_DEFAULTS}
         scans = load_rosbag(args.log, **options, max_range=args.max_range)
     except ImportError as exc:
         raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
     except ValueError as exc:
         raise ValueError(_option_names(str(exc), [*_BAG_DEFAULTS, "max_range"])) from None
     if scans.n_dims != 2:
-        tolerance = getattr(args, "level_tolerance", _BAG_DEFAULTS["level_tolerance"])
+        tolerance = _bag_option(args, "level_tolerance")
         raise ValueError(
             f"{args.log}: the laser is not level (3-D poses) within --level-tolerance "
             f"{tolerance:g} rad; skoccmap map draws 2-D maps. A larger --level-tolerance "
@@ -462,7 +469,7 @@ def check_model_arguments(args):
     seed = getattr(args, "seed", 0)
     if not 0 <= seed < 2**32:
         raise ValueError(f"--seed must be an integer in [0, 2**32), got {seed}")
-    tolerance = getattr(args, "level_tolerance", _BAG_DEFAULTS["level_tolerance"])
+    tolerance = _bag_option(args, "level_tolerance")
     if not tolerance >= 0:
         raise ValueError(f"--level-tolerance must be >= 0 radians, got {tolerance}")
 

@@ -76,6 +76,10 @@ def test_evaluate_prints_both_models(paper_log, capsys):
          "--batch-scans, --refit-fraction apply only with --online"),
         # A reader's options given to the other reader were ignored.
         (["map", "{log}", "--scan-topic", "/front"], "--scan-topic applies only to ROS bags"),
+        # Even at the bag reader's default value (it was ignored without a word).
+        (["map", "{log}", "--scan-topic", "/scan"], "--scan-topic applies only to ROS bags"),
+        (["map", "{log}", "--map-frame", "map", "--level-tolerance", "0.01"],
+         "--map-frame, --level-tolerance apply only to ROS bags"),
         (["evaluate", "{log}", "--map-frame", "odom", "--laser-frame", "laser"],
          "--map-frame, --laser-frame apply only to ROS bags;"),
         # A folder that is not a bag used to say "Is a directory".
