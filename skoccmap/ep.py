@@ -220,10 +220,7 @@ def _posterior_cholesky(K, tau, nu):
     if not np.any(tau > 0.0):
         # All sites flat: the posterior is the prior (B = I).
         return EPPosterior(K @ nu, diag_K, nu.copy(), 0.0, sqrt_tau, np.eye(n), None, tau)
-    B = np.multiply(K, sqrt_tau[:, None])
-    B *= sqrt_tau[None, :]
-    B.flat[:: n + 1] += 1.0
-    L = cholesky(B, lower=True, overwrite_a=True, check_finite=False)
+    L = _cholesky_of_b(K, sqrt_tau)
     # Sigma = S^-1/2 (I - B^-1) S^-1/2 (from K = S^-1/2 (B - I) S^-1/2), so the marginal
     # variances need only diag(B^-1), the column norms of L^-1: n^3/3 flops, not the n^3 of
     # V = L^-1 S^1/2 K (R&W Alg. 3.5 line 8). Columns where 1 - [B^-1]_ii cancels are redone.
@@ -241,6 +238,14 @@ def _posterior_cholesky(K, tau, nu):
     mean = K @ alpha
     log_det_B = 2.0 * np.sum(np.log(np.diagonal(L)))
     return EPPosterior(mean, var, alpha, log_det_B, sqrt_tau, L, None, tau)
+
+
+def _cholesky_of_b(K, sqrt_tau):
+    """Lower Cholesky factor of ``B = I + S^1/2 K S^1/2`` (R&W Algorithm 3.5 line 7)."""
+    B = np.multiply(K, sqrt_tau[:, None])
+    B *= sqrt_tau[None, :]
+    B.flat[:: sqrt_tau.size + 1] += 1.0
+    return cholesky(B, lower=True, overwrite_a=True, check_finite=False)
 
 
 def _lower_inverse(L):
@@ -300,10 +305,7 @@ def _check_proper(K, tau):
     P = K[np.ix_(negative, negative)]
     if np.any(tau > 0.0):
         sqrt_tau = np.sqrt(np.maximum(tau, 0.0))
-        B = np.multiply(K, sqrt_tau[:, None])
-        B *= sqrt_tau[None, :]
-        B.flat[:: tau.size + 1] += 1.0
-        L = cholesky(B, lower=True, overwrite_a=True, check_finite=False)
+        L = _cholesky_of_b(K, sqrt_tau)
         V = solve_triangular(L, sqrt_tau[:, None] * K[:, negative], lower=True, check_finite=False)
         P = P - V.T @ V
     scale = np.sqrt(-tau[negative])

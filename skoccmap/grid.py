@@ -625,9 +625,9 @@ class OccupancyGrid:
         not_saved = f"{path} is not an OccupancyGrid saved by OccupancyGrid.save (a .npz)"
         try:
             archive = np.load(path, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            if isinstance(exc, FileNotFoundError):
-                raise
+        except FileNotFoundError:
+            raise
+        except (ValueError, OSError):
             hint = "; a map_server map is read by OccupancyGrid.load_map_server(yaml_path)"
             raise ValueError(f"{not_saved}{hint}.") from None
         if not hasattr(archive, "files"):  # a single .npy array

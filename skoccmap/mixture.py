@@ -1526,13 +1526,13 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         check_classification_targets(y)
         classes, y_enc = np.unique(y, return_inverse=True)
         _check_two_classes(classes)
+        return self._fit(X, y_enc, classes)
+
+    def _fit(self, X, y_enc, classes):
+        """``fit`` on validated rows (in ``layout``) and encoded labels (1 = occupied)."""
         X = _as_segment_rows(X, self.layout)
         _check_hits_are_points(X, y_enc == 1, classes)
         self.classes_ = classes
-        return self._fit(X, y_enc)
-
-    def _fit(self, X, y_enc):
-        """``fit`` on validated segment rows and encoded labels (1 = occupied)."""
         rng = check_random_state(self.random_state)
         start = time.perf_counter()
         self._fitted_with = {"layout": self.layout, "gating": self.gating}
@@ -1770,11 +1770,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 classes = np.unique(np.asarray(classes))
                 _check_two_classes(classes)
                 _check_known_labels(y, classes)
-                y_enc = np.searchsorted(classes, y)
-                X = _as_segment_rows(X, self.layout)
-                _check_hits_are_points(X, y_enc == 1, classes)
-                self.classes_ = classes
-                return self._fit(X, y_enc)
+                return self._fit(X, np.searchsorted(classes, y), classes)
         check_is_fitted(self)
         X, y = validate_queries(self, X, y)
         if X.shape[0] == 0:

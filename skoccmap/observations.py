@@ -176,11 +176,12 @@ def _check_angles(angles, n_scans, n_beams, n_dims):
             )
     if not np.all(np.isfinite(angles)):
         raise ValueError("angles contains NaN or infinite values.")
-    if n_dims == 2 and angles.size and np.ptp(angles, axis=-1).max() > 2 * np.pi + 1e-9:
+    span = np.ptp(angles, axis=-1).max() if n_dims == 2 and angles.size else 0.0
+    if span > 2 * np.pi + 1e-9:
         # A scan's beams span at most one turn: more is degrees read as radians, which
         # would fan the beams around the sensor several times.
         warnings.warn(
-            f"The beam angles of a scan span {np.ptp(angles, axis=-1).max():.4g} radians, more "
+            f"The beam angles of a scan span {span:.4g} radians, more "
             "than a full turn: if they are in degrees, pass np.radians(angles).",
             UserWarning,
             stacklevel=caller_stacklevel(),
