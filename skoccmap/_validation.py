@@ -91,6 +91,29 @@ def validate_queries(estimator, X, y=None):
         raise
 
 
+# No laser's beams have a median length this long (metres); coordinates in millimetres give
+# thousands.
+_LONGEST_MEDIAN_BEAM = 500.0
+
+
+def warn_unless_metres(starts, ends):
+    """Warn where the beams' median length says the coordinates are not in metres.
+
+    Every length default of the package (beam pieces, cells, length scales) is in metres;
+    millimetres make a fit thousands of times slower and its map meaningless, silently.
+    """
+    lengths = np.linalg.norm(ends - starts, axis=1)
+    lengths = lengths[lengths > 0]
+    if lengths.size and np.median(lengths) > _LONGEST_MEDIAN_BEAM:
+        warnings.warn(
+            f"The beams' median length is {np.median(lengths):.4g}: as metres, beyond any "
+            "laser's range. skoccmap reads coordinates in metres (its beam pieces, cells and "
+            "length scales are in metres); were these millimetres? Divide X by 1000.",
+            UserWarning,
+            stacklevel=caller_stacklevel(),
+        )
+
+
 def check_segments(X, *, name="X", allow_empty=False):
     """Return ``X`` as a float array of segment rows ``[start, end]``.
 

@@ -29,7 +29,12 @@ from sklearn.utils.multiclass import check_classification_targets, type_of_targe
 from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from ._validation import fit_or_unfitted, non_finite_explained, validate_queries
+from ._validation import (
+    fit_or_unfitted,
+    non_finite_explained,
+    validate_queries,
+    warn_unless_metres,
+)
 from .grid import _snapped_origin
 
 __all__ = ["FrequencyGridMap", "HilbertMap", "OccupancyGridMap", "traverse_cells"]
@@ -296,6 +301,7 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
             X, y = validate_data(self, X, y, dtype=np.float64)
         self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         starts, ends = _split_rows(X, self.layout)
+        warn_unless_metres(starts, ends)
         res = float(self.resolution)
         low = np.minimum(starts.min(axis=0), ends.min(axis=0))
         high = np.maximum(starts.max(axis=0), ends.max(axis=0))
@@ -1003,6 +1009,7 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
         self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         class_weight = self._class_weight()
         starts, ends = _split_rows(X, self.layout)
+        warn_unless_metres(starts, ends)
         self.extent_ = np.column_stack(
             [
                 np.minimum(starts.min(axis=0), ends.min(axis=0)),

@@ -43,6 +43,7 @@ from ._validation import (
     non_finite_explained,
     unfitted_on_error,
     validate_queries,
+    warn_unless_metres,
 )
 from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
@@ -1532,6 +1533,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """``fit`` on validated rows (in ``layout``) and encoded labels (1 = occupied)."""
         X = _as_segment_rows(X, self.layout)
         _check_hits_are_points(X, y_enc == 1, classes)
+        warn_unless_metres(X[:, : X.shape[1] // 2], X[:, X.shape[1] // 2 :])
         self.classes_ = classes
         rng = check_random_state(self.random_state)
         start = time.perf_counter()

@@ -4,12 +4,15 @@ Each estimator joins ``ESTIMATORS`` as it lands. Expected failures, if any, go i
 ``EXPECTED_FAILED_CHECKS`` with the reason next to each entry.
 """
 
+import warnings
+
 import numpy as np
 import pytest
 import sklearn
 from sklearn.exceptions import NotFittedError
 from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
+from skoccmap._validation import warn_unless_metres
 from skoccmap.baselines import FrequencyGridMap, HilbertMap, OccupancyGridMap
 from skoccmap.classifier import EPGaussianProcessClassifier
 from skoccmap.cluster import DPGMMClusterer
@@ -116,3 +119,32 @@ def test_a_fit_failing_after_its_first_attributes_predicts_nothing():
         grid.fit(X, y)
     with pytest.raises(NotFittedError):
         grid.predict(X)
+
+
+@pytest.mark.parametrize(
+    "estimator",
+    [OccupancyGridMap(), FrequencyGridMap(), HilbertMap(), MixtureGPOccupancyMap()],
+    ids=lambda est: type(est).__name__,
+)
+def test_coordinates_in_millimetres_warn_before_the_fit(estimator):
+    # The mixture's fit took 53 s instead of 3 on the paper's scans in mm, without a word.
+    X, y = _paper_xy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        with pytest.raises(UserWarning, match="Divide X by 1000"):
+            estimator.fit(1000 * X, y)
+        estimator.fit(X, y)  # metres: no warning
+
+
+def test_the_metres_check_reads_the_median_beam_and_skips_hits():
+    starts = np.zeros((5, 2))
+    ends = np.c_[[0, 0, 0, 400, 450], np.zeros(5)]  # three hits, median beam 425
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_unless_metres(starts, ends)
+        warn_unless_metres(starts[:3], ends[:3])  # no beam
+    ends[3:, 0] = [400, 600]  # median 500: the bound itself
+    warn_unless_metres(starts, ends)
+    ends[4, 0] = 620
+    with pytest.warns(UserWarning, match="median length is 510"):
+        warn_unless_metres(starts, ends)
