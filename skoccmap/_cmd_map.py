@@ -13,6 +13,11 @@ import time
 import warnings
 from pathlib import Path
 
+# The Intel log's map at 0.1 m (387 x 361 cells), and the size from which a map warns
+# before its fit.
+_INTEL_MAP_CELLS = 387 * 361
+_LARGE_MAP_CELLS = 5_000_000
+
 LOG_HELP = (
     "CARMEN log (plain text or gzip) or ROS bag: a path ending in .bag (ROS 1), .db3 or .mcap "
     "(ROS 2 storage), or a ROS 2 bag directory"
@@ -513,8 +518,9 @@ def _run(args, unknown_variance, out):
     train = scans[:: args.every_nth_scan]
     hits = train.hit_points()
     if len(hits):
-        # The map's size is known before the fit: refuse a grid too large now, not after.
-        _grid_from_extent(hits, args.resolution)
+        # The map's size is known before the fit: refuse a grid too large now, not after,
+        # and say a large one's size before its cost is paid.
+        _announce_grid(_grid_from_extent(hits, args.resolution)[1], args.resolution)
     check_hits(train, args.log, "training scans")
     X, y, kind = watch("observations", train.to_observations)
     counts = np.bincount(kind, minlength=3)
@@ -537,6 +543,20 @@ def _run(args, unknown_variance, out):
     for path in written:
         print(f"wrote {path}")
     return 0
+
+
+def _announce_grid(counts, resolution):
+    counts = [int(c) for c in counts]
+    cells = math.prod(counts)
+    print(f"map grid: {' x '.join(map(str, counts))} cells at {resolution:g} m")
+    if cells > _LARGE_MAP_CELLS:
+        print(
+            f"skoccmap map: warning: the map has {cells:,} cells to predict, "
+            f"{cells / _INTEL_MAP_CELLS:.0f} times the Intel log's at 0.1 m: a reading far "
+            "off the map stretches the extent taken from the hits (check --max-range), or "
+            "a coarser --resolution may be what you want",
+            file=sys.stderr,
+        )
 
 
 def _grid(args, model, train, unknown_variance, verbose):

@@ -301,6 +301,26 @@ def test_map_warns_of_a_max_range_above_the_logs_sentinel(tmp_path, capsys):
     assert "Pass --max-range 40, or leave it out" in err
 
 
+def test_map_announces_its_grid_before_the_fit(paper_log, tmp_path, capsys, monkeypatch):
+    from skoccmap import _cmd_map
+
+    log, _ = paper_log
+    argv = ["map", str(log), "--resolution", "1.0", "--out", str(tmp_path), "--quiet"]
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    grid = OccupancyGrid.load(tmp_path / "paper.npz")
+    announced = f"map grid: {grid.shape[1]} x {grid.shape[0]} cells at 1 m"
+    assert announced in captured.out
+    assert captured.out.index(announced) < captured.out.index("fitted")
+    assert "warning" not in captured.err
+    # A map above the bound warns before its fit, with its size.
+    monkeypatch.setattr(_cmd_map, "_LARGE_MAP_CELLS", grid.probability.size - 1)
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert f"skoccmap map: warning: the map has {grid.probability.size:,} cells" in err
+    assert "--max-range" in err and "--resolution" in err
+
+
 def test_model_options_reach_the_mixture():
     from skoccmap._cmd_map import make_mixture
     from skoccmap.cli import build_parser
