@@ -107,8 +107,10 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 2000])
     parser.add_argument("--repeat", type=int, default=3, help="repeats of the fixed fits (min)")
     args = parser.parse_args()
-    print("| workload | n | EP fit s | sklearn fit s | EP / sklearn | EP sweeps | EP AUC "
-          "| sklearn AUC | EP kernel | sklearn kernel |")
+    print(
+        "| workload | n | EP fit s | sklearn fit s | EP / sklearn | EP sweeps | EP AUC "
+        "| sklearn AUC | EP kernel | sklearn kernel |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     rows = run(args.sizes, args.repeat)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)

@@ -93,16 +93,16 @@ def simpson_kernel(X, rows, n_nodes, length_scale=LENGTH_SCALE, eval_gradient=Tr
     K = np.empty((len(rows), n))
     G = np.empty((len(rows), n)) if eval_gradient else None
     for c0 in range(0, n, block):
-        Q = pts[c0:c0 + block].reshape(-1, dim)
+        Q = pts[c0 : c0 + block].reshape(-1, dim)
         q2 = np.einsum("ij,ij->i", Q, Q)
         for r, i in enumerate(rows):
             P = pts[i]
             d2 = np.einsum("ij,ij->i", P, P)[:, None] + q2[None, :] - 2.0 * P @ Q.T
             np.maximum(d2, 0.0, out=d2)
             k = np.exp(-0.5 * d2)
-            K[r, c0:c0 + block] = (w @ k).reshape(-1, n_nodes) @ w
+            K[r, c0 : c0 + block] = (w @ k).reshape(-1, n_nodes) @ w
             if eval_gradient:
-                G[r, c0:c0 + block] = (w @ (d2 * k)).reshape(-1, n_nodes) @ w
+                G[r, c0 : c0 + block] = (w @ (d2 * k)).reshape(-1, n_nodes) @ w
     return K, G
 
 
@@ -153,16 +153,16 @@ def simpson_cross(A, B, n_nodes, length_scale=LENGTH_SCALE, block=64):
     b_seg, b_nodes, _, b_pt, b_xy = parts(B)
     out[np.ix_(a_pt, b_pt)] = np.exp(-0.5 * sq_dist(a_xy, b_xy))
     for r0 in range(0, len(a_seg), block):
-        P = a_nodes[r0:r0 + block]
+        P = a_nodes[r0 : r0 + block]
         k = np.exp(-0.5 * sq_dist(P.reshape(-1, dim), b_xy)).reshape(len(P), n_nodes, len(b_xy))
-        out[np.ix_(a_seg[r0:r0 + block], b_pt)] = np.einsum("j,ijk->ik", w, k)
+        out[np.ix_(a_seg[r0 : r0 + block], b_pt)] = np.einsum("j,ijk->ik", w, k)
     for c0 in range(0, len(b_seg), block):
-        P = b_nodes[c0:c0 + block]
+        P = b_nodes[c0 : c0 + block]
         k = np.exp(-0.5 * sq_dist(a_xy, P.reshape(-1, dim))).reshape(len(a_xy), len(P), n_nodes)
-        out[np.ix_(a_pt, b_seg[c0:c0 + block])] = k @ w
+        out[np.ix_(a_pt, b_seg[c0 : c0 + block])] = k @ w
     for c0 in range(0, len(b_seg), block):
-        Q = b_nodes[c0:c0 + block].reshape(-1, dim)
-        cols = b_seg[c0:c0 + block]
+        Q = b_nodes[c0 : c0 + block].reshape(-1, dim)
+        cols = b_seg[c0 : c0 + block]
         for r, i in enumerate(a_seg):
             out[i, cols] = (w @ np.exp(-0.5 * sq_dist(a_nodes[r], Q))).reshape(-1, n_nodes) @ w
     return out
@@ -219,8 +219,13 @@ def map_sensitivity(node_counts=SENSITIVITY_NODES):
         maps[n_nodes] = fit_predict(kernel)
         seconds = time.perf_counter() - start
         K_ref = kernel(X)
-        rows.append({"nodes": n_nodes, "fit_predict_s": seconds,
-                     "K_max_abs_diff_vs_ours": float(np.abs(K_ref - K_ours).max())})
+        rows.append(
+            {
+                "nodes": n_nodes,
+                "fit_predict_s": seconds,
+                "K_max_abs_diff_vs_ours": float(np.abs(K_ref - K_ours).max()),
+            }
+        )
     top = maps[node_counts[-1]]
     for row in rows:
         grid, train = maps[row["nodes"]]
@@ -232,7 +237,7 @@ def map_sensitivity(node_counts=SENSITIVITY_NODES):
     return {
         "data": "make_paper_scans(random_state=0): 701 observations, whole beams",
         "model": f"EPGaussianProcessClassifier, ConstantKernel({SIGNAL_VARIANCE:g}, fixed) * "
-                 f"kernel, l = {LENGTH_SCALE} m fixed",
+        f"kernel, l = {LENGTH_SCALE} m fixed",
         "query": f"{len(Q)} cells, 0.2 m grid over [0, 22] x [0, 18] m",
         "converged_reference_nodes": node_counts[-1],
         "map_tolerance": MAP_TOLERANCE,
@@ -273,8 +278,11 @@ def run(sizes, repeat, ref_rows, seed, nodes, simpson=True):
         K, G = kernel(X, eval_gradient=True)
         extra, out_bytes = peak_memory(lambda X=X: kernel(X, eval_gradient=True))
         row = {
-            "n": n, "ours_K_s": t_k, "ours_K_grad_s": t_kg,
-            "ours_peak_extra_MB": extra / 2**20, "output_MB": out_bytes / 2**20,
+            "n": n,
+            "ours_K_s": t_k,
+            "ours_K_grad_s": t_kg,
+            "ours_peak_extra_MB": extra / 2**20,
+            "output_MB": out_bytes / 2**20,
             "peak_extra_over_output": extra / out_bytes,
         }
         results.append(row)
@@ -287,13 +295,15 @@ def run(sizes, repeat, ref_rows, seed, nodes, simpson=True):
         for n_nodes in nodes:
             t_block = best_time(lambda X=X, r=rows, m=n_nodes: simpson_kernel(X, r, m), repeat)
             K_ref, G_ref = simpson_kernel(X, rows, n_nodes)
-            row["simpson"].append({
-                "nodes": n_nodes,
-                "K_grad_s": t_block * n / len(rows),
-                "speedup_K_grad": t_block * n / len(rows) / t_kg,
-                "K_max_abs_err": float(np.abs(K_ref - K[rows]).max()),
-                "grad_max_abs_err": float(np.abs(G_ref - G[rows, :, 0]).max()),
-            })
+            row["simpson"].append(
+                {
+                    "nodes": n_nodes,
+                    "K_grad_s": t_block * n / len(rows),
+                    "speedup_K_grad": t_block * n / len(rows) / t_kg,
+                    "K_max_abs_err": float(np.abs(K_ref - K[rows]).max()),
+                    "grad_max_abs_err": float(np.abs(G_ref - G[rows, :, 0]).max()),
+                }
+            )
         # Check of our accuracy: Simpson converges to ours (relative 1e-6 on every entry).
         check = rows[: max(2, len(rows) // 4)]
         n_strict = simpson_order_for_accuracy(X, K, check)
@@ -329,25 +339,28 @@ def run_cross(repeat, workloads=("paper", "intel")):
         is_point = np.all(X[:, :2] == X[:, 2:], axis=1)
         K_fast = integral_kernel(Q, X, length_scale=LENGTH_SCALE)
         K_general = integral_kernel(Q, X, length_scale=LENGTH_SCALE, _fast=False)
-        t_fast = best_time(lambda Q=Q, X=X: integral_kernel(Q, X, length_scale=LENGTH_SCALE),
-                           repeat)
+        t_fast = best_time(
+            lambda Q=Q, X=X: integral_kernel(Q, X, length_scale=LENGTH_SCALE), repeat
+        )
         t_kernel = best_time(lambda Q=Q, X=X: IntegralKernel(LENGTH_SCALE)(Q, X), repeat)
         t_general = best_time(
             lambda Q=Q, X=X: integral_kernel(Q, X, length_scale=LENGTH_SCALE, _fast=False),
             max(1, min(repeat, 2)),
         )
-        results.append({
-            "workload": name,
-            "n_queries": len(Q),
-            "n_train": len(X),
-            "n_train_points": int(is_point.sum()),
-            "nonzero_fraction": float(np.count_nonzero(K_fast) / K_fast.size),
-            "general_s": t_general,
-            "fast_s": t_fast,
-            "IntegralKernel_call_s": t_kernel,
-            "speedup": t_general / t_fast,
-            "max_abs_diff": float(np.abs(K_fast - K_general).max()),
-        })
+        results.append(
+            {
+                "workload": name,
+                "n_queries": len(Q),
+                "n_train": len(X),
+                "n_train_points": int(is_point.sum()),
+                "nonzero_fraction": float(np.count_nonzero(K_fast) / K_fast.size),
+                "general_s": t_general,
+                "fast_s": t_fast,
+                "IntegralKernel_call_s": t_kernel,
+                "speedup": t_general / t_fast,
+                "max_abs_diff": float(np.abs(K_fast - K_general).max()),
+            }
+        )
     return results
 
 
@@ -356,13 +369,25 @@ def main():
     parser.add_argument("--sizes", type=int, nargs="+", default=[700, 2000])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--ref-rows", type=int, default=16, help="rows timed for the reference")
-    parser.add_argument("--nodes", type=int, nargs="+", default=[21, 41, 81],
-                        help="Simpson nodes per segment at which the reference is timed")
+    parser.add_argument(
+        "--nodes",
+        type=int,
+        nargs="+",
+        default=[21, 41, 81],
+        help="Simpson nodes per segment at which the reference is timed",
+    )
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--skip-simpson", action="store_true",
-                        help="time K(X) without the (slow) double Simpson reference")
-    parser.add_argument("--workloads", nargs="+", choices=["sensitivity", "self", "cross"],
-                        default=["sensitivity", "self", "cross"])
+    parser.add_argument(
+        "--skip-simpson",
+        action="store_true",
+        help="time K(X) without the (slow) double Simpson reference",
+    )
+    parser.add_argument(
+        "--workloads",
+        nargs="+",
+        choices=["sensitivity", "self", "cross"],
+        default=["sensitivity", "self", "cross"],
+    )
     args = parser.parse_args()
     results_dir = Path(__file__).resolve().parent / "results"
     results_dir.mkdir(parents=True, exist_ok=True)
@@ -377,75 +402,108 @@ def main():
 
     if "sensitivity" in args.workloads:
         sens = map_sensitivity()
-        print("| Simpson N | K max abs diff vs ours | map max dP vs N = "
-              f"{sens['converged_reference_nodes']} | map max dP vs ours "
-              "| training rows max dP vs ours | fit + predict s |")
+        print(
+            "| Simpson N | K max abs diff vs ours | map max dP vs N = "
+            f"{sens['converged_reference_nodes']} | map max dP vs ours "
+            "| training rows max dP vs ours | fit + predict s |"
+        )
         print("|---|---|---|---|---|---|")
         for r in sens["results"]:
-            print(f"| {r['nodes']} | {r['K_max_abs_diff_vs_ours']:.1e} "
-                  f"| {r['map_max_abs_dp_vs_converged']:.1e} | {r['map_max_abs_dp_vs_ours']:.1e} "
-                  f"| {r['train_max_abs_dp_vs_ours']:.1e} | {r['fit_predict_s']:.1f} |")
-        print(f"\nsmallest N within {MAP_TOLERANCE:g} of the converged map: "
-              f"{sens['smallest_usable_nodes']}")
+            print(
+                f"| {r['nodes']} | {r['K_max_abs_diff_vs_ours']:.1e} "
+                f"| {r['map_max_abs_dp_vs_converged']:.1e} | {r['map_max_abs_dp_vs_ours']:.1e} "
+                f"| {r['train_max_abs_dp_vs_ours']:.1e} | {r['fit_predict_s']:.1f} |"
+            )
+        print(
+            f"\nsmallest N within {MAP_TOLERANCE:g} of the converged map: "
+            f"{sens['smallest_usable_nodes']}"
+        )
         out = results_dir / "bench_kernel_sensitivity.json"
         out.write_text(json.dumps({**sens, **meta}, indent=2))
         print(f"\nwritten {out}\n")
 
     if "self" in args.workloads:
         simpson = not args.skip_simpson
-        results = run(args.sizes, args.repeat, args.ref_rows, args.seed, args.nodes,
-                      simpson=simpson)
+        results = run(
+            args.sizes, args.repeat, args.ref_rows, args.seed, args.nodes, simpson=simpson
+        )
         if simpson:
-            print("| n | ours K (s) | ours K+grad (s) | Simpson N | Simpson max abs err "
-                  "| Simpson K+grad (s, scaled) | speed-up | peak extra / output |")
+            print(
+                "| n | ours K (s) | ours K+grad (s) | Simpson N | Simpson max abs err "
+                "| Simpson K+grad (s, scaled) | speed-up | peak extra / output |"
+            )
             print("|---|---|---|---|---|---|---|---|")
             for r in results:
                 for ref in r["simpson"]:
-                    print(f"| {r['n']} | {r['ours_K_s']:.3f} | {r['ours_K_grad_s']:.3f} "
-                          f"| {ref['nodes']} | {ref['K_max_abs_err']:.0e} "
-                          f"| {ref['K_grad_s']:.2f} | {ref['speedup_K_grad']:.0f}x "
-                          f"| {r['peak_extra_over_output']:.2f} |")
+                    print(
+                        f"| {r['n']} | {r['ours_K_s']:.3f} | {r['ours_K_grad_s']:.3f} "
+                        f"| {ref['nodes']} | {ref['K_max_abs_err']:.0e} "
+                        f"| {ref['K_grad_s']:.2f} | {ref['speedup_K_grad']:.0f}x "
+                        f"| {r['peak_extra_over_output']:.2f} |"
+                    )
             for r in results:
-                print(f"\nn = {r['n']}: Simpson agrees with ours to a relative 1e-6 at "
-                      f"N = {r['nodes_for_rel_1e-6']} "
-                      f"({'yes' if r['simpson_matches_ours_rel_1e-6'] else 'NO'})")
+                print(
+                    f"\nn = {r['n']}: Simpson agrees with ours to a relative 1e-6 at "
+                    f"N = {r['nodes_for_rel_1e-6']} "
+                    f"({'yes' if r['simpson_matches_ours_rel_1e-6'] else 'NO'})"
+                )
         else:
             print("| n | ours K (s) | ours K+grad (s) | peak extra / output |")
             print("|---|---|---|---|")
             for r in results:
-                print(f"| {r['n']} | {r['ours_K_s']:.3f} | {r['ours_K_grad_s']:.3f} "
-                      f"| {r['peak_extra_over_output']:.2f} |")
+                print(
+                    f"| {r['n']} | {r['ours_K_s']:.3f} | {r['ours_K_grad_s']:.3f} "
+                    f"| {r['peak_extra_over_output']:.2f} |"
+                )
         out = results_dir / ("bench_kernel.json" if simpson else "bench_kernel_self.json")
-        out.write_text(json.dumps({
-            "workload": "random beams in 22 m x 18 m, lengths U(0, 8) m, l = 0.5 m, "
-                        "K + gradient",
-            "reference": "double composite Simpson of the point kernel, N nodes per segment, "
-                         "best of repeat after a warm-up, timed on a row block and scaled by "
-                         "rows" if simpson else "none",
-            **meta,
-            "results": results,
-        }, indent=2))
+        out.write_text(
+            json.dumps(
+                {
+                    "workload": "random beams in 22 m x 18 m, lengths U(0, 8) m, l = 0.5 m, "
+                    "K + gradient",
+                    "reference": (
+                        "double composite Simpson of the point kernel, N nodes per segment, "
+                        "best of repeat after a warm-up, timed on a row block and scaled by "
+                        "rows"
+                        if simpson
+                        else "none"
+                    ),
+                    **meta,
+                    "results": results,
+                },
+                indent=2,
+            )
+        )
         print(f"\nwritten {out}\n")
 
     if "cross" in args.workloads:
         results = run_cross(args.repeat)
-        print("| workload | queries x train (points) | nonzero | general path (s) "
-              "| fast path (s) | IntegralKernel call (s) | speed-up | max abs diff |")
+        print(
+            "| workload | queries x train (points) | nonzero | general path (s) "
+            "| fast path (s) | IntegralKernel call (s) | speed-up | max abs diff |"
+        )
         print("|---|---|---|---|---|---|---|---|")
         for r in results:
-            print(f"| {r['workload']} | {r['n_queries']} x {r['n_train']} "
-                  f"({r['n_train_points']}) | {r['nonzero_fraction']:.1%} "
-                  f"| {r['general_s']:.3f} | {r['fast_s']:.3f} "
-                  f"| {r['IntegralKernel_call_s']:.3f} | {r['speedup']:.1f}x "
-                  f"| {r['max_abs_diff']:.1e} |")
+            print(
+                f"| {r['workload']} | {r['n_queries']} x {r['n_train']} "
+                f"({r['n_train_points']}) | {r['nonzero_fraction']:.1%} "
+                f"| {r['general_s']:.3f} | {r['fast_s']:.3f} "
+                f"| {r['IntegralKernel_call_s']:.3f} | {r['speedup']:.1f}x "
+                f"| {r['max_abs_diff']:.1e} |"
+            )
         out = results_dir / "bench_kernel_cross.json"
-        out.write_text(json.dumps({
-            "workload": "K(query points, training beams and hits), l = 0.5 m",
-            "reference": "general path of the same code (integral_kernel(..., _fast=False)), "
-                         "same run",
-            **meta,
-            "results": results,
-        }, indent=2))
+        out.write_text(
+            json.dumps(
+                {
+                    "workload": "K(query points, training beams and hits), l = 0.5 m",
+                    "reference": "general path of the same code "
+                    "(integral_kernel(..., _fast=False)), same run",
+                    **meta,
+                    "results": results,
+                },
+                indent=2,
+            )
+        )
         print(f"\nwritten {out}")
 
 

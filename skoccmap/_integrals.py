@@ -54,11 +54,42 @@ _TAIL = 80.0
 # _GL_MAX_WINDOW[n - 1]: the longest interval (scaled units) on which n-point Gauss-Legendre
 # integrates a unit Gaussian, centred anywhere, with an error below 5e-13 of its mass
 # (found by bisection; tests/test_integrals.py checks it). Longer windows are split into panels.
-_GL_MAX_WINDOW = np.array([
-    0.000311, 0.01784, 0.1077, 0.3027, 0.597, 0.9704, 1.403, 1.877, 2.383, 2.909, 3.451, 4.004,
-    4.564, 5.13, 5.699, 6.27, 6.842, 7.416, 7.988, 8.562, 9.131, 9.702, 10.27, 10.84, 11.41,
-    11.98, 12.55, 13.11, 13.67, 14.23, 14.8, 15.35,
-])
+_GL_MAX_WINDOW = np.array(
+    [
+        0.000311,
+        0.01784,
+        0.1077,
+        0.3027,
+        0.597,
+        0.9704,
+        1.403,
+        1.877,
+        2.383,
+        2.909,
+        3.451,
+        4.004,
+        4.564,
+        5.13,
+        5.699,
+        6.27,
+        6.842,
+        7.416,
+        7.988,
+        8.562,
+        9.131,
+        9.702,
+        10.27,
+        10.84,
+        11.41,
+        11.98,
+        12.55,
+        13.11,
+        13.67,
+        14.23,
+        14.8,
+        15.35,
+    ]
+)
 _GL_MAX_ORDER = len(_GL_MAX_WINDOW)
 
 
@@ -283,8 +314,11 @@ def _short_pairs(s1, s2, dim, gradient):
     a1, d1 = s1[:, :dim], s1[:, dim:] - s1[:, :dim]
     a2, d2 = s2[:, :dim], s2[:, dim:] - s2[:, :dim]
     # diff[p, i, j, k] = a1 + x_i d1 - a2 - x_j d2
-    diff = ((a1 - a2)[:, None, None, :] + x[None, :, None, None] * d1[:, None, None, :]
-            - x[None, None, :, None] * d2[:, None, None, :])
+    diff = (
+        (a1 - a2)[:, None, None, :]
+        + x[None, :, None, None] * d1[:, None, None, :]
+        - x[None, None, :, None] * d2[:, None, None, :]
+    )
     diff2 = diff * diff
     kern = np.exp(-0.5 * diff2.sum(axis=-1)) * (w[:, None] * w[None, :])
     k = kern.sum(axis=(1, 2))
@@ -412,12 +446,14 @@ def _segment_dist2(a1, d1, a2, d2):
     determinant ``|d1|^2 |d2|^2 - (d1.d2)^2`` cancels for nearly parallel segments.
     """
     dd1, dd2 = _dot(d1, d1), _dot(d2, d2)
-    best = np.minimum.reduce([
-        _point_segment_dist2(a1, a2, d2, dd2),
-        _point_segment_dist2(a1 + d1, a2, d2, dd2),
-        _point_segment_dist2(a2, a1, d1, dd1),
-        _point_segment_dist2(a2 + d2, a1, d1, dd1),
-    ])
+    best = np.minimum.reduce(
+        [
+            _point_segment_dist2(a1, a2, d2, dd2),
+            _point_segment_dist2(a1 + d1, a2, d2, dd2),
+            _point_segment_dist2(a2, a1, d1, dd1),
+            _point_segment_dist2(a2 + d2, a1, d1, dd1),
+        ]
+    )
     w = a2 - a1
     with np.errstate(divide="ignore", invalid="ignore"):
         d2_perp = d2 - (_dot(d2, d1) / dd1)[:, None] * d1
@@ -481,7 +517,8 @@ def pair_upper_bound(s1, s2):
     len1_2, len2_2 = _dot(d1, d1), _dot(d2, d2)
     with np.errstate(divide="ignore"):  # two points: no length, no bound from it
         bound = np.exp(-0.5 * dist2) * np.minimum(
-            1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2, len2_2)))
+            1.0, _SQRT_2PI / np.sqrt(np.maximum(len1_2, len2_2))
+        )
     crossing = _crossing_bound(s1[:, :dim] - s2[:, :dim], d1, d2, len1_2, len2_2)
     return np.minimum(bound, crossing), dist2
 
@@ -737,13 +774,25 @@ def _segment_pairs(s1, s2, dim, gradient, max_nodes):
     orders, counts = np.unique(order[by_order], return_counts=True)
     start = 0
     for n_nodes, count in zip(orders, counts, strict=True):
-        group = by_order[start:start + count]
+        group = by_order[start : start + count]
         start += count
         step = max(1, max_nodes // int(n_nodes))
         for first in range(0, count, step):
-            sel = group[first:first + step]
-            _accumulate_panels(k, grad, panel_pair[sel], panel_lo[sel], panel_span[sel],
-                               int(n_nodes), a1, d1, a2, d2, len2, gradient)
+            sel = group[first : first + step]
+            _accumulate_panels(
+                k,
+                grad,
+                panel_pair[sel],
+                panel_lo[sel],
+                panel_span[sel],
+                int(n_nodes),
+                a1,
+                d1,
+                a2,
+                d2,
+                len2,
+                gradient,
+            )
     return k, grad
 
 
@@ -902,7 +951,7 @@ def _tile_pairs(tiles, A, D, chunk):
     step = max(1, chunk // max(m, 1))
     tt, cc = [], []
     for t0 in range(0, n_tiles, step):
-        c = centre[t0:t0 + step]
+        c = centre[t0 : t0 + step]
         w = [c[:, k, None] - A[None, :, k] for k in range(A.shape[1])]
         v = w[0] * D[None, :, 0]
         for k in range(1, A.shape[1]):
@@ -911,7 +960,7 @@ def _tile_pairs(tiles, A, D, chunk):
         dist2 = (w[0] - v * D[None, :, 0]) ** 2
         for k in range(1, A.shape[1]):
             dist2 += (w[k] - v * D[None, :, k]) ** 2
-        reach = radius[t0:t0 + step, None] + _CUTOFF
+        reach = radius[t0 : t0 + step, None] + _CUTOFF
         t, j = np.nonzero(dist2 <= reach * reach)
         tt.append(t + t0)
         cc.append(j)
@@ -1021,8 +1070,16 @@ def point_row_pairs(points, rows, point_index, row_index, *, length_scale=1.0):
     return k
 
 
-def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotropic=False,
-                    block_size=None, _fast=True):
+def integral_kernel(
+    X,
+    Y=None,
+    *,
+    length_scale=1.0,
+    eval_gradient=False,
+    anisotropic=False,
+    block_size=None,
+    _fast=True,
+):
     """Integral kernel matrix between segment rows, in blocks.
 
     Pairs with a point (a zero-length row) take the closed forms of :func:`_point_segment`,
@@ -1090,8 +1147,11 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
                 G[cc, rr] = g
 
     x_point = np.all(Xs[:, :dim] == Xs[:, dim:], axis=1) if _fast else np.zeros(n, bool)
-    y_point = x_point if symmetric else (
-        np.all(Ys[:, :dim] == Ys[:, dim:], axis=1) if _fast else np.zeros(m, bool))
+    y_point = (
+        x_point
+        if symmetric
+        else (np.all(Ys[:, :dim] == Ys[:, dim:], axis=1) if _fast else np.zeros(m, bool))
+    )
     x_pts, x_segs = np.flatnonzero(x_point), np.flatnonzero(~x_point)
     y_pts, y_segs = np.flatnonzero(y_point), np.flatnonzero(~y_point)
 
@@ -1114,14 +1174,16 @@ def integral_kernel(X, Y=None, *, length_scale=1.0, eval_gradient=False, anisotr
     if x_segs.size and y_segs.size:
         mid_x, rad_x = _bounding_circles(Xs, dim)
         mid_y, rad_y = (mid_x, rad_x) if symmetric else _bounding_circles(Ys, dim)
-        for rr, cc in _circle_pairs(mid_x, rad_x, mid_y, rad_y, x_segs, y_segs, symmetric,
-                                    block_size):
-            k, g = pair_integrals(Xs[rr], Ys[cc], gradient=gradient, max_nodes=block_size,
-                                  _closed_form_points=_fast)
+        for rr, cc in _circle_pairs(
+            mid_x, rad_x, mid_y, rad_y, x_segs, y_segs, symmetric, block_size
+        ):
+            k, g = pair_integrals(
+                Xs[rr], Ys[cc], gradient=gradient, max_nodes=block_size, _closed_form_points=_fast
+            )
             put(rr, cc, k, g)
 
     if symmetric:
-        d = (Xs[:, dim:] - Xs[:, :dim])
+        d = Xs[:, dim:] - Xs[:, :dim]
         diag = np.arange(n)
         if eval_gradient:
             kd, h = segment_self(np.sqrt(_dot(d, d)), eval_gradient=True)

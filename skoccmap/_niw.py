@@ -112,10 +112,7 @@ def log_crp(counts, alpha):
     counts = np.asarray(counts, dtype=float)
     n = counts.sum()
     return (
-        len(counts) * np.log(alpha)
-        + gammaln(counts).sum()
-        + gammaln(alpha)
-        - gammaln(alpha + n)
+        len(counts) * np.log(alpha) + gammaln(counts).sum() + gammaln(alpha) - gammaln(alpha + n)
     )
 
 

@@ -156,8 +156,10 @@ def test_robotlaser_max_range_is_the_smallest_stated(tmp_path):
         ("FLASER 3 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "15 fields, expected 12 to 14"),
         ("FLASER 3 1 2 3 4 0 0 0 0 0 0 12.5 host\n", "field 13 .'12.5'. should be the host"),
         ("FLASER 6 1 2 3 4 0 0 0 0 0 0 12.5 host 12.5\n", "non-numeric pose"),
-        (_robotlaser([1.0, 2.0], [0, 0, 0], start=np.nan, resolution=0.1, max_range=8.0),
-         "start angle must be finite"),  # fmt: skip
+        (
+            _robotlaser([1.0, 2.0], [0, 0, 0], start=np.nan, resolution=0.1, max_range=8.0),
+            "start angle must be finite",
+        ),  # fmt: skip
     ],
 )
 def test_malformed_line_raises_with_line_number(tiny_log, bad_line, reason):

@@ -72,16 +72,22 @@ def test_evaluate_prints_both_models(paper_log, capsys):
         (["map", "{log}", "--level-tolerance", "nan"], "--level-tolerance must be >= 0 radians"),
         # Options of the online replay were ignored without --online.
         (["map", "{log}", "--snapshots", "{tmp}/s"], "--snapshots applies only with --online"),
-        (["map", "{log}", "--batch-scans", "3", "--refit-fraction", "0"],
-         "--batch-scans, --refit-fraction apply only with --online"),
+        (
+            ["map", "{log}", "--batch-scans", "3", "--refit-fraction", "0"],
+            "--batch-scans, --refit-fraction apply only with --online",
+        ),
         # A reader's options given to the other reader were ignored.
         (["map", "{log}", "--scan-topic", "/front"], "--scan-topic applies only to ROS bags"),
         # Even at the bag reader's default value (it was ignored without a word).
         (["map", "{log}", "--scan-topic", "/scan"], "--scan-topic applies only to ROS bags"),
-        (["map", "{log}", "--map-frame", "map", "--level-tolerance", "0.01"],
-         "--map-frame, --level-tolerance apply only to ROS bags"),
-        (["evaluate", "{log}", "--map-frame", "odom", "--laser-frame", "laser"],
-         "--map-frame, --laser-frame apply only to ROS bags;"),
+        (
+            ["map", "{log}", "--map-frame", "map", "--level-tolerance", "0.01"],
+            "--map-frame, --level-tolerance apply only to ROS bags",
+        ),
+        (
+            ["evaluate", "{log}", "--map-frame", "odom", "--laser-frame", "laser"],
+            "--map-frame, --laser-frame apply only to ROS bags;",
+        ),
         # A folder that is not a bag used to say "Is a directory".
         (["map", "{tmp}"], "is a folder but not a ROS 2 bag"),
         # The output folder is checked before the fit, not after it.
@@ -288,9 +294,7 @@ def test_help_names_bags_as_well_as_carmen_logs(capsys):
 
 
 def test_map_warns_of_a_max_range_above_the_logs_sentinel(tmp_path, capsys):
-    lines = [
-        f"FLASER 4 1.5 40.0 2.0 40.0 {i} 0 0 {i} 0 0 {i} host {i}\n" for i in range(6)
-    ]
+    lines = [f"FLASER 4 1.5 40.0 2.0 40.0 {i} 0 0 {i} 0 0 {i} host {i}\n" for i in range(6)]
     log = tmp_path / "sentinel.log"
     log.write_text("".join(lines))
     argv = ["map", str(log), "--max-range", "100", "--out", str(tmp_path / "out"), "--quiet"]

@@ -48,7 +48,6 @@ def test_param_validation(estimator):
     check_param_validation(type(estimator).__name__, estimator)
 
 
-
 @pytest.mark.parametrize(
     "estimator",
     [

@@ -137,7 +137,8 @@ CASES_3D = {
 
 
 @pytest.mark.parametrize(
-    "s1, s2", list(CASES_2D.values()) + list(CASES_3D.values()),
+    "s1, s2",
+    list(CASES_2D.values()) + list(CASES_3D.values()),
     ids=list(CASES_2D) + list(CASES_3D),
 )
 def test_pairs_match_nested_quad(s1, s2):
@@ -171,8 +172,9 @@ def test_references_agree():
     assert reference_nested_quad(s1, s2) == pytest.approx(reference_dblquad(s1, s2), rel=1e-9)
 
 
-@pytest.mark.parametrize("length", [0.0, 1e-9, 1e-4, 0.02, _SHORT * 0.999, _SHORT * 1.001,
-                                    0.5, 3.0, 100.0])
+@pytest.mark.parametrize(
+    "length", [0.0, 1e-9, 1e-4, 0.02, _SHORT * 0.999, _SHORT * 1.001, 0.5, 3.0, 100.0]
+)
 @pytest.mark.parametrize("offset", [[0.0, 0.0], [0.3, 0.4], [-2.0, 1.0], [0.6, 7.5]])
 def test_segment_point_matches_quad(length, offset):
     # Short segments are where the erf difference would cancel; far points probe the tails.
@@ -389,8 +391,9 @@ def test_point_fast_path_matches_general_path_cross(dim):
     cut = np.exp(-0.5 * _CUTOFF**2)
     assert_close(K, K_ref, rtol=1e-10, atol=cut)
     assert np.count_nonzero(K) > 0.2 * K.size and np.count_nonzero(K == 0) > 0.2 * K.size
-    np.testing.assert_allclose(integral_kernel(Y, X, length_scale=scale), K.T, rtol=1e-12,
-                               atol=1e-300)
+    np.testing.assert_allclose(
+        integral_kernel(Y, X, length_scale=scale), K.T, rtol=1e-12, atol=1e-300
+    )
 
 
 @pytest.mark.parametrize("anisotropic", [False, True])
@@ -400,8 +403,9 @@ def test_point_fast_path_matches_general_path_symmetric(dim, anisotropic):
     X = _mixed_segments(rng, 150, dim, box=20.0, max_length=10.0)
     scale = rng.uniform(0.7, 1.3, dim) if anisotropic else 1.1
     K, G = integral_kernel(X, length_scale=scale, eval_gradient=True, anisotropic=anisotropic)
-    K_ref, G_ref = integral_kernel(X, length_scale=scale, eval_gradient=True,
-                                   anisotropic=anisotropic, _fast=False)
+    K_ref, G_ref = integral_kernel(
+        X, length_scale=scale, eval_gradient=True, anisotropic=anisotropic, _fast=False
+    )
     cut = np.exp(-0.5 * _CUTOFF**2)
     assert np.array_equal(K, K.T)
     assert_close(K, K_ref, rtol=1e-10, atol=cut)
@@ -432,8 +436,9 @@ def test_dense_point_tiles_match_general_path():
     g = np.linspace(0.0, 3.0, 60)
     P = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     X = np.hstack([P, P])
-    Y = np.array([[0.5, 0.5, 2.5, 2.0], [1.0, 1.0, 1.0, 1.0], [2.0, 0.1, 2.01, 0.1],
-                  [-9.0, 1.0, -8.0, 1.0]])
+    Y = np.array(
+        [[0.5, 0.5, 2.5, 2.0], [1.0, 1.0, 1.0, 1.0], [2.0, 0.1, 2.01, 0.1], [-9.0, 1.0, -8.0, 1.0]]
+    )
     K = integral_kernel(X, Y, length_scale=0.9, block_size=500)
     K_ref = integral_kernel(X, Y, length_scale=0.9, _fast=False)
     assert_close(K, K_ref, rtol=1e-10, atol=1e-300)
@@ -521,12 +526,21 @@ def test_pair_upper_bound_bounds_the_integral(dim):
     # The bound is not vacuous: within 2x of the value for most close pairs.
     close = k > 0.1
     assert np.median(k[close] / bound[close]) > 0.5
-    np.testing.assert_allclose(np.sqrt(dist2[:500]), [
-        np.min(np.linalg.norm(
-            s1[i, :dim] + np.linspace(0, 1, 20001)[:, None] * (s1[i, dim:] - s1[i, :dim])
-            - s2[i, :dim], axis=1))
-        for i in range(500)
-    ], atol=1e-3)
+    np.testing.assert_allclose(
+        np.sqrt(dist2[:500]),
+        [
+            np.min(
+                np.linalg.norm(
+                    s1[i, :dim]
+                    + np.linspace(0, 1, 20001)[:, None] * (s1[i, dim:] - s1[i, :dim])
+                    - s2[i, :dim],
+                    axis=1,
+                )
+            )
+            for i in range(500)
+        ],
+        atol=1e-3,
+    )
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -559,8 +573,10 @@ def test_pair_upper_bound_of_crossing_beams_counts_their_strips(dim):
     assert np.all(bound <= crossing)
     # On the fans, half the whole lines' integral: each strip holds half the mass.
     d1, d2 = fan1[:, dim:] - origin, fan2[:, dim:] - origin
-    lines = 2 * np.pi / np.sqrt(
-        np.sum(d1 * d1, axis=1) * np.sum(d2 * d2, axis=1) - np.sum(d1 * d2, axis=1) ** 2
+    lines = (
+        2
+        * np.pi
+        / np.sqrt(np.sum(d1 * d1, axis=1) * np.sum(d2 * d2, axis=1) - np.sum(d1 * d2, axis=1) ** 2)
     )
     crossed = lines < 0.5  # where the lines' integral bounds the pair, not its length
     np.testing.assert_allclose(np.median(bound[:m][crossed] / lines[crossed]), 0.5, atol=0.01)
@@ -576,8 +592,9 @@ def test_point_row_pairs_equal_the_kernel_matrix(dim, anisotropic):
     rng = np.random.default_rng(60 + dim + 2 * anisotropic)
     Y = _random_segments(rng, 50, dim, box=30.0, max_length=3.0, point_fraction=0.3)
     Y[:5, dim:] = Y[:5, :dim] + 0.01
-    points = np.vstack([Y[rng.choice(50, 6), :dim] + rng.normal(0, 0.3, (6, dim)),
-                        rng.uniform(0, 30.0, (4, dim))])
+    points = np.vstack(
+        [Y[rng.choice(50, 6), :dim] + rng.normal(0, 0.3, (6, dim)), rng.uniform(0, 30.0, (4, dim))]
+    )
     scale = rng.uniform(0.4, 1.5, dim) if anisotropic else 0.7
     whole = integral_kernel(np.hstack([points, points]), Y, length_scale=scale)
     p, r = np.nonzero(np.ones_like(whole, dtype=bool))

@@ -1200,7 +1200,7 @@ def test_few_queries_take_the_experts_cross_covariances_at_once(default_model, g
         if not hasattr(expert, "X_train_"):
             assert cross is None
             continue
-        rows = Xc[query[bounds[k]:bounds[k + 1]]]
+        rows = Xc[query[bounds[k] : bounds[k + 1]]]
         np.testing.assert_array_equal(cross, expert.kernel_(rows, expert.X_train_))
     assert sorted(seen) == consulted.tolist()
     # Segments (not points) are left to each expert.
@@ -1220,7 +1220,7 @@ def test_few_queries_predict_as_a_whole_map_does(default_model, grid):
     whole = default_model._merged(Q)
     picked = np.arange(0, Q.shape[0], max(Q.shape[0] // 25, 1))
     for i in picked:
-        one = default_model._merged(Q[i:i + 1])
+        one = default_model._merged(Q[i : i + 1])
         for part, full in zip(one, whole, strict=True):
             np.testing.assert_allclose(part[0], full[i], rtol=1e-10, atol=1e-13)
 

@@ -86,7 +86,11 @@ def test_from_estimator_draws_cells_no_beam_saw_as_unknown():
     # One beam along +x from (-0.75, -0.75): the bottom row of cells, the rest unseen.
     scans = Scans([[-0.75, -0.75, 0.0]], [[np.inf]], [0.0], max_range=1.5)
     disp = OccupancyMapDisplay.from_estimator(
-        _WithVar(), (-1.0, 1.0, -1.0, 1.0), 0.5, kind="probability", unknown_variance=None,
+        _WithVar(),
+        (-1.0, 1.0, -1.0, 1.0),
+        0.5,
+        kind="probability",
+        unknown_variance=None,
         observed_by=scans,
     )
     expected = np.ones((4, 4), dtype=bool)

@@ -705,8 +705,12 @@ def test_cli_level_tolerance_maps_a_tilted_laser(tmp_path, capsys):
 
 @pytest.mark.parametrize(
     ("ros_version", "timestamps"),
-    [(1, [-2.0, -1.0]), (1, [1.7e12, 1.7e12 + 0.1]), (2, [1.7e12, 1.7e12 + 0.1]),
-     (2, [-2.0, -1.0])],
+    [
+        (1, [-2.0, -1.0]),
+        (1, [1.7e12, 1.7e12 + 0.1]),
+        (2, [1.7e12, 1.7e12 + 0.1]),
+        (2, [-2.0, -1.0]),
+    ],
 )
 def test_write_rosbag_refuses_times_a_bag_cannot_hold(tmp_path, ros_version, timestamps):
     # ROS 1 stamps are unsigned 32-bit seconds, ROS 2 signed: milliseconds by mistake or

@@ -297,9 +297,7 @@ def test_simulate_scans_bad_input(kwargs, match):
     args.update(kwargs)
     env = make_paper_environment()
     with pytest.raises(ValueError, match=match):
-        simulate_scans(
-            env, args.pop("poses"), args.pop("angles"), args.pop("max_range"), **args
-        )
+        simulate_scans(env, args.pop("poses"), args.pop("angles"), args.pop("max_range"), **args)
 
 
 @pytest.mark.parametrize(

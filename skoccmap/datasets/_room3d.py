@@ -269,7 +269,12 @@ def make_room3d_environment():
 
 
 def make_room3d_scans(
-    *, n_azimuths=12, n_elevations=4, max_range=4.0, noise_std=0.0, random_state=None,
+    *,
+    n_azimuths=12,
+    n_elevations=4,
+    max_range=4.0,
+    noise_std=0.0,
+    random_state=None,
     free_margin=0.05,
 ):
     """Simulated 3-D laser scans in a small furnished room; a few hundred observations.

@@ -501,9 +501,7 @@ def simulate_scans(
     directions = beam_directions(poses, angles)  # validates poses and angles
     n_scans, n_beams, n_dims = directions.shape
     if n_dims != environment.n_dims:
-        raise ValueError(
-            f"poses are {n_dims}-D but the environment is {environment.n_dims}-D."
-        )
+        raise ValueError(f"poses are {n_dims}-D but the environment is {environment.n_dims}-D.")
     origins = np.repeat(poses[:, :n_dims], n_beams, axis=0)
     ranges = environment.cast(origins, directions.reshape(-1, n_dims), max_range)
     ranges = ranges.reshape(n_scans, n_beams)
