@@ -473,3 +473,136 @@ def test_beam_directions_without_a_beam_axis_is_a_clear_error(poses, angles):
 def test_split_segments_refuses_an_infinite_end_length():
     with pytest.raises(ValueError, match="end_length must be finite"):
         split_segments([[0.0, 0.0, 5.0, 0.0]], 1.0, end_length=np.inf)
+
+
+def test_near_unit_quaternions_and_directions_are_normalised_and_far_ones_refused():
+    q = Rotation.random(random_state=0).as_quat()  # scipy: [x, y, z, w]
+    pose = np.r_[1.0, 2.0, 3.0, q[3], q[:3]]
+    dirs = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
+    X, y, kind = scans_to_observations([pose], [[2.0, np.inf]], dirs, 5.0)
+    # Off unit length by 5e-4 (rounding, as from float32 logs): the same rows.
+    rounded = np.r_[pose[:3], pose[3:] * (1 + 5e-4)]
+    X_rounded, _, _ = scans_to_observations([rounded], [[2.0, np.inf]], dirs * (1 - 5e-4), 5.0)
+    assert_allclose(X_rounded, X, atol=1e-12)
+    # Off by 1 %: a caller's mistake.
+    with pytest.raises(ValueError, match="unit quaternions"):
+        scans_to_observations([np.r_[pose[:3], pose[3:] * 1.01]], [[2.0, np.inf]], dirs, 5.0)
+    with pytest.raises(ValueError, match="unit direction vectors"):
+        scans_to_observations([pose], [[2.0, np.inf]], dirs * 1.01, 5.0)
+
+
+def test_wrong_angles_shape_names_both_beam_counts():
+    with pytest.raises(ValueError, match=r"ranges has 2 beam\(s\) \(columns\) .* angles 3,"):
+        scans_to_observations([[0.0, 0.0, 0.0]], [[1.0, 2.0]], [[0.0, 1.0, 2.0]], 5.0)
+    pose = [[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]]
+    with pytest.raises(ValueError, match=r"ranges has 3 beam\(s\) \(columns\) .* angles 4,"):
+        scans_to_observations(pose, [[1.0, 2.0, 3.0]], np.eye(3)[[0, 1, 2, 0]], 5.0)
+
+
+@pytest.mark.parametrize(
+    "angles",
+    [[[0.0, 0.5, 1.0], [-90.0, 0.0, 90.0]], [[-90.0, 0.0, 90.0]] * 2, [-5.0, 0.0, 5.0]],
+    ids=["one-scan-of-two", "every-scan", "ten-degree-fan"],
+)
+def test_angles_in_degrees_warn_from_any_scan_at_the_callers_line(angles):
+    poses, ranges = [[0.0, 0.0, 0.0]] * 2, [[2.0, 3.0, 2.5]] * 2
+    with pytest.warns(UserWarning, match="more than a full turn") as caught:
+        scans_to_observations(poses, ranges, angles, 10.0)
+    assert caught[0].filename == __file__
+
+
+def test_long_3d_directions_are_refused_without_a_degrees_warning():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match="unit direction vectors"):
+            scans_to_observations([[0, 0, 0, 1.0, 0, 0, 0]], [[1.0]], [[30.0, 0.0, 0.0]], 5.0)
+
+
+def test_a_free_margin_warning_needs_more_than_half_of_the_returns_without_a_free_row():
+    args = ([[0.0, 0.0, 0.0]], [[1.0, 2.0, 3.0, 4.0]], [0.0, 0.5, 1.0, 1.5], 5.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans_to_observations(*args, free_margin=2.0)  # 1 and 2 m: two of four, half
+    with pytest.warns(UserWarning, match="at least as long as 3 of the 4"):
+        scans_to_observations(*args, free_margin=3.0)
+
+
+def test_default_free_margin_is_five_cm_in_function_and_scans():
+    args = ([[0.0, 0.0, 0.0]], [[0.03, 0.07, 1.0]], [0.0, 0.5, 1.0], 5.0)
+    for X, _, kind in (scans_to_observations(*args), Scans(*args).to_observations()):
+        assert_array_equal(kind, [HIT, HIT, HIT, RETURN, RETURN])
+        assert_allclose(segment_lengths(X[kind == RETURN]), [0.07 - 0.05, 1.0 - 0.05])
+
+
+def test_scans_index_by_any_integer_in_range_and_refuse_others():
+    scans = _scans()
+    assert_array_equal(scans[-6].poses, scans.poses[:1])
+    assert_array_equal(scans[np.int64(2)].poses, scans.poses[2:3])
+    for out in (6, -7):
+        with pytest.raises(IndexError, match="out of range for 6 scans"):
+            scans[out]
+    with pytest.raises(IndexError, match="1-D integer array"):
+        scans[np.array([[0, 1]])]
+
+
+@pytest.mark.parametrize("per_scan_angles", [False, True])
+def test_3d_scans_indexing_keeps_each_scans_directions(per_scan_angles):
+    rng = np.random.default_rng(6)
+    poses, ranges, dirs, max_range = _random_scans_3d(rng, n_scans=4, n_beams=5)
+    if per_scan_angles:
+        dirs = Rotation.random(20, random_state=rng).apply([1.0, 0.0, 0.0]).reshape(4, 5, 3)
+    scans = Scans(poses, ranges, dirs, max_range)
+    X, _, kind, scan = scans.to_observations(return_scan_index=True)
+    X_sub, _, kind_sub = scans[1:3].to_observations()
+    keep = np.isin(scan, [1, 2])
+    assert_allclose(X_sub, X[keep])
+    assert_array_equal(kind_sub, kind[keep])
+
+
+def test_scans_origins_are_a_copy():
+    scans = _scans()
+    poses = scans.poses.copy()
+    scans.origins()[:] = 0.0
+    assert_array_equal(scans.poses, poses)
+
+
+def test_as_segments_refuses_points_without_coordinates():
+    with pytest.raises(ValueError, match="points must be a 2-D"):
+        as_segments(np.zeros((2, 0)))
+
+
+def _graded_piece_lengths(length, max_length, end_length):
+    """Piece lengths, start to end, by the documented rule: pieces of end_length, 2 end_length,
+    ... (each shorter than max_length, ending strictly inside the segment) from the end, then
+    the rest in equal pieces no longer than max_length."""
+    tail, piece = [], end_length
+    while piece < max_length and sum(tail) + piece < length:
+        tail.append(piece)
+        piece *= 2
+    rest = length - sum(tail)
+    n = max(int(np.ceil(rest / max_length - 1e-9)), 1) if np.isfinite(max_length) else 1
+    return [rest / n] * n + tail[::-1]
+
+
+@pytest.mark.parametrize(
+    ("length", "max_length", "end_length"),
+    [(5.0, 2.0, 0.5), (4.0, None, 0.5), (3.9, None, 0.5), (100.0, None, 0.3), (9.0, 4.0, 1.0)],
+)
+def test_graded_pieces_double_from_the_end_below_max_length(length, max_length, end_length):
+    X = [[1.0, -2.0, 1.0 + length, -2.0]]
+    pieces, _ = split_segments(X, max_length, end_length=end_length)
+    bound = np.inf if max_length is None else max_length
+    assert_allclose(segment_lengths(pieces), _graded_piece_lengths(length, bound, end_length))
+    assert_allclose(pieces[1:, :2], pieces[:-1, 2:])
+
+
+def test_split_segments_grades_only_the_graded_segments():
+    X = np.array([[0.0, 0.0, 4.0, 0.0], [0.0, 1.0, 4.0, 1.0]])
+    pieces, source = split_segments(X, 1.0, end_length=0.25, graded=[True, False])
+    lengths = segment_lengths(pieces)
+    assert_allclose(lengths[source == 0], _graded_piece_lengths(4.0, 1.0, 0.25))
+    assert_allclose(lengths[source == 1], [1.0] * 4)
+    with pytest.raises(ValueError, match=r"graded must have shape \(2,\)"):
+        split_segments(X, 1.0, end_length=0.25, graded=[True])
+    pieces, source = split_segments(np.empty((0, 4)), 1.0, end_length=0.25)
+    assert pieces.shape == (0, 4) and source.shape == (0,)
