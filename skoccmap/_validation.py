@@ -26,9 +26,16 @@ def caller_stacklevel():
     Call it from the function that calls ``warnings.warn``."""
     # Frame 2 is the warning function's caller: stacklevel 2.
     frame, level = sys._getframe(2), 2
-    while frame is not None and frame.f_code.co_filename.startswith(_LIBRARY_DIRS):
+    while frame is not None and (
+        frame.f_code.co_filename.startswith(_LIBRARY_DIRS) or _generated_init(frame.f_code)
+    ):
         frame, level = frame.f_back, level + 1
     return level
+
+
+def _generated_init(code):
+    # The __init__ that dataclasses writes (Scans'), between __post_init__ and the caller.
+    return code.co_filename == "<string>" and code.co_name == "__init__"
 
 
 @contextlib.contextmanager

@@ -70,9 +70,16 @@ _POSE_COLUMNS = {3: 2, 7: 3}
 # --------------------------------------------------------------------------------------------
 
 
+def _number(value):
+    """``float(value)``, with TypeError for a bool (which would read as a length of 0 or 1)."""
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(value)
+    return float(value)
+
+
 def _check_max_range(max_range):
     try:
-        value = float(max_range)
+        value = _number(max_range)
     except (TypeError, ValueError):
         raise ValueError(f"max_range must be a positive number, got {max_range!r}.") from None
     if not np.isfinite(value) or value <= 0:
@@ -82,7 +89,7 @@ def _check_max_range(max_range):
 
 def _check_free_margin(free_margin):
     try:
-        value = float(free_margin)
+        value = _number(free_margin)
     except (TypeError, ValueError):
         raise ValueError(
             f"free_margin must be a non-negative number, got {free_margin!r}."
@@ -758,7 +765,7 @@ def _check_piece_length(value, name, allow_none=False):
     if value is None and allow_none:
         return np.inf
     try:
-        value = float(value)
+        value = _number(value)
     except (TypeError, ValueError):
         raise ValueError(f"{name} must be a number > 0, got {value!r}.") from None
     if not value > 0:

@@ -606,3 +606,27 @@ def test_split_segments_grades_only_the_graded_segments():
         split_segments(X, 1.0, end_length=0.25, graded=[True])
     pieces, source = split_segments(np.empty((0, 4)), 1.0, end_length=0.25)
     assert pieces.shape == (0, 4) and source.shape == (0,)
+
+
+def test_scans_degrees_warning_names_the_callers_line():
+    # It named '<string>', the __init__ that dataclasses writes, not this file.
+    with pytest.warns(UserWarning, match="more than a full turn") as caught:
+        Scans([[0.0, 0.0, 0.0]], [[1.0, 2.0]], [-90.0, 90.0], 5.0)
+    assert caught[0].filename == __file__
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: scans_to_observations([[0.0, 0.0, 0.0]], [[0.5]], [0.0], True),
+        lambda: scans_to_observations([[0.0, 0.0, 0.0]], [[0.5]], [0.0], 5.0, free_margin=True),
+        lambda: Scans([[0.0, 0.0, 0.0]], [[0.5]], [0.0], True),
+        lambda: split_segments([[0.0, 0.0, 3.0, 0.0]], True),
+        lambda: split_segments([[0.0, 0.0, 3.0, 0.0]], 1.0, end_length=True),
+    ],
+    ids=["max_range", "free_margin", "Scans-max_range", "max_length", "end_length"],
+)
+def test_boolean_lengths_are_refused(call):
+    # True was read as 1 m.
+    with pytest.raises(ValueError, match="got True"):
+        call()
