@@ -11,7 +11,7 @@ from scipy.integrate import quad
 from scipy.stats import norm
 from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning, NotFittedError
-from sklearn.gaussian_process.kernels import RBF, CompoundKernel, WhiteKernel
+from sklearn.gaussian_process.kernels import RBF, CompoundKernel, DotProduct, WhiteKernel
 from sklearn.gaussian_process.kernels import ConstantKernel as C
 from sklearn.multiclass import OneVsOneClassifier, OneVsRestClassifier
 
@@ -1074,3 +1074,212 @@ def test_random_state_draws_the_restart_starts():
     np.testing.assert_array_equal(starts(0), starts(0))
     np.testing.assert_array_equal(starts(np.random.RandomState(0)), starts(0))
     assert not np.any(np.isclose(starts(0), starts(1)))
+
+
+def test_default_kernel_is_the_documented_one():
+    # ConstantKernel(1.0, (1e-3, 1e3)) * RBF(1.0, (1e-3, 1e3)): its start and its bounds.
+    X, y = _data(n=20)
+    clf = EPGaussianProcessClassifier(optimizer=None).fit(X, y)
+    assert clf.kernel_ == C(1.0, (1e-3, 1e3)) * RBF(1.0, (1e-3, 1e3))
+    learned = EPGaussianProcessClassifier().fit(X, y)
+    np.testing.assert_allclose(learned.kernel_.bounds, np.log([[1e-3, 1e3], [1e-3, 1e3]]))
+
+
+def test_bound_warning_names_each_dimensions_own_upper_bound():
+    from skoccmap.classifier import _warn_at_bounds
+
+    kernel = RBF([1.0, 1.0], length_scale_bounds=[[1e-2, 1e2], [1e-1, 1e1]])
+    kernel.theta = np.log([1.0, 1e1])  # dimension 1 at its own upper bound, 10
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        _warn_at_bounds(kernel)
+    assert [str(w.message) for w in caught] == [
+        "The optimal value found for dimension 1 of parameter length_scale is close to the "
+        "specified upper bound 10.0. Increasing the bound and calling fit again may find a "
+        "better value."
+    ]
+
+
+def test_an_infinite_hyperparameter_cannot_be_learned():
+    X, y = _data(n=20)
+    with pytest.raises(ValueError, match="constant_value must be positive and finite.*got inf"):
+        EPGaussianProcessClassifier(C(np.inf) * RBF(1.0)).fit(X, y)
+
+
+def test_an_infinite_objective_is_not_a_stationary_point():
+    # Every evaluation failed (EP's LinAlgError gives +inf with a zero gradient).
+    from scipy.optimize import OptimizeResult
+
+    bounds = np.array([[-7.0, 7.0]])
+    res = OptimizeResult(x=np.array([1.0]), jac=np.zeros(1), fun=np.inf, success=False)
+    assert not _is_stationary(res, bounds)
+
+
+def test_lbfgs_stopping_short_of_a_stationary_point_warns():
+    # Past theta = 1 the value is flat but the gradient says it still falls: the line
+    # search fails where the (unscaled) gradient, 0.5, is far from zero.
+    def obj(theta, eval_gradient=True):
+        if theta[0] < 1.0:
+            return 1e4 * (1.0 - theta[0]), np.array([-1e4])
+        return 0.0, np.array([-0.5])
+
+    bounds = np.array([[-10.0, 10.0]])
+    with pytest.warns(ConvergenceWarning, match="lbfgs failed to converge"):
+        theta, value = _minimize_in_bounds("fmin_l_bfgs_b", obj, np.zeros(1), bounds)
+    np.testing.assert_allclose(theta, [1.0], atol=1e-4)
+    assert value == 0.0
+
+
+def test_evaluated_once_keeps_its_own_copy_of_each_point():
+    calls = []
+
+    def obj(theta, eval_gradient=True):
+        calls.append(theta.copy())
+        return float(len(calls)), np.zeros_like(theta)
+
+    once = _evaluated_once(obj)
+    theta = np.array([0.5, -1.0])
+    once(theta)
+    theta += 1.0  # a caller that reuses its array for the next point
+    assert once(theta)[0] == 2.0 and len(calls) == 2
+    assert once(np.array([0.5, -1.0]))[0] == 1.0 and len(calls) == 2
+
+
+def test_the_objective_is_infinite_where_ep_fails():
+    # A fixed negative constant: the kernel matrix is indefinite at a small signal variance.
+    X, y = _data(n=20)
+    kernel = C(-0.5, "fixed") + C(10.0, (1e-5, 1e5)) * RBF(1.0, (1e-2, 1e2))
+    kernel += WhiteKernel(1.0, "fixed")
+    bad = np.log([1e-5, 1.0])
+    assert np.linalg.eigvalsh(kernel.clone_with_theta(bad)(X)).min() < 0
+    seen = []
+
+    def optimizer(obj_func, initial_theta, bounds):
+        seen.extend([obj_func(bad), obj_func(bad, eval_gradient=False)])
+        return initial_theta, obj_func(initial_theta, eval_gradient=False)
+
+    clf = EPGaussianProcessClassifier(kernel, optimizer=optimizer).fit(X, y)
+    (value, grad), value_only = seen
+    assert value == np.inf and value_only == np.inf
+    np.testing.assert_array_equal(grad, [0.0, 0.0])
+    np.testing.assert_array_equal(clf.kernel_.theta, kernel.theta)
+
+
+def test_sites_with_a_negative_precision_predict_as_the_dense_posterior():
+    # Held sites may have a negative precision (a proper posterior all the same): the
+    # posterior is then in LU form, without a Cholesky factor to pack.
+    X, y, kernel, whole = _whole_fit()
+    tau, nu = whole.site_precision_.copy(), whole.site_nu_.copy()
+    tau[0] = -0.05
+    held = EPGaussianProcessClassifier(kernel, optimizer=None)._fit_warm_start(
+        X, y, tau, nu, hold=np.ones(len(X), dtype=bool)
+    )
+    np.testing.assert_array_equal(held.site_precision_, tau)
+    K = kernel(X)
+    Sigma = np.linalg.inv(np.linalg.inv(K) + np.diag(tau))
+    Q = np.random.default_rng(2).uniform(-3, 3, size=(20, 2))
+    K_star = kernel(Q, X)
+    A = np.linalg.solve(K, K_star.T)
+    mean_ref = A.T @ Sigma @ nu
+    var_ref = kernel.diag(Q) - np.einsum("ji,ji->i", K_star.T, A)
+    var_ref += np.einsum("ji,jk,ki->i", A, Sigma, A)
+    for rows in (slice(0, 3), slice(None)):  # a few queries, and more
+        mean, var = held.latent_mean_and_variance(Q[rows])
+        np.testing.assert_allclose(mean, mean_ref[rows], rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(var, var_ref[rows], rtol=1e-8)
+    # Rows are absorbed only into a posterior in Cholesky form.
+    assert held._absorbed(X[:2], y[:2]) is None
+
+
+def test_a_held_fit_whose_ep_does_not_converge_warns():
+    X, y = _data(n=80, seed=5)
+    kernel = C(3.0) * RBF(0.8)
+    old = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X[:60], y[:60])
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, max_iter=1)
+    with pytest.warns(ConvergenceWarning, match="max_iter=1"):
+        _holding(clf, X, y, old.site_precision_, old.site_nu_, 60)
+
+
+def test_absorbed_refuses_a_mix_of_known_and_unknown_labels():
+    X, y = _data(n=30)
+    clf = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), optimizer=None).fit(X, y)
+    with pytest.raises(ValueError, match="not in classes_"):
+        clf._absorbed(X[:2], [1, 2])
+
+
+def test_absorbed_counts_the_sweeps_of_ep_on_the_new_rows():
+    X, y, kernel, whole = _whole_fit()
+    # Every row held: no EP sweep in the fit of the first 45 rows.
+    old = _holding(
+        EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
+        X[:45], y[:45], whole.site_precision_, whole.site_nu_, 45,
+    )  # fmt: skip
+    assert old.n_iter_ == 0
+    # The new rows' sites start from zero: EP sweeps over them.
+    assert old._absorbed(X[45:], y[45:]).n_iter_ >= 1
+
+
+def test_latent_of_given_cross_covariances_in_blocks(monkeypatch):
+    # A mixture hands in k(x, x) and k(X, X_train_) for all queries; each block takes its rows.
+    import skoccmap.classifier as module
+
+    X, y = _data(n=30)
+    kernel = C(2.0) * RBF(0.8)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None).fit(X, y)
+    Q = np.random.default_rng(1).uniform(-2, 2, size=(50, 2))
+    mean, var = clf.latent_mean_and_variance(Q)
+    monkeypatch.setattr(module, "_PREDICT_BLOCK_ELEMENTS", 30 * 7)
+    mean_b, var_b = clf._latent(Q, kernel.diag(Q), kernel(Q, X))
+    np.testing.assert_allclose(mean_b, mean, rtol=1e-12)
+    np.testing.assert_allclose(var_b, var, rtol=1e-12)
+
+
+def test_variance_is_positive_where_the_prior_variance_is_zero():
+    # A dot-product kernel without offset has k(0, 0) = 0 and k(0, x) = 0.
+    X, y = _data(n=20)
+    clf = EPGaussianProcessClassifier(DotProduct(0.0, "fixed"), optimizer=None).fit(X, y)
+    origin = np.zeros((1, 2))
+    assert clf.prior_variance(origin)[0] == 0.0
+    var = clf.predict_var(origin)
+    assert var[0] > 0 and var[0] <= 1e-10
+    np.testing.assert_allclose(clf.predict_proba(origin), [[0.5, 0.5]])
+
+
+def test_held_rows_are_released_when_the_kernel_is_learned_by_a_callable():
+    # The optimiser's last evaluation need not be at the theta it returns: its EP sites
+    # then belong to another kernel and must not be held in the final fit.
+    X, y = _data(n=40)
+    kernel = C(1.0) * RBF(1.0)
+    far = np.log([50.0, 0.2])
+
+    def optimizer(obj_func, initial_theta, bounds):
+        value = obj_func(initial_theta, eval_gradient=False)
+        obj_func(far)  # the last evaluation, away from the optimum returned
+        return initial_theta, value
+
+    clf = EPGaussianProcessClassifier(kernel, optimizer=optimizer, tol=1e-10)
+    held = clone(clf)._fit_warm_start(X, y, np.ones(40), np.zeros(40), hold=np.arange(40) < 30)
+    plain = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    np.testing.assert_allclose(held.site_precision_, plain.site_precision_, rtol=1e-6)
+    np.testing.assert_allclose(held.site_nu_, plain.site_nu_, rtol=1e-6, atol=1e-9)
+
+
+def test_held_rows_given_to_a_multi_class_fit_are_not_kept():
+    # A multi-class fit ignores hold; a later warm start without one must not find it.
+    X, y3 = _data3(n=30)
+    kernel = C(1.0) * RBF(1.0)
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10)
+    clf._fit_warm_start(X, y3, hold=np.ones(30, dtype=bool))
+    y = (y3 == 0).astype(int)
+    clf._fit_warm_start(X, y, np.ones(30), np.zeros(30))
+    cold = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10).fit(X, y)
+    np.testing.assert_allclose(clf.site_precision_, cold.site_precision_, rtol=1e-6)
+    np.testing.assert_allclose(clf.site_nu_, cold.site_nu_, rtol=1e-6, atol=1e-9)
+
+
+def test_multi_class_theta_of_another_length_is_refused():
+    X, y = _data3(n=30)
+    clf = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), optimizer=None).fit(X, y)
+    for length in (1, 3, 5, 7):
+        with pytest.raises(ValueError, match="Shape of theta must be either 2 or 6"):
+            clf.log_marginal_likelihood(np.zeros(length))
