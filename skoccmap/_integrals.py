@@ -54,42 +54,13 @@ _TAIL = 80.0
 # _GL_MAX_WINDOW[n - 1]: the longest interval (scaled units) on which n-point Gauss-Legendre
 # integrates a unit Gaussian, centred anywhere, with an error below 5e-13 of its mass
 # (found by bisection; tests/test_integrals.py checks it). Longer windows are split into panels.
-_GL_MAX_WINDOW = np.array(
-    [
-        0.000311,
-        0.01784,
-        0.1077,
-        0.3027,
-        0.597,
-        0.9704,
-        1.403,
-        1.877,
-        2.383,
-        2.909,
-        3.451,
-        4.004,
-        4.564,
-        5.13,
-        5.699,
-        6.27,
-        6.842,
-        7.416,
-        7.988,
-        8.562,
-        9.131,
-        9.702,
-        10.27,
-        10.84,
-        11.41,
-        11.98,
-        12.55,
-        13.11,
-        13.67,
-        14.23,
-        14.8,
-        15.35,
-    ]
-)
+# fmt: off
+_GL_MAX_WINDOW = np.array([
+    0.000311, 0.01784, 0.1077, 0.3027, 0.597, 0.9704, 1.403, 1.877, 2.383, 2.909, 3.451, 4.004,
+    4.564, 5.13, 5.699, 6.27, 6.842, 7.416, 7.988, 8.562, 9.131, 9.702, 10.27, 10.84, 11.41,
+    11.98, 12.55, 13.11, 13.67, 14.23, 14.8, 15.35,
+])
+# fmt: on
 _GL_MAX_ORDER = len(_GL_MAX_WINDOW)
 
 
