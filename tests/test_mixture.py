@@ -655,8 +655,12 @@ def test_labels_are_any_two_classes(paper, grid):
     np.testing.assert_array_equal(model.predict(Q), label_names[ref.predict(Q)])
     # The larger label is the occupied one, as documented: labels that give it to the
     # beams and the smaller one to the hits would draw an inverted map.
-    for reversed_labels in (5 - 4 * paper.y, np.array(["hit", "miss"])[1 - paper.y]):
-        with pytest.raises(ValueError, match="labels look reversed"):
+    for reversed_labels, occupied in (
+        (5 - 4 * paper.y, "5"),
+        (np.array(["hit", "miss"])[1 - paper.y], "'miss'"),
+    ):
+        # The labels as written, not numpy's reprs (np.int64(5), np.str_('miss')).
+        with pytest.raises(ValueError, match=rf"labelled occupied \(y == {occupied}, the"):
             _mixture().fit(paper.X, reversed_labels)
         with pytest.raises(ValueError, match="labels look reversed"):
             _mixture().partial_fit(paper.X, reversed_labels)
@@ -694,9 +698,10 @@ def test_bad_input_raises_clear_errors(paper):
     model = _mixture()
     with pytest.raises(ValueError, match="3 feature"):
         model.fit(np.zeros((10, 3)), np.r_[np.zeros(5), np.ones(5)])
-    with pytest.raises(ValueError, match="2 classes"):
+    # One class is no multi-class problem: the message starts with what is missing.
+    with pytest.raises(ValueError, match=r"^MixtureGPOccupancyMap needs y with exactly 2 class"):
         model.fit(paper.X, np.ones(paper.X.shape[0]))
-    with pytest.raises(ValueError, match="2 classes"):
+    with pytest.raises(ValueError, match="^Only binary classification.*got 3 class"):
         model.fit(paper.X, np.arange(paper.X.shape[0]) % 3)
     X = paper.X.copy()
     X[0, 0] = np.nan
@@ -815,6 +820,18 @@ def test_default_expert_ep_tolerance_moves_the_map_by_under_1e_3(default_model, 
     np.testing.assert_allclose(
         default_model.predict_proba(Q), tight.predict_proba(Q), rtol=0, atol=1e-3
     )
+
+
+def test_an_expert_without_a_kernel_keeps_the_integral_kernel(default_model, paper, grid):
+    # EP given for its settings alone fitted an RBF over [start, end] as one 4-D point.
+    from skoccmap import EPGaussianProcessClassifier
+
+    _, Q = grid
+    expert = EPGaussianProcessClassifier(tol=1e-4)  # the default expert's tolerance
+    model = MixtureGPOccupancyMap(expert=expert, random_state=0).fit(paper.X, paper.y)
+    assert model.expert is expert and expert.kernel is None
+    assert model.shared_kernel_ == default_model.shared_kernel_
+    np.testing.assert_array_equal(model.predict_proba(Q), default_model.predict_proba(Q))
 
 
 @pytest.mark.parametrize("combiner", sorted(COMBINERS))
