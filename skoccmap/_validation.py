@@ -9,6 +9,7 @@ import warnings
 import joblib
 import numpy as np
 import sklearn
+from scipy import sparse
 
 # Code whose frames a warning skips to name the line that called into it (see
 # caller_stacklevel).
@@ -141,7 +142,13 @@ def check_segments(X, *, name="X", allow_empty=False):
     ------
     ValueError
         If ``X`` is not 2-D, has an odd number of columns, or holds NaN or inf.
+    TypeError
+        If ``X`` is a sparse matrix.
     """
+    if sparse.issparse(X):
+        raise TypeError(
+            f"{name} is a sparse matrix; segment rows must be dense: pass {name}.toarray()."
+        )
     X = np.asarray(X, dtype=np.float64)
     if X.ndim != 2:
         raise ValueError(

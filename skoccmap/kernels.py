@@ -113,13 +113,13 @@ class IntegralKernel(Kernel):
         K_gradient : ndarray of shape (n_samples_X, n_samples_X, n_grad), optional
             ``n_grad`` is the number of length scales (0 when they are fixed).
         """
-        X = check_segments(X, name="X")
+        X = check_segments(X, name="X", allow_empty=True)
         n_dims = segment_dim(X)
         length_scale = self._checked_length_scale(n_dims)
         if Y is not None:
             if eval_gradient:
                 raise ValueError("Gradient can only be evaluated when Y is None.")
-            Y = check_segments(Y, name="Y")
+            Y = check_segments(Y, name="Y", allow_empty=True)
             if Y.shape[1] != X.shape[1]:
                 raise ValueError(
                     f"X has {X.shape[1]} columns but Y has {Y.shape[1]}; both must be segment "
@@ -152,7 +152,7 @@ class IntegralKernel(Kernel):
         K_diag : ndarray of shape (n_samples_X,)
             1 for points, smaller for longer segments.
         """
-        X = check_segments(X, name="X")
+        X = check_segments(X, name="X", allow_empty=True)
         n_dims = segment_dim(X)
         scale = self._checked_length_scale(n_dims)
         d = (X[:, n_dims:] - X[:, :n_dims]) / scale
