@@ -338,6 +338,9 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
     n_iter_ : int or ndarray of shape (n_estimators,)
         Number of EP sweeps of the final EP run, at ``kernel_``'s hyperparameters; for more
         than two classes, one per binary classifier of ``base_estimator_.estimators_``.
+        After hyperparameter learning that run starts from the optimiser's last sites and
+        often takes a single sweep; refit with ``optimizer=None`` and ``kernel=kernel_``
+        to count the sweeps EP needs from zero sites.
     log_marginal_likelihood_value_ : float
         EP log marginal likelihood at ``kernel_.theta``; for more than two classes the mean
         over the binary classifiers.
