@@ -3,6 +3,7 @@ import warnings
 import numpy as np
 import pytest
 from scipy import stats
+from sklearn.datasets import make_blobs
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import adjusted_rand_score
 
@@ -511,9 +512,36 @@ def test_predict_checks_features():
 
 def test_max_iter_warns():
     X, _ = blobs(200, 2, 3, seed=0)
-    with pytest.warns(ConvergenceWarning, match="max_iter"):
+    with pytest.warns(ConvergenceWarning, match="max_iter") as caught:
         model = DPGMMClusterer(max_iter=1, random_state=0).fit(X)
     assert model.n_iter_ == 1 and len(model.log_joint_) == 1
+    assert caught[0].filename == __file__  # the caller's line, not scikit-learn's
+
+
+def test_the_final_state_merges_the_small_clusters_a_short_chain_leaves():
+    # Two unit blobs 4 apart: with these seeds the best sample held three to six clusters
+    # (seed 5: 147, 140, 5, 3, 3 and 2 points, 68 nats below the two blobs). Over seeds
+    # 0-19, 19 now end with the two blobs; seed 1's sample merges into one cluster.
+    X, truth = make_blobs(300, centers=[[0, 0], [4, 0]], random_state=0)
+    for seed in (5, 8, 9):
+        model = DPGMMClusterer(random_state=seed).fit(X)
+        assert model.n_clusters_ == 2, seed
+        # Each cluster is mostly one blob (they overlap: the Bayes rule errs on 2 %).
+        table = np.histogram2d(model.labels_, truth, bins=2)[0]
+        assert np.all(np.diag(table[:, np.argmax(table, axis=1)]) >= 0.9 * table.sum(1))
+        assert len(set(np.argmax(table, axis=1))) == 2, seed
+        # The final state is no worse than every sample after burn-in, and its log joint is
+        # that of its own labels.
+        assert model.best_log_joint_ >= model.log_joint_[model.burn_in :].max()
+        prior = NIWPrior(
+            model.mean_prior_,
+            model.mean_precision_prior_,
+            model.degrees_of_freedom_prior_,
+            model.covariance_prior_,
+        )
+        n, s_, S = sufficient_statistics(X, model.labels_, model.n_clusters_)
+        expected = log_crp(n, model.alpha) + log_marginal_likelihood(n, s_, S, prior).sum()
+        np.testing.assert_allclose(model.best_log_joint_, expected, rtol=1e-9)
 
 
 def test_scalar_prior_parameters():
