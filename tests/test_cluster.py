@@ -19,7 +19,9 @@ from skoccmap._niw import (
 from skoccmap.cluster import (
     DPGMMClusterer,
     _CollapsedGibbs,
+    _launch,
     greedy_merge,
+    greedy_split,
     sufficient_statistics,
 )
 
@@ -492,12 +494,20 @@ def test_bad_input_raises(X, match):
     "params, match",
     [
         ({"degrees_of_freedom_prior": 0.5}, "degrees_of_freedom_prior"),
+        # nu0 = n_features - 1 exactly: the inverse-Wishart needs nu0 > D - 1
+        ({"degrees_of_freedom_prior": 1.0}, "degrees_of_freedom_prior"),
         ({"covariance_prior": [[1.0, 2.0], [2.0, 1.0]]}, "covariance_prior"),
+        # singular (positive semi-definite) and non-symmetric with positive eigenvalues
+        ({"covariance_prior": [[1.0, 1.0], [1.0, 1.0]]}, "covariance_prior"),
+        ({"covariance_prior": [[1.0, 0.5], [0.0, 1.0]]}, "covariance_prior"),
+        # the boundaries of the parameter constraints
+        ({"alpha": 0.0}, "alpha"),
+        ({"max_iter": 0}, "max_iter"),
         ({"covariance_prior": np.eye(3)}, "covariance_prior"),
         ({"mean_prior": [0.0, 0.0, 0.0]}, "mean_prior"),
     ],
 )
-def test_bad_prior_raises(params, match):
+def test_bad_prior_or_parameter_at_its_bound_raises(params, match):
     X, _ = blobs(50, 2, 2, seed=0)
     with pytest.raises(ValueError, match=match):
         DPGMMClusterer(**params).fit(X)
@@ -564,8 +574,9 @@ def test_coordinates_whose_squares_overflow_are_refused():
     rng = np.random.default_rng(0)
     model = DPGMMClusterer(random_state=0).fit(rng.normal(size=(50, 2)))
     for method in (model.predict_proba, model.predict, model.partial_fit):
-        with pytest.raises(ValueError, match="their squares overflow"):
-            method([[1e155, 0.0]])
+        for x in ([[1e155, 0.0]], [[0.0, -1e155]]):
+            with pytest.raises(ValueError, match="their squares overflow"):
+                method(x)
     with pytest.raises(ValueError, match="their squares overflow"):
         DPGMMClusterer().fit([[1e155, 0.0], [0.0, 0.0]])
     assert np.all(np.isfinite(model.predict_proba([[0.0, 0.0]])))
@@ -575,3 +586,292 @@ def test_mean_prior_with_nan_names_the_value():
     X = np.random.default_rng(0).normal(size=(20, 2))
     with pytest.raises(ValueError, match=r"of shape \(2,\), got \[nan, 0.0\] of shape"):
         DPGMMClusterer(mean_prior=[np.nan, 0.0]).fit(X)
+
+
+def _assert_cache_matches_labels(state, X, prior, alpha):
+    """The state's cached predictives and log joint against ones computed from its labels."""
+    K = state.K
+    np.testing.assert_array_equal(np.unique(state.labels), np.arange(K))
+    n, s, S = sufficient_statistics(X, state.labels, K)
+    t, logdet = predictive(n, s, S, prior)
+    probes = np.vstack([X[:5], X.mean(0) + 3.0])
+    np.testing.assert_allclose(
+        log_student_t(probes, state.cached_t()), log_student_t(probes, t), rtol=1e-8
+    )
+    np.testing.assert_allclose(state.logdet[:K], logdet, rtol=1e-8)
+    expected = log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum()
+    assert state.log_joint() == pytest.approx(expected, rel=1e-10)
+
+
+@pytest.mark.parametrize("move", ["gibbs", "blocked", "split_merge"])
+def test_cached_predictives_follow_every_move(move):
+    # From a random start (many points move) with alpha != 1, after each move of one kind:
+    # the predictive of every cluster a move touched, source and target, is refreshed.
+    X, _ = blobs(200, 2, 3, 12)
+    prior = NIWPrior(X.mean(0), 1.0, 2.0, np.cov(X.T))
+    alpha = 2.5
+    rng = np.random.default_rng(1)
+    state = _CollapsedGibbs(X, rng.integers(5, size=len(X)), prior, alpha)
+    for _ in range(3):
+        if move == "gibbs":
+            state.gibbs_sweep(rng)
+        elif move == "blocked":
+            state.blocked_sweep(rng, 40)
+        else:
+            for _ in range(10):
+                state.split_merge(rng)
+        _assert_cache_matches_labels(state, X, prior, alpha)
+
+
+@pytest.mark.parametrize("alpha", [0.3, 4.0])
+def test_seating_keeps_the_cached_predictives_exact(alpha):
+    # partial_fit seats points one at a time; each draw must see the clusters seated so far.
+    X, _ = blobs(120, 2, 3, 13)
+    prior = NIWPrior(X.mean(0), 1.0, 2.0, np.cov(X.T))
+    old, new = X[:60], X[60:]
+    old_labels = np.repeat(np.arange(3), 20)
+    statistics = sufficient_statistics(old, old_labels, 3)
+    state = _CollapsedGibbs(new, np.zeros(len(new), dtype=np.intp), prior, alpha, statistics)
+    rng = np.random.default_rng(0)
+    for i in range(len(new)):
+        state.seat(i, rng.random())
+    K = state.K
+    n, s, S = sufficient_statistics(new, state.labels, K)
+    n[:3] += statistics[0]
+    s[:3] += statistics[1]
+    S[:3] += statistics[2]
+    t, logdet = predictive(n, s, S, prior)
+    np.testing.assert_allclose(log_student_t(X, state.cached_t()), log_student_t(X, t), rtol=1e-8)
+    np.testing.assert_allclose(state.logdet[:K], logdet, rtol=1e-8)
+    expected = log_crp(n, alpha) + log_marginal_likelihood(n, s, S, prior).sum()
+    assert state.log_joint() == pytest.approx(expected, rel=1e-10)
+
+
+def test_blocked_sweep_that_empties_several_clusters_keeps_labels_consistent():
+    # Two singletons inside blob A (clusters 1 and 3, the last slot) both join A in one
+    # block: the emptied clusters are removed without losing blob B (cluster 2).
+    rng = np.random.default_rng(2)
+    a = rng.normal(0.0, 0.05, (30, 2))
+    b = rng.normal(10.0, 0.05, (30, 2))
+    X = np.vstack([a, b, [[0.02, 0.0], [0.0, 0.02]]])
+    labels = np.r_[np.zeros(30, int), np.full(30, 2), 1, 3]
+    prior = NIWPrior(X.mean(0), 1.0, 2.0, np.eye(2))
+    alpha = 0.1
+    state = _CollapsedGibbs(X, labels, prior, alpha)
+    state.blocked_sweep(np.random.default_rng(0), len(X))
+    assert state.K == 2
+    assert adjusted_rand_score(np.r_[np.zeros(30), np.ones(30), 0, 0], state.labels) == 1.0
+    _assert_cache_matches_labels(state, X, prior, alpha)
+
+
+@pytest.mark.parametrize("block_size", [1, 16, 100])
+def test_blocked_sweep_opens_a_new_cluster_for_a_far_point(block_size):
+    # A point far from the blob it is labelled with: its conditional is almost all on a new
+    # cluster, and the blocked sweep (which opens new clusters one by one) seats it there.
+    rng = np.random.default_rng(3)
+    X = np.vstack([rng.normal(0.0, 0.3, (40, 2)), [[15.0, 15.0]]])
+    prior = NIWPrior(X.mean(0), 1.0, 2.0, np.eye(2))
+    state = _CollapsedGibbs(X, np.zeros(len(X), dtype=np.intp), prior, 1.0)
+    state.blocked_sweep(np.random.default_rng(0), block_size)
+    assert state.K == 2
+    np.testing.assert_array_equal(state.labels, np.r_[np.zeros(40), 1])
+    _assert_cache_matches_labels(state, X, prior, 1.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_greedy_split_bisects_one_cluster_into_the_blobs(seed):
+    # Started from one cluster, the bisections (each only when it raises the log joint)
+    # separate four well-separated blobs in a few rounds, numbered 0..K-1 without gaps, and
+    # the result's log joint is the true partition's.
+    X, y = blobs(300, 2, 4, seed=seed)
+    prior = NIWPrior(X.mean(0), 1.0, 2.0, np.cov(X.T))
+    labels = greedy_split(X, np.zeros(len(X), dtype=np.intp), prior, 1.0)
+    np.testing.assert_array_equal(np.unique(labels), np.arange(4))
+    assert adjusted_rand_score(y, labels) == 1.0
+    assert _log_joint(X, labels, prior, 1.0) == pytest.approx(_log_joint(X, y, prior, 1.0))
+
+
+def test_launch_state_is_nearest_anchor_then_two_restricted_steps():
+    # The split-merge launch written out from its definition: each point joins the anchor
+    # nearer in the metric Psi0^-1, then twice every point joins the sub-cluster (anchors
+    # fixed) with the larger n_l t_l(x); the result is n_l t_l(x) normalised over l.
+    rng = np.random.default_rng(6)
+    for _ in range(20):
+        X = rng.normal(size=(25, 2)) * [3.0, 1.0]
+        prior = random_prior(2, rng)
+        i, j = rng.choice(len(X), 2, replace=False)
+        P = np.linalg.inv(prior.psi)
+        d_i = np.einsum("nd,de,ne->n", X - X[i], P, X - X[i])
+        d_j = np.einsum("nd,de,ne->n", X - X[j], P, X - X[j])
+        right = d_j < d_i
+        for _ in range(3):
+            right[i], right[j] = False, True
+            w = []
+            for side in (False, True):
+                Xs = X[right == side]
+                t, _ = predictive(*stats_of(Xs), prior)
+                w.append(log_student_t(X, t)[:, 0] + np.log(len(Xs)))
+            w = np.array(w)
+            right = w[1] > w[0]
+        log_left, log_right = _launch(X, i, j, prior)
+        np.testing.assert_allclose(log_right, w[1] - np.logaddexp(w[0], w[1]), atol=1e-9)
+        np.testing.assert_allclose(log_left, w[0] - np.logaddexp(w[0], w[1]), atol=1e-9)
+
+
+def _stopping_rule(trace, burn_in, tol, n_samples, patience):
+    """Sweeps run, convergence and the best log joint by the documented stopping rule."""
+    best, stale = -np.inf, 0
+    for sweep, current in enumerate(trace):
+        if sweep < burn_in:
+            continue
+        stale = 0 if current > best + tol * n_samples else stale + 1
+        best = max(best, current)
+        if stale >= patience:
+            return sweep + 1, True, best
+    return len(trace), False, best
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {},
+        {"burn_in": 3, "tol": 0.01, "n_iter_no_change": 2},
+        {"burn_in": 0, "tol": 0.05, "n_iter_no_change": 4, "n_split_merge": 2},
+        # burn_in capped at max_iter - 1: only the last sweep is a candidate
+        {"burn_in": 20, "max_iter": 6, "tol": 1.0, "n_iter_no_change": 1},
+    ],
+)
+def test_sampling_stops_by_the_documented_rule(params):
+    # Uniform data: no clear clustering, so the log joint wanders from sweep to sweep. The
+    # trace alone decides when sampling stops: once the best log joint after burn_in has not
+    # risen by more than tol * n_samples for n_iter_no_change sweeps.
+    X = np.random.default_rng(10).uniform(0, 10, (150, 2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        model = DPGMMClusterer(alpha=3.0, random_state=0, **params).fit(X)
+    p = model.get_params()
+    burn_in = min(p["burn_in"], p["max_iter"] - 1)
+    expected = _stopping_rule(model.log_joint_, burn_in, p["tol"], len(X), p["n_iter_no_change"])
+    assert (model.n_iter_, model.converged_, model.best_log_joint_) == expected
+    assert len(model.log_joint_) == model.n_iter_
+    # the final state is the best sample after burn-in
+    n, s, S = sufficient_statistics(X, model.labels_, model.n_clusters_)
+    prior = NIWPrior(
+        model.mean_prior_,
+        model.mean_precision_prior_,
+        model.degrees_of_freedom_prior_,
+        model.covariance_prior_,
+    )
+    joint = log_crp(n, 3.0) + log_marginal_likelihood(n, s, S, prior).sum()
+    assert joint == pytest.approx(model.best_log_joint_, rel=1e-9)
+
+
+def test_one_cluster_start_is_bisected_before_sampling():
+    # init="one" with one sweep and no split-merge: the blobs are found by the greedy
+    # bisection of the initialisation, not by the sampler.
+    X, y = blobs(400, 2, 4, seed=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        model = DPGMMClusterer(
+            init="one", max_iter=1, burn_in=0, n_split_merge=0, random_state=0
+        ).fit(X)
+    assert model.n_clusters_ == 4
+    assert adjusted_rand_score(y, model.labels_) >= 0.95
+
+
+@pytest.mark.parametrize("alpha, n, expected", [(1.0, 500, 13), (0.5, 40, 5), (10.0, 500, 50)])
+def test_kmeans_start_has_the_documented_number_of_clusters(monkeypatch, alpha, n, expected):
+    # ceil(2 alpha log(1 + n / alpha)) clusters, at least 2 and at most 50.
+    import skoccmap.cluster as cluster
+
+    assert expected == min(max(np.ceil(2 * alpha * np.log1p(n / alpha)), 2), 50)
+    asked = []
+    kmeans = cluster._kmeans
+
+    def spy(X, n_clusters, rng):
+        asked.append(n_clusters)
+        return kmeans(X, n_clusters, rng)
+
+    monkeypatch.setattr(cluster, "_kmeans", spy)
+    X, _ = blobs(n, 2, 2, seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        DPGMMClusterer(alpha=alpha, max_iter=2, burn_in=0, random_state=0).fit(X)
+    assert asked == [expected]
+
+
+def test_duplicate_points_fit_without_warnings():
+    # Fewer distinct points than k-means clusters: k-means' warning is not the user's.
+    X = np.repeat([[0.0, 0.0], [5.0, 0.0], [0.0, 5.0]], 20, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model = DPGMMClusterer(random_state=0).fit(X)
+    assert model.n_clusters_ == 3
+
+
+def test_labels_are_numbered_largest_cluster_first():
+    rng = np.random.default_rng(11)
+    sizes = [30, 120, 60]
+    X = np.vstack([rng.normal(c, 0.3, (m, 2)) for c, m in zip([0, 6, 12], sizes, strict=True)])
+    model = DPGMMClusterer(random_state=0).fit(X)
+    np.testing.assert_array_equal(np.bincount(model.labels_), sorted(sizes, reverse=True))
+    np.testing.assert_array_equal(model.labels_[:30], 2)
+
+
+def test_predict_proba_in_chunks_equals_row_by_row(monkeypatch):
+    import skoccmap.cluster as cluster
+
+    X, _ = blobs(100, 2, 3, seed=7)
+    model = DPGMMClusterer(random_state=0).fit(X)
+    rows = np.vstack([model.predict_proba(X[i : i + 1]) for i in range(len(X))])
+    monkeypatch.setattr(cluster, "_CHUNK", 16)
+    np.testing.assert_allclose(model.predict_proba(X), rows, rtol=1e-12)
+    np.testing.assert_array_equal(model.predict(X), rows.argmax(1))
+
+
+def test_verbose_prints_one_line_per_sweep(capsys):
+    X, _ = blobs(100, 2, 2, seed=0)
+    DPGMMClusterer(random_state=0).fit(X)
+    assert capsys.readouterr().out == ""
+    model = DPGMMClusterer(random_state=0, verbose=1).fit(X)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == model.n_iter_
+    assert lines[0].startswith("sweep 1: log joint")
+    assert lines[-1].endswith(f"{model.n_clusters_} clusters")
+
+
+def test_a_blocks_draws_are_each_points_own_draws_however_far_apart():
+    # conditional_draws on a block gives each point the draw it gets alone, also when one
+    # point's densities are hundreds of nats below the others' (a far point, light tails).
+    rng = np.random.default_rng(0)
+    X = np.vstack([rng.normal(0, 0.1, (20, 2)), rng.normal(3, 0.1, (20, 2)), [[600.0, -400.0]]])
+    labels = np.r_[np.zeros(20, int), np.ones(21, int)]
+    prior = NIWPrior(np.zeros(2), 1.0, 200.0, 2.0 * np.eye(2))
+    state = _CollapsedGibbs(X, labels, prior, 1.0)
+    idx = np.arange(len(X))
+    u = np.linspace(0.01, 0.99, len(X))
+    block, _ = state.conditional_draws(idx, u)
+    alone = [state.conditional_draws(idx[i : i + 1], u[i : i + 1])[0][0] for i in idx]
+    np.testing.assert_array_equal(block, alone)
+    assert block[-1] == state.K  # the far point draws a new cluster
+
+
+def test_blocked_sweep_keeps_a_singleton_with_its_new_cluster_probability():
+    # For a singleton, drawing the new-cluster option is staying: over fresh sweeps it stays
+    # alone as often as its conditional says (0.81 here), not only when a redraw agrees.
+    rng = np.random.default_rng(4)
+    X = np.vstack([rng.normal(0, 0.05, (20, 2)), [[0.8, 0.0]]])
+    prior = NIWPrior(X.mean(0), 1.0, 2.0, 0.5 * np.eye(2))
+    labels = np.r_[np.zeros(20, int), 1]
+    state = _CollapsedGibbs(X, labels, prior, 1.0)
+    u = (np.arange(4000) + 0.5) / 4000
+    draws, _ = state.conditional_draws(np.full(len(u), 20), u)
+    p_stay = np.mean(draws == state.K)
+    assert 0.6 < p_stay < 0.95
+    sweeps = np.random.default_rng(0)
+    stays = 0
+    for _ in range(1000):
+        state = _CollapsedGibbs(X, labels, prior, 1.0)
+        state.blocked_sweep(sweeps, len(X))
+        stays += state.K == 2 and state.labels[20] != state.labels[0]
+    assert stays / 1000 == pytest.approx(p_stay, abs=0.05)

@@ -643,3 +643,29 @@ def test_experts_with_their_own_hyperparameters_take_rows_with_them(office):
     # Those that kept their kernel took rows without settling them; the others settled all.
     assert all(counts[k, 1] > 0 for k in kept)
     assert all(counts[k, 1] == 0 for k in touched if k not in kept)
+
+
+def test_clusterer_partial_fit_first_seated_points_follow_the_new_room():
+    # Room b is near room a's broad cluster: its first-seated points join a (the new table
+    # is not open yet); the sweeps after the seating move them to b's cluster.
+    rng = np.random.default_rng(0)
+    a = rng.normal([0, 0], 1.0, (200, 2))
+    b = rng.normal([4, 0], 0.3, (100, 2))
+    model = DPGMMClusterer(random_state=0).fit(a)
+    n_old = model.n_clusters_
+    model.partial_fit(b)
+    assert model.n_clusters_ == n_old + 1
+    np.testing.assert_array_equal(model.labels_, n_old)
+
+
+def test_clusterer_partial_fit_sequence_is_reproducible_on_ambiguous_batches():
+    # Overlapping batches: the seating is random, so only the fit's generator going on into
+    # partial_fit makes the sequence reproducible.
+    rng = np.random.default_rng(1)
+    batches = [rng.uniform(0, 10, (60, 2)) for _ in range(3)]
+    runs = []
+    for _ in range(2):
+        model = DPGMMClusterer(alpha=5.0, random_state=0).fit(batches[0])
+        runs.append([model.partial_fit(b).labels_.copy() for b in batches[1:]])
+    for first, second in zip(*runs, strict=True):
+        np.testing.assert_array_equal(first, second)
