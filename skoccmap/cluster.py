@@ -312,7 +312,9 @@ class _CollapsedGibbs:
         Each block of ``block_size`` points (in random order) is drawn against the statistics
         at the start of the block -- stale by the moves earlier in the same block -- and all its
         moves are applied at once. Points that draw a new cluster are then redrawn one at a
-        time, exactly, so that a block opens new clusters one by one.
+        time against the current state, with the same uniform, so that a block opens new
+        clusters one by one (a fresh uniform opened one with probability ``p_new**2``, even
+        at ``block_size=1``, where nothing is stale).
         """
         n_samples = self.X.shape[0]
         order = rng.permutation(n_samples)
@@ -325,8 +327,9 @@ class _CollapsedGibbs:
             moving = ~stays & (draws < K)
             if np.any(moving):
                 n_moves += self.move_many(idx[moving], draws[moving])
-            for i in idx[~stays & (draws >= K)]:
-                draw, stay = self.conditional_draws(np.array([i]), rng.random(1))
+            for j in np.flatnonzero(~stays & (draws >= K)):
+                i = idx[j]
+                draw, stay = self.conditional_draws(np.array([i]), uniforms[pos + j : pos + j + 1])
                 if not stay[0]:
                     self.move(i, self.labels[i], draw[0])
                     n_moves += 1
