@@ -131,6 +131,45 @@ def test_traverse_near_corners_in_3d():
         _assert_staircase(cells[seg == i], first, last)
 
 
+@pytest.mark.parametrize(
+    ("res", "start", "end"),
+    [
+        (0.05, [0.5, 0.1 + 0.2], [0.1 + 0.2, 0.0]),
+        (0.1, [1.0, 0.2 + 0.4], [0.2 + 0.4, 0.0]),
+        (0.05, [0.35, 0.1 + 0.2], [0.55, 0.0]),
+        (0.1, [0.5, 0.2 + 0.4], [0.1 + 0.2, 0.0]),
+        (0.05, [0.25, 3 * 0.05, 0.1 + 0.2], [0.05000000000000002, 0.35, 0.0]),
+    ],
+)
+def test_traverse_lines_through_corners_a_rounding_below_the_face(res, start, end):
+    # Lines of slope 3/2 through grid corners, with corner coordinates that round a little
+    # above the corner (0.1 + 0.2 = 0.30000000000000004): at some corners the crossing point
+    # of one axis lands just below the other axis's face. Each cell must still be entered
+    # once, along a face-connected staircase.
+    start, end = np.array(start), np.array(end)
+    shape = (12,) * start.size
+    seg, cells = traverse_cells(start[None], end[None], np.zeros(start.size), res, shape)
+    first = tuple(np.floor(start / res).astype(int))
+    last = tuple(np.floor(end / res).astype(int))
+    _assert_staircase(cells, first, last)
+
+
+def test_traverse_segments_between_grid_corners_stay_in_their_cell_range():
+    # Start and end on grid corners, every direction: the crossing points land on faces of
+    # the other axes, and a visit must not leave the box of cells between the two end cells.
+    rng = np.random.default_rng(14)
+    for res in (1.0, 0.7, 0.1):
+        corners = rng.integers(0, 12, (200, 2, 2)) * res
+        starts, ends = corners[:, 0], corners[:, 1]
+        seg, cells = traverse_cells(starts, ends, np.zeros(2), res, (12, 12))
+        for i in range(200):
+            i0 = np.minimum(np.floor(starts[i] / res).astype(int), 11)
+            i1 = np.minimum(np.floor(ends[i] / res).astype(int), 11)
+            mine = cells[seg == i]
+            assert np.all(mine >= np.minimum(i0, i1)) and np.all(mine <= np.maximum(i0, i1))
+            _assert_staircase(mine, tuple(i0), tuple(i1))
+
+
 def _loop_reference(X, y, res, l_occ, l_free, l_min, l_max):
     """Per-row log-odds sums with the box-clipping cells, excluding each beam's end cell."""
     n_dims = X.shape[1] // 2
@@ -289,6 +328,55 @@ def test_sparse_accumulation_equals_dense(monkeypatch):
     sparse = OccupancyGridMap(resolution=0.2).fit(X, y)
     np.testing.assert_array_equal(sparse.cell_index_, dense.cell_index_)
     np.testing.assert_allclose(sparse.log_odds_, dense.log_odds_)
+
+
+@pytest.mark.parametrize("grid", [FrequencyGridMap(0.1), OccupancyGridMap(0.1)])
+def test_grid_reaches_free_rows_ending_below_every_start(grid):
+    # A beam without a return, drawn from x = 1 back to x = -1, beyond every row's start:
+    # the grid must hold its end, and it passes the cells up to its end cell.
+    X = np.array([[1.05, 0.05, 1.05, 0.05], [1.0, 0.05, -1.0, 0.05]])
+    est = clone(grid).fit(X, [1, 0])
+    assert np.all(est.origin_ <= [-1.0, 0.05])
+    queries = np.array([[x, 0.05] * 2 for x in (-0.85, -0.55, 0.55, 0.95)])
+    np.testing.assert_array_less(est.predict_proba(queries)[:, 1], 0.5)
+    # The end cell is not passed; beyond it is outside the grid.
+    beyond = np.array([[-0.95, 0.05] * 2, [-1.5, 0.05] * 2])
+    np.testing.assert_allclose(est.predict_proba(beyond)[:, 1], 0.5)
+
+
+@pytest.mark.parametrize("grid", [FrequencyGridMap(0.25), OccupancyGridMap(0.25)])
+def test_grid_extent_is_the_grid_of_cells_and_covers_the_data(grid):
+    rng = np.random.default_rng(15)
+    X = rng.uniform(-3, 2, (60, 4))
+    est = clone(grid).fit(X, rng.integers(0, 2, 60))
+    lower, upper = est.extent_[0::2], est.extent_[1::2]
+    np.testing.assert_allclose(lower, est.origin_)
+    np.testing.assert_allclose((upper - lower) / 0.25, est.shape_)
+    points = np.vstack([X[:, :2], X[:, 2:]])
+    assert np.all(points >= lower) and np.all(points < upper)
+
+
+@pytest.mark.parametrize("grid", [FrequencyGridMap(0.1), OccupancyGridMap(0.1)])
+def test_max_free_length_is_the_euclidean_length(grid):
+    # A beam 3 m along x and 4 m along y is 5 m long: a bound of 4.5 m drops it (its longest
+    # coordinate difference, 4 m, would keep it), a bound of 5 m keeps it.
+    hit, beam = [3.05, 4.05] * 2, [0.05, 0.05, 3.05, 4.05]
+    X, y = np.array([hit, beam]), [1, 0]
+    query = np.array([[1.55, 2.05] * 2])  # on the beam, halfway
+    assert clone(grid).set_params(max_free_length=4.5).fit(X, y).predict_proba(query)[0, 1] == 0.5
+    assert clone(grid).set_params(max_free_length=5.0).fit(X, y).predict_proba(query)[0, 1] < 0.5
+
+
+@pytest.mark.parametrize("grid", [FrequencyGridMap(0.1), OccupancyGridMap(0.1)])
+def test_grid_looks_segment_queries_up_at_their_midpoint(grid):
+    # A beam along y = 0.05 to a hit at x = 1.05: a query segment from the free cell at
+    # x = 0.55 to x = 1.55 has its midpoint in the hit's cell; reversed, the same.
+    X = np.array([[0.0, 0.05, 1.0, 0.05], [1.05, 0.05, 1.05, 0.05]])
+    est = clone(grid).fit(X, [0, 1])
+    at_hit = est.predict_proba(np.array([[1.05, 0.05] * 2]))
+    for query in ([0.55, 0.05, 1.55, 0.05], [1.55, 0.05, 0.55, 0.05]):
+        np.testing.assert_allclose(est.predict_proba(np.array([query])), at_hit)
+    assert at_hit[0, 1] > 0.5
 
 
 def test_counting_grid_on_intel(shared_data):
@@ -744,6 +832,87 @@ def test_hilbert_map_bad_input():
     est = HilbertMap(n_components=4, random_state=0).fit(X + np.arange(4)[:, None], [0, 1, 0, 1])
     with pytest.raises(ValueError, match="features"):
         est.predict_proba(np.zeros((2, 6)))
+
+
+def test_hilbert_map_queries_are_looked_up_at_their_midpoint():
+    rng = np.random.default_rng(16)
+    X, y, _ = _room_scans(5, 20, rng)
+    est = HilbertMap(n_components=50, random_state=0).fit(X, y)
+    starts, ends = rng.uniform(-2, 2, (2, 30, 2))
+    mid = 0.5 * (starts + ends)
+    np.testing.assert_allclose(
+        est.decision_function(np.hstack([starts, ends])),
+        est.decision_function(np.hstack([mid, mid])),
+        atol=1e-6,
+    )
+
+
+def test_hilbert_map_default_kernel_is_exp_of_minus_squared_distance():
+    # gamma defaults to 1 / m^2: with every training point a landmark, the features' inner
+    # products between training points are exp(-|x - x'|^2) (Nystroem is exact there).
+    X = np.array([[0.0, 0.0, 1.5, 0.0], [1.6, 0.0, 1.6, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    est = HilbertMap(n_components=10, random_state=0).fit(X, [0, 1, 0])
+    points = est.nystroem_.components_ + est.center_
+    features = np.vstack(list(est._batches(np.hstack([points, points]))))
+    distance2 = ((points[:, None] - points[None]) ** 2).sum(axis=2)
+    np.testing.assert_allclose(features @ features.T, np.exp(-distance2), atol=1e-8)
+
+
+def test_hilbert_map_random_state_seeds_the_sgd_passes():
+    # Every training point kept and every one a landmark: only the order of the SGD passes
+    # (and of the landmarks, which does not change the fitted function) depends on the seed.
+    rng = np.random.default_rng(17)
+    X, y, _ = _room_scans(3, 10, rng)
+    queries = rng.uniform(-2, 2, (100, 2))
+    queries = np.hstack([queries, queries])
+    fits = [
+        HilbertMap(n_components=500, max_samples=None, alpha=1e-3, random_state=seed).fit(X, y)
+        for seed in (0, 1)
+    ]
+    assert fits[0].n_training_points_ <= 500
+    a, b = (est.decision_function(queries) for est in fits)
+    assert np.abs(a - b).max() > 1e-3
+
+
+def test_hilbert_map_class_weight_zero_is_allowed():
+    # A weight of 0 drops a class from the loss; the check asks for >= 0.
+    X = np.array([[0.0, 0.0, 0.9, 0.0], [1.0, 0.0, 1.0, 0.0]])
+    est = HilbertMap(n_components=4, class_weight={0: 1.0, 1: 0.0}, random_state=0).fit(X, [0, 1])
+    assert est.classifier_.class_weight == {0: 1.0, 1: 0.0}
+
+
+def test_hilbert_map_free_points_follow_the_euclidean_length():
+    # A 3-4-5 beam: 5 m long, so ceil(5 / 0.5) = 10 points; with max_free_length exactly 5
+    # it still counts (a bound of 4.9 drops it: no free row left).
+    X = np.array([[3.0, 4.0, 3.0, 4.0], [0.0, 0.0, 3.0, 4.0], [0.0, 1.0, 0.0, 1.0]])
+    est = HilbertMap(n_components=20, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 1 + 10 + 1
+    est = HilbertMap(n_components=20, max_free_length=5.0, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 1 + 10 + 1
+    est = HilbertMap(n_components=20, max_free_length=4.9, random_state=0).fit(X, [1, 0, 0])
+    assert est.n_training_points_ == 1 + 1
+
+
+def test_hilbert_map_max_samples_rounds_the_class_shares():
+    # 10 hits among 100 points, 29 kept: 2.9 hits in proportion, so 3 hits and 26 free.
+    rng = np.random.default_rng(18)
+    points = rng.uniform(0, 5, size=(100, 2))
+    hit = np.arange(100) < 10
+    est = HilbertMap(max_samples=29, max_free_length=None)
+    _, labels = est._training_points(points, points, hit, np.random.RandomState(0))
+    assert labels.size == 29 and labels.sum() == 3
+
+
+def test_hilbert_map_max_samples_keeps_a_free_point_among_many_hits():
+    # 100 hits and one free point, 20 kept: 19.8 hits in proportion, but one free point
+    # stays, so both classes are there to fit.
+    rng = np.random.default_rng(19)
+    points = rng.uniform(0, 5, size=(101, 2))
+    X, y = np.hstack([points, points]), np.r_[np.ones(100), 0]
+    est = HilbertMap(n_components=10, max_samples=20, random_state=0).fit(X, y)
+    assert est.n_training_points_ == 20
+    _, labels = est._training_points(points, points, y == 1, np.random.RandomState(0))
+    assert labels.sum() == 19
 
 
 # --------------------------------------------------------------------------------------------
