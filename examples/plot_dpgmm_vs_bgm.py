@@ -88,9 +88,11 @@ axes[0].set_ylabel("y [m]")
 # The sampler's trace
 # -------------------
 # The log joint ``log p(X, z)`` after each sweep; the fitted partition is the best sample
-# seen after burn-in.
+# seen after burn-in, its clusters then merged while the log joint rises (the line).
 fig, ax = plt.subplots(figsize=(5.5, 3.5), layout="constrained")
-ax.plot(np.arange(1, dp.n_iter_ + 1), dp.log_joint_, "o-")
+ax.plot(np.arange(1, dp.n_iter_ + 1), dp.log_joint_, "o-", label="sample")
+ax.axhline(dp.best_log_joint_, color="0.4", ls="--", label="fitted partition")
+ax.legend(loc="best")
 ax.set_xlabel("sweep")
 ax.set_ylabel("log joint")
 ax.set_title(f"DPGMMClusterer: {dp.n_iter_} sweeps")
