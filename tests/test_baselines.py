@@ -773,14 +773,16 @@ def test_hilbert_map_max_samples_keeps_both_classes():
     assert every.n_training_points_ == 1 + 40 * 100
 
 
-def test_hilbert_map_max_samples_keeps_the_classes_in_proportion():
-    # 10 hits and 90 free points (zero-length free rows), 20 kept: 2 hits and 18 free.
+@pytest.mark.parametrize("kept, hits_kept", [(20, 2), (29, 3)])
+def test_hilbert_map_max_samples_keeps_the_classes_in_proportion(kept, hits_kept):
+    # 10 hits and 90 free points (zero-length free rows): 20 kept are 2 hits and 18 free;
+    # 29 kept are 2.9 hits in proportion, rounded (not floored) to 3 hits and 26 free.
     rng = np.random.default_rng(3)
     points = rng.uniform(0, 5, size=(100, 2))
     hit = np.arange(100) < 10
-    est = HilbertMap(max_samples=20, max_free_length=None)
+    est = HilbertMap(max_samples=kept, max_free_length=None)
     _, labels = est._training_points(points, points, hit, np.random.RandomState(0))
-    assert labels.size == 20 and labels.sum() == 2
+    assert labels.size == kept and labels.sum() == hits_kept
 
 
 def test_hilbert_map_skips_free_rows_beyond_max_free_length():
@@ -891,16 +893,6 @@ def test_hilbert_map_free_points_follow_the_euclidean_length():
     assert est.n_training_points_ == 1 + 10 + 1
     est = HilbertMap(n_components=20, max_free_length=4.9, random_state=0).fit(X, [1, 0, 0])
     assert est.n_training_points_ == 1 + 1
-
-
-def test_hilbert_map_max_samples_rounds_the_class_shares():
-    # 10 hits among 100 points, 29 kept: 2.9 hits in proportion, so 3 hits and 26 free.
-    rng = np.random.default_rng(18)
-    points = rng.uniform(0, 5, size=(100, 2))
-    hit = np.arange(100) < 10
-    est = HilbertMap(max_samples=29, max_free_length=None)
-    _, labels = est._training_points(points, points, hit, np.random.RandomState(0))
-    assert labels.size == 29 and labels.sum() == 3
 
 
 def test_hilbert_map_max_samples_keeps_a_free_point_among_many_hits():

@@ -716,6 +716,12 @@ def _holding(clf, X, y, tau, nu, n_held):
     return clf._fit_warm_start(X, y, tau, nu, hold=np.arange(len(X)) < n_held)
 
 
+def _first_rows_held(X, y, kernel, whole, n):
+    """The first ``n`` rows fitted with every site held at the whole fit's fixed point."""
+    clf = EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10)
+    return _holding(clf, X[:n], y[:n], whole.site_precision_, whole.site_nu_, n)
+
+
 def _whole_fit():
     """Data, kernel and the fit of EP on all of them to a tight fixed point."""
     X, y = _data(n=60, seed=3)
@@ -771,10 +777,7 @@ def test_hold_is_ignored_where_the_kernel_is_learned():
 def test_absorbed_rows_land_on_the_fixed_point_of_the_whole_fit():
     X, y, kernel, whole = _whole_fit()
     # The first 45 rows' fit, its sites moved to the whole fit's fixed point.
-    old = _holding(
-        EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
-        X[:45], y[:45], whole.site_precision_, whole.site_nu_, 45,
-    )  # fmt: skip
+    old = _first_rows_held(X, y, kernel, whole, 45)
     absorbed = old._absorbed(X[45:], y[45:])
     np.testing.assert_allclose(absorbed.site_precision_, whole.site_precision_, atol=1e-8)
     np.testing.assert_allclose(absorbed.site_nu_, whole.site_nu_, atol=1e-8)
@@ -1210,10 +1213,7 @@ def test_absorbed_refuses_a_mix_of_known_and_unknown_labels():
 def test_absorbed_counts_the_sweeps_of_ep_on_the_new_rows():
     X, y, kernel, whole = _whole_fit()
     # Every row held: no EP sweep in the fit of the first 45 rows.
-    old = _holding(
-        EPGaussianProcessClassifier(kernel, optimizer=None, tol=1e-10),
-        X[:45], y[:45], whole.site_precision_, whole.site_nu_, 45,
-    )  # fmt: skip
+    old = _first_rows_held(X, y, kernel, whole, 45)
     assert old.n_iter_ == 0
     # The new rows' sites start from zero: EP sweeps over them.
     assert old._absorbed(X[45:], y[45:]).n_iter_ >= 1

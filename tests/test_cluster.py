@@ -433,9 +433,9 @@ def test_fitted_attributes_and_predict_proba():
     np.testing.assert_allclose(proba[:5], dens / dens.sum(1, keepdims=True), rtol=1e-8)
 
 
-def test_log_joint_trace_matches_labels():
-    X, _ = blobs(300, 2, 3, seed=8)
-    model = DPGMMClusterer(random_state=0).fit(X)
+def _fitted_log_joint(model, X):
+    """log p(X, z) of a fitted DPGMMClusterer's labels, from its priors (independently of
+    the sampler's bookkeeping)."""
     n, s, S = sufficient_statistics(X, model.labels_, model.n_clusters_)
     prior = NIWPrior(
         model.mean_prior_,
@@ -443,7 +443,13 @@ def test_log_joint_trace_matches_labels():
         model.degrees_of_freedom_prior_,
         model.covariance_prior_,
     )
-    expected = log_crp(n, 1.0) + log_marginal_likelihood(n, s, S, prior).sum()
+    return log_crp(n, model.alpha) + log_marginal_likelihood(n, s, S, prior).sum()
+
+
+def test_log_joint_trace_matches_labels():
+    X, _ = blobs(300, 2, 3, seed=8)
+    model = DPGMMClusterer(random_state=0).fit(X)
+    expected = _fitted_log_joint(model, X)
     assert model.best_log_joint_ == pytest.approx(expected, rel=1e-9)
 
 
@@ -543,14 +549,7 @@ def test_the_final_state_merges_the_small_clusters_a_short_chain_leaves():
         # The final state is no worse than every sample after burn-in, and its log joint is
         # that of its own labels.
         assert model.best_log_joint_ >= model.log_joint_[model.burn_in :].max()
-        prior = NIWPrior(
-            model.mean_prior_,
-            model.mean_precision_prior_,
-            model.degrees_of_freedom_prior_,
-            model.covariance_prior_,
-        )
-        n, s_, S = sufficient_statistics(X, model.labels_, model.n_clusters_)
-        expected = log_crp(n, model.alpha) + log_marginal_likelihood(n, s_, S, prior).sum()
+        expected = _fitted_log_joint(model, X)
         np.testing.assert_allclose(model.best_log_joint_, expected, rtol=1e-9)
 
 
@@ -759,14 +758,7 @@ def test_sampling_stops_by_the_documented_rule(params):
     # the final state is the best sample after burn-in, its clusters merged while the log
     # joint rises
     assert model.best_log_joint_ >= best
-    n, s, S = sufficient_statistics(X, model.labels_, model.n_clusters_)
-    prior = NIWPrior(
-        model.mean_prior_,
-        model.mean_precision_prior_,
-        model.degrees_of_freedom_prior_,
-        model.covariance_prior_,
-    )
-    joint = log_crp(n, 3.0) + log_marginal_likelihood(n, s, S, prior).sum()
+    joint = _fitted_log_joint(model, X)
     assert joint == pytest.approx(model.best_log_joint_, rel=1e-9)
 
 
