@@ -844,18 +844,21 @@ def test_a_refused_one_class_fit_leaves_no_classes_behind():
     assert one.classes_.tolist() == [0, 1] and np.all(one.predict(X) == 1)
 
 
-def test_bound_warning_names_each_dimensions_own_bound():
+@pytest.mark.parametrize(
+    "value, side, verb",
+    [(1e-1, "lower bound 0.1", "Decreasing"), (1e1, "upper bound 10.0", "Increasing")],
+)
+def test_bound_warning_names_each_dimensions_own_bound(value, side, verb):
     from skoccmap.classifier import _warn_at_bounds
 
     kernel = RBF([1.0, 1.0], length_scale_bounds=[[1e-2, 1e2], [1e-1, 1e1]])
-    kernel.theta = np.log([1.0, 1e-1])  # dimension 1 at its own lower bound, 0.1
+    kernel.theta = np.log([1.0, value])  # dimension 1 at one of its own bounds
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         _warn_at_bounds(kernel)
     assert [str(w.message) for w in caught] == [
         "The optimal value found for dimension 1 of parameter length_scale is close to the "
-        "specified lower bound 0.1. Decreasing the bound and calling fit again may find a "
-        "better value."
+        f"specified {side}. {verb} the bound and calling fit again may find a better value."
     ]
 
 
@@ -1086,21 +1089,6 @@ def test_default_kernel_is_the_documented_one():
     assert clf.kernel_ == C(1.0, (1e-3, 1e3)) * RBF(1.0, (1e-3, 1e3))
     learned = EPGaussianProcessClassifier().fit(X, y)
     np.testing.assert_allclose(learned.kernel_.bounds, np.log([[1e-3, 1e3], [1e-3, 1e3]]))
-
-
-def test_bound_warning_names_each_dimensions_own_upper_bound():
-    from skoccmap.classifier import _warn_at_bounds
-
-    kernel = RBF([1.0, 1.0], length_scale_bounds=[[1e-2, 1e2], [1e-1, 1e1]])
-    kernel.theta = np.log([1.0, 1e1])  # dimension 1 at its own upper bound, 10
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        _warn_at_bounds(kernel)
-    assert [str(w.message) for w in caught] == [
-        "The optimal value found for dimension 1 of parameter length_scale is close to the "
-        "specified upper bound 10.0. Increasing the bound and calling fit again may find a "
-        "better value."
-    ]
 
 
 def test_an_infinite_hyperparameter_cannot_be_learned():
