@@ -786,12 +786,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         # below the two). Merge greedily while the log joint rises, as at the start.
         _, best_labels = np.unique(best_labels, return_inverse=True)
         statistics = sufficient_statistics(Xc, best_labels, int(best_labels.max()) + 1)
-        mapping = greedy_merge(*statistics, prior, self.alpha)
-        best_labels = mapping[best_labels]
-        n_merged = mapping.max() + 1
-        self.best_log_joint_ = float(
-            log_joint(*sufficient_statistics(Xc, best_labels, n_merged), prior, self.alpha)
-        )
+        best_labels = greedy_merge(*statistics, prior, self.alpha)[best_labels]
         if not self.converged_:
             warnings.warn(
                 f"Sampling stopped at max_iter={self.max_iter} sweeps while the log joint was "
@@ -800,6 +795,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
                 stacklevel=caller_stacklevel(),
             )
         self._set_final_state(Xc, best_labels, prior)
+        self.best_log_joint_ = float(log_joint(*self._statistics, prior, self.alpha))
         self._prior = prior
         # The sampler's generator goes on in partial_fit: a sequence of calls is reproducible.
         self._rng = rng
