@@ -28,7 +28,7 @@ from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._integrals import _POINT_CHUNK, point_row_pairs
-from ._reach import ExpertReach, _extent, kernel_reach, threads_pay
+from ._reach import _COVERAGE_ALL_CELLS, ExpertReach, _extent, kernel_reach, threads_pay
 from ._shared_kernel import (
     learn_shared_kernel,
     warn_at_bounds,
@@ -2664,13 +2664,17 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         and the one with the largest weight, are kept if they have
         data within reach of the query (see :meth:`ExpertReach.within_reach`). A query
         that keeps none falls back to its best-weighted expert within reach, and to no
-        expert (the prior) when none is.
+        expert (the prior) when none is. The coverage gate with a positive threshold
+        finds the same pairs from those of positive coverage
+        (:meth:`_consulted_by_coverage`), without the candidates' coverage, once that pays.
         """
         index = self._reach_index
+        coverage = self._gate() == "coverage"
+        if coverage and self._gating_threshold() > 0.0 and self._covering_pays(Xc):
+            return self._consulted_by_coverage(Xc)
         query, expert = index.candidates(Xc)
         if query.size == 0:
             return query, expert, np.empty(0)
-        coverage = self._gate() == "coverage"
         # Pairs known to be within reach without a search: those the coverage gate covers
         # (it counts only midpoint cells whose data lie within reach of the query).
         if coverage:
@@ -2698,6 +2702,37 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         weights = np.maximum(weights, np.finfo(np.float64).tiny)
         query, expert, weights = query[near], expert[near], weights[near]
         order = np.argsort(expert, kind="stable")
+        return query[order], expert[order], weights[order]
+
+    def _covering_pays(self, Xc):
+        """Whether :meth:`_consulted_by_coverage` should choose the experts: for more
+        queries than the coverage's search of all cells is made for, or once the tree of
+        all cells is built (see ``ExpertReach._search_all_cells``)."""
+        index = self._reach_index
+        return len(Xc) > _COVERAGE_ALL_CELLS or getattr(index, "_centre_tree", None) is not None
+
+    def _consulted_by_coverage(self, Xc):
+        """:meth:`_consulted` with the coverage gate and a positive threshold, from the
+        pairs of positive coverage (``ExpertReach.covering``) instead of every candidate's.
+
+        The same pairs and weights: with a positive threshold a query that some expert
+        covers keeps only covering experts (which hold data within reach), and one that
+        none covers keeps every candidate within reach, all of equal weight.
+        """
+        index = self._reach_index
+        query, expert, cover = index.covering(Xc, self.coverage_width_)
+        total = np.bincount(query, weights=cover, minlength=Xc.shape[0])
+        weights = cover / total[query]
+        largest = _query_max(query, weights)
+        keep = (weights == largest) | (weights >= self._gating_threshold() * largest)
+        parts = [(query[keep], expert[keep], weights[keep])]
+        bare = np.flatnonzero(total == 0.0)
+        if bare.size:
+            q, e = index.candidates(Xc[bare])
+            near = index.within_reach(Xc[bare], q, e)
+            parts.append((bare[q[near]], e[near], np.ones(np.count_nonzero(near))))
+        query, expert, weights = (np.concatenate(part) for part in zip(*parts, strict=True))
+        order = np.lexsort((query, expert))
         return query[order], expert[order], weights[order]
 
     # -- prediction ------------------------------------------------------------------

@@ -440,6 +440,42 @@ def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, g
     assert pairs == expected
 
 
+@pytest.mark.parametrize("threshold", ["auto", 0.8, 0.99])
+def test_coverage_gate_from_the_covering_pairs_equals_it_from_the_candidates(
+    paper, grid, threshold, monkeypatch
+):
+    # Many queries choose their experts from the pairs of positive coverage alone; the
+    # same pairs, weights and map as from every candidate's coverage. The ring lies
+    # beyond the coverage's cut: its queries consult every candidate within reach.
+    _, Q = grid
+    model = _mixture(max_expert_size=100, gating_threshold=threshold).fit(paper.X, paper.y)
+    lo, hi = Q[:, :2].min(axis=0) - 2.5, Q[:, :2].max(axis=0) + 2.5
+    ring = np.vstack([[[x, lo[1]], [x, hi[1]]] for x in np.linspace(lo[0], hi[0], 40)])
+    Q = np.vstack([Q, as_segments(ring)])
+    assert model._covering_pays(Q)
+    fast = model._consulted(Q)
+    proba = model.predict_proba(Q)
+    monkeypatch.setattr(type(model), "_covering_pays", lambda self, Xc: False)
+    slow = model._consulted(Q)
+    for got, expected in zip(fast, slow, strict=True):
+        np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(model.predict_proba(Q), proba)
+    # Uncovered queries within reach consult experts, with equal weights.
+    cover = model._reach_index.covering(Q, model.coverage_width_)[0]
+    bare = ~np.isin(fast[0], cover)
+    assert np.any(bare) and np.all(fast[2][bare] == 1.0)
+
+
+def test_few_queries_choose_their_experts_from_the_candidates_until_the_tree_is_built(
+    paper,
+):
+    model = _mixture(max_expert_size=100).fit(paper.X, paper.y)
+    Q = as_segments(paper.X[paper.y == 1, :2][:5])
+    assert not model._covering_pays(Q)
+    model.predict_proba(np.repeat(Q, 1000, axis=0))
+    assert model._reach_index._centre_tree is not None and model._covering_pays(Q)
+
+
 def test_coverage_gate_consults_the_experts_whose_data_are_at_the_query(paper):
     # At the midpoints of training beams (pieces follow their nearest hit), the consulted
     # experts include the one with the most data near the query, and hold at least 30 %

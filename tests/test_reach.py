@@ -349,6 +349,39 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_midpoint_cells(
     np.testing.assert_array_equal(threaded, got)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_covering_lists_exactly_the_candidates_of_positive_coverage(dim, monkeypatch):
+    # The pairs of positive coverage found from the cells alone, searched in batches of 64
+    # queries: those of the coverage over every candidate, with its values to the bit.
+    monkeypatch.setattr(_reach, "_COVERING_QUERIES", 64)
+    segments, expert, n_experts = _random_experts(dim, seed=50 + dim)
+    index = ExpertReach(segments, expert, n_experts, reach=2.0)
+    rng = np.random.default_rng(60 + dim)
+    points, ends = _point_and_segment_queries(rng, 200, 30, dim)
+    queries = np.hstack([np.vstack([points, points + 100.0]), np.vstack([ends, ends + 100.0])])
+    query, cand = index.candidates(queries)
+    cover = index.coverage(queries, query, cand, 0.4)
+    positive = cover > 0
+    got = index.covering(queries, 0.4)
+    expected = (query[positive], cand[positive], cover[positive])
+    for array, want in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(array, want)
+    # Queries near the data are covered, and those 100 m away not.
+    assert np.unique(got[0]).size > 20 and got[0].max() < 200
+
+
+def test_covering_is_empty_without_cells_or_queries():
+    segments = np.array([[-5.0, 0.0, 5.0, 0.0]])
+    queries = np.zeros((2, 4))
+    for index, q in [
+        (ExpertReach(segments, np.array([0]), 1, reach=np.inf), queries),
+        (ExpertReach(segments, np.array([0]), 1, reach=2.0), queries[:0]),
+    ]:
+        query, cand, cover = index.covering(q, 0.4)
+        assert query.size == cand.size == cover.size == 0
+        assert query.dtype == cand.dtype == np.intp
+
+
 def test_tree_of_all_midpoint_cells_is_built_once_searches_apart_cost_as_much(monkeypatch):
     # Ski rental: a few queries search each expert's cells apart until that has cost as
     # much as building the tree of all cells, then the tree; the coverage is the same.
