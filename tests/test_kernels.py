@@ -231,7 +231,11 @@ def test_one_element_length_scale_is_isotropic():
         (np.inf, 4, "positive and finite"),
         ([1.0, np.nan], 4, "positive and finite"),
         ([[0.5, 1.0], [1.0, 2.0]], 4, "scalar or a 1-D array"),
-        ([1.0, 2.0], 6, "has 2 entries but the segments have 3 spatial"),
+        (
+            [1.0, 2.0],
+            6,
+            r"has 2 entries but the segments have 3 spatial dimension\(s\) \(6 columns\)",
+        ),
     ],
     ids=["zero", "one zero", "inf", "nan", "2-D", "too few entries"],
 )
@@ -284,3 +288,38 @@ def test_bad_cross_input_raises(Y, match):
     X = np.zeros((2, 4))
     with pytest.raises(ValueError, match=match):
         IntegralKernel(1.0)(X, Y)
+
+
+@pytest.mark.parametrize("X_columns, Y_columns", [(4, 6), (6, 4)])
+def test_cross_kernel_needs_the_same_dimension_either_way(X_columns, Y_columns):
+    X, Y = np.zeros((2, X_columns)), np.zeros((3, Y_columns))
+    match = f"X has {X_columns} columns but Y has {Y_columns}"
+    with pytest.raises(ValueError, match=match):
+        IntegralKernel(1.0)(X, Y)
+
+
+@pytest.mark.parametrize("length_scale", [0.7, [0.7], [0.5, 1.3], [0.2, 0.4, 0.8]])
+@pytest.mark.parametrize("bounds", [(1e-2, 1e2), "fixed"])
+def test_hyperparameter_theta_and_bounds_are_those_of_rbf(length_scale, bounds):
+    # The optimisers of scikit-learn's GPs and of this package see the kernel through these:
+    # one log length scale per spatial dimension when anisotropic, each with the bounds.
+    kernel, rbf = IntegralKernel(length_scale, bounds), RBF(length_scale, bounds)
+    (hyp,), (expected,) = kernel.hyperparameters, rbf.hyperparameters
+    assert (hyp.name, hyp.value_type, hyp.n_elements, hyp.fixed) == (
+        expected.name,
+        expected.value_type,
+        expected.n_elements,
+        expected.fixed,
+    )
+    assert kernel.anisotropic == rbf.anisotropic
+    assert kernel.n_dims == rbf.n_dims
+    np.testing.assert_array_equal(kernel.theta, rbf.theta)
+    np.testing.assert_array_equal(kernel.bounds, rbf.bounds)
+    assert kernel.bounds.shape == rbf.bounds.shape
+
+
+@pytest.mark.parametrize("length_scale", [0.12345, [0.12345], 1234.5, [0.12345, 2.0, 6789.0]])
+def test_repr_rounds_as_rbf(length_scale):
+    assert repr(IntegralKernel(length_scale)) == repr(RBF(length_scale)).replace(
+        "RBF", "IntegralKernel"
+    )
