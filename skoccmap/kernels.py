@@ -7,6 +7,17 @@ from ._integrals import integral_kernel, segment_self
 from ._validation import check_segments, segment_dim
 
 
+def _check_length_scale_shape(length_scale):
+    """Refuse a length scale of more than one dimension, a row of shape (1, n) included: it
+    would give a 2-D ``theta``, which no optimiser takes."""
+    shape = np.shape(length_scale)
+    if len(shape) > 1:
+        raise ValueError(
+            "length_scale must be a scalar or a 1-D array (one per spatial dimension), got "
+            f"shape {shape}; pass np.ravel(length_scale) for a row of length scales."
+        )
+
+
 class IntegralKernel(Kernel):
     """Squared-exponential kernel averaged along segments.
 
@@ -75,6 +86,7 @@ class IntegralKernel(Kernel):
 
     @property
     def hyperparameter_length_scale(self):
+        _check_length_scale_shape(self.length_scale)
         if self.anisotropic:
             return Hyperparameter(
                 "length_scale", "numeric", self.length_scale_bounds, len(self.length_scale)
@@ -82,9 +94,8 @@ class IntegralKernel(Kernel):
         return Hyperparameter("length_scale", "numeric", self.length_scale_bounds)
 
     def _checked_length_scale(self, n_dims):
+        _check_length_scale_shape(self.length_scale)
         length_scale = np.squeeze(np.asarray(self.length_scale, dtype=float)).astype(float)
-        if length_scale.ndim > 1:
-            raise ValueError("length_scale must be a scalar or a 1-D array.")
         if length_scale.ndim == 1 and length_scale.shape[0] != n_dims:
             raise ValueError(
                 f"Anisotropic length_scale has {length_scale.shape[0]} entries but the segments "

@@ -323,3 +323,20 @@ def test_repr_rounds_as_rbf(length_scale):
     assert repr(IntegralKernel(length_scale)) == repr(RBF(length_scale)).replace(
         "RBF", "IntegralKernel"
     )
+
+
+@pytest.mark.parametrize("length_scale", [[[0.7]], [[0.5, 1.3]]], ids=["1x1", "1x2"])
+def test_row_of_length_scales_is_refused_before_learning(length_scale):
+    # A row was taken for one isotropic length scale with a 2-D theta: a GP's fit stopped
+    # inside scipy with "'x0' must only have one dimension".
+    X, y = _occupancy_data(np.random.default_rng(9), n_beams=5)
+    kernel = IntegralKernel(length_scale)
+    match = r"scalar or a 1-D array .* got shape \(1, \d\); pass np\.ravel\(length_scale\)"
+    with pytest.raises(ValueError, match=match):
+        GaussianProcessRegressor(C(1.0) * kernel).fit(X, y)
+    with pytest.raises(ValueError, match=match):
+        _ = kernel.theta
+    with pytest.raises(ValueError, match=match):
+        kernel(X)
+    with pytest.raises(ValueError, match=match):
+        kernel.diag(X)
