@@ -202,3 +202,34 @@ def test_a_map_without_a_lasting_hit_says_so():
         warnings.simplefilter("error", UserWarning)
         model = MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(X, y)
     assert model.predict_proba(X[-1:])[0, 1] > 0.5
+
+
+def test_counts_taken_in_chunks_equal_the_counts_taken_at_once(monkeypatch):
+    import skoccmap._transient as transient
+
+    X, y = _random_rows(np.random.default_rng(5), 2)
+    at_once = CellCounts(0.1, 2).add(X, y == 1)
+    monkeypatch.setattr(transient, "_CHUNK", 7)
+    in_chunks = CellCounts(0.1, 2).add(X, y == 1)
+    for name in ("keys", "hits", "passes"):
+        np.testing.assert_array_equal(getattr(in_chunks, name), getattr(at_once, name))
+
+
+@pytest.mark.parametrize("n_dims", [2, 3])
+def test_counts_reach_as_far_as_the_keys_bits_and_no_further(n_dims):
+    # Keys hold 62 // D bits an axis: cells up to 2**(62 // D - 1) - 1 either way from the
+    # first data's are counted each on its own, never with another cell's hits; a cell one
+    # further out is refused.
+    reach = 2 ** (62 // n_dims - 1) - 1
+    edge = np.vstack([reach * np.eye(n_dims), -reach * np.eye(n_dims)])
+    edge = np.vstack([edge, np.full((1, n_dims), reach), np.full((1, n_dims), -reach)])
+    inner = edge - np.sign(edge)
+    # Cells of 1 m, the origin cell first; one hit in each edge cell, two in each inner one.
+    hits = np.vstack([np.zeros((1, n_dims)), edge, inner, inner]) + 0.5
+    counts = CellCounts(1.0, n_dims).add(np.hstack([hits, hits]), np.ones(len(hits), bool))
+    found, passes = counts.counted(np.vstack([edge, inner]) + 0.5)
+    np.testing.assert_array_equal(found, np.repeat([1, 2], len(edge)))
+    assert not passes.any()
+    for point in edge + np.sign(edge) + 0.5:
+        with pytest.raises(ValueError, match="cannot be counted"):
+            counts.counted(point[None])
