@@ -19,6 +19,11 @@ __all__ = ["piece_keys", "thin_free_pieces"]
 # 22.5 degrees between neighbouring bins.
 _DIRECTION_BIN = 2.0 * np.sin(np.pi / 16.0)
 
+# Octaves begin this far (in log2 units) below the powers of two: pieces cut to a power-of-two
+# length (no-return beams double from max_beam_length, 1 m by default) come out a rounding
+# error either side of it, and would otherwise fall in two octaves at random.
+_OCTAVE_SLACK = 1e-6
+
 # Pieces keyed at once (tens of MB of temporaries).
 _KEY_BLOCK = 1 << 18
 
@@ -38,7 +43,8 @@ def piece_keys(pieces, cell_size):
     keys : ndarray of shape (n_pieces, 2 * n_dims + 1) of int64
         Equal rows for pieces counted as duplicates of each other. Direction is taken up to
         its sign (a beam piece observes the same line either way); zero-length rows (free
-        points) share one direction and length.
+        points) share one direction and length. Octave ``k`` holds the lengths from
+        ``2**k`` (less a rounding error) to ``2**(k + 1)``.
     """
     d = pieces.shape[1] // 2
     start, end = pieces[:, :d], pieces[:, d:]
@@ -48,7 +54,8 @@ def piece_keys(pieces, cell_size):
     # Up to sign: the first non-zero component made positive.
     first = unit[np.arange(len(unit)), np.argmax(unit != 0, axis=1)]
     unit *= np.where(first < 0, -1.0, 1.0)[:, None]
-    octave = np.where(length > 0, np.floor(np.log2(np.where(length > 0, length, 1.0))), -1e3)
+    log_length = np.log2(np.where(length > 0, length, 1.0)) + _OCTAVE_SLACK
+    octave = np.where(length > 0, np.floor(log_length), -1e3)
     return np.column_stack(
         [
             np.floor(0.5 * (start + end) / cell_size),

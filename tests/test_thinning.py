@@ -170,6 +170,22 @@ def test_keys_share_a_length_octave(direction):
     np.testing.assert_array_equal(_same_rows(keys), _same_rows(octave))
 
 
+@pytest.mark.parametrize("length", [0.5, 1.0, 2.0, 4.0])
+def test_pieces_cut_to_a_power_of_two_length_share_its_octave(length):
+    # No-return beams are cut into pieces of 1, 2, 4 m (max_beam_length=1.0): from different
+    # poses, their lengths come out a rounding error either side of the power of two.
+    rng = np.random.default_rng(0)
+    starts = rng.uniform(-50.0, 50.0, size=(500, 2))
+    unit = rng.normal(size=(500, 2))
+    unit /= np.linalg.norm(unit, axis=1)[:, None]
+    pieces = np.hstack([starts, starts + length * unit])
+    assert (np.linalg.norm(pieces[:, 2:] - pieces[:, :2], axis=1) < length).any()
+    keys = piece_keys(pieces, 0.2)
+    # One octave, the one of pieces half as long again.
+    longer = piece_keys(np.hstack([starts, starts + 1.5 * length * unit]), 0.2)
+    assert np.unique(np.r_[keys[:, -1], longer[:, -1]]).size == 1
+
+
 @pytest.mark.parametrize("n_dims", [2, 3])
 def test_keys_separate_directions_45_degrees_apart(n_dims):
     # One midpoint and length. Unit vectors 45 degrees apart differ by 2 sin(22.5 deg) =
