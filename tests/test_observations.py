@@ -432,6 +432,26 @@ def test_graded_pieces_tile_a_segment_ending_on_their_boundaries(length):
         assert_allclose(pieces, [[0.0, 0.0, 0.5, 0.0], [0.5, 0.0, 0.75, 0.0]])
 
 
+@pytest.mark.parametrize(
+    ("length", "max_length", "end_length", "n_pieces"),
+    [(15.0, None, 1.0, 4), (1.05, 1.0, 0.35, 2), (0.35 * 7, None, 0.35, 3)],
+)
+def test_segments_as_long_as_a_graded_boundary_up_to_rounding_take_no_sliver(
+    length, max_length, end_length, n_pieces
+):
+    # A no-return beam of 15 m is cut at 1, 3 and 7 m from its end: computed from
+    # coordinates in any direction its length is a rounding error either side of 15, and
+    # the long side must not add a last piece of that rounding error's length.
+    rng = np.random.default_rng(5)
+    angle = rng.uniform(0.0, 2.0 * np.pi, 500)
+    start = rng.uniform(-20.0, 20.0, (500, 2))
+    X = np.hstack([start, start + length * np.c_[np.cos(angle), np.sin(angle)]])
+    assert np.any(np.linalg.norm(X[:, 2:] - X[:, :2], axis=1) > length)
+    pieces, source = split_segments(X, max_length, end_length=end_length)
+    assert_array_equal(np.bincount(source, minlength=500), n_pieces)
+    assert np.linalg.norm(pieces[:, 2:] - pieces[:, :2], axis=1).min() > 0.3
+
+
 def test_split_segments_takes_a_whole_number_of_pieces_despite_rounding():
     # 3 * 0.1 / 0.1 is 3.0000000000000004 in floating point: three pieces, not four.
     pieces, _ = split_segments([[0.0, 0.0, 3 * 0.1, 0.0]], 0.1)
