@@ -280,7 +280,8 @@ def _point_pairs(s1, s2, dim, gradient):
 
 
 def _short_pairs(s1, s2, dim, gradient):
-    """Tensor Gauss-Legendre on the point kernel for pairs of short segments."""
+    """Tensor Gauss-Legendre on the point kernel for pairs of short segments, 0 beyond
+    ``_CUTOFF`` as every other kind of pair."""
     x, w = _GL_NODES[_SHORT_ORDER, :_SHORT_ORDER], _GL_WEIGHTS[_SHORT_ORDER, :_SHORT_ORDER]
     a1, d1 = s1[:, :dim], s1[:, dim:] - s1[:, :dim]
     a2, d2 = s2[:, :dim], s2[:, dim:] - s2[:, :dim]
@@ -293,9 +294,13 @@ def _short_pairs(s1, s2, dim, gradient):
     diff2 = diff * diff
     kern = np.exp(-0.5 * diff2.sum(axis=-1)) * (w[:, None] * w[None, :])
     k = kern.sum(axis=(1, 2))
+    far = _segment_dist2(a1, d1, a2, d2) > _CUTOFF**2
+    k[far] = 0.0
     if gradient is None:
         return k, None
-    return k, np.einsum("pij,pijk->pk", kern, diff2)
+    grad = np.einsum("pij,pijk->pk", kern, diff2)
+    grad[far] = 0.0
+    return k, grad
 
 
 def _point_point_values(w, gradient):

@@ -17,6 +17,7 @@ from skoccmap._integrals import (
     loose_upper_bound,
     pair_integrals,
     pair_upper_bound,
+    point_row_pairs,
     segment_point,
     segment_self,
 )
@@ -587,8 +588,6 @@ def test_pair_upper_bound_of_crossing_beams_counts_their_strips(dim):
 def test_point_row_pairs_equal_the_kernel_matrix(dim, anisotropic):
     # Listed pairs of points and rows (points, short and long segments, some beyond the
     # cut-off) take the values of the whole matrix, to the bit, in any order.
-    from skoccmap._integrals import point_row_pairs
-
     rng = np.random.default_rng(60 + dim + 2 * anisotropic)
     Y = _random_segments(rng, 50, dim, box=30.0, max_length=3.0, point_fraction=0.3)
     Y[:5, dim:] = Y[:5, :dim] + 0.01
@@ -602,3 +601,62 @@ def test_point_row_pairs_equal_the_kernel_matrix(dim, anisotropic):
     values = point_row_pairs(points, Y, p[order], r[order], length_scale=scale)
     np.testing.assert_array_equal(values, whole[p[order], r[order]])
     assert np.any(whole == 0.0) and np.any(whole > 1e-3)
+
+
+def _pairs_at_the_cutoff(dim, gap):
+    """Rows X, Y (scaled units) whose paired rows are ``gap`` apart, one of each kind:
+    point-point, point past the far end of a short and of a long segment, point beside a
+    long segment, short-short, short-long (end to end) and long-long (side by side)."""
+    e0, e1 = np.eye(dim)[0], np.eye(dim)[1]
+    c = np.r_[0.25, -0.5, 1.0][:dim]
+    short, long = 0.03, 5.0
+
+    def row(start, end):
+        return np.r_[c + start, c + end]
+
+    def pt(x):
+        return row(x, x)
+
+    pairs = [
+        (pt(0 * e0), pt(gap * e1)),
+        (pt((short + gap) * e0), row(0 * e0, short * e0)),
+        (pt((long + gap) * e0), row(0 * e0, long * e0)),
+        (pt(2.5 * e0 + gap * e1), row(0 * e0, long * e0)),
+        (row(0 * e0, short * e0), row(gap * e1, short * e0 + gap * e1)),
+        (row((long + gap) * e0, (long + gap + short) * e0), row(0 * e0, long * e0)),
+        (row(0 * e0, long * e0), row(gap * e1 + e0, (long + 1) * e0 + gap * e1)),
+    ]
+    return np.array([x for x, _ in pairs]), np.array([y for _, y in pairs])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pairs_at_the_cutoff(dim):
+    # Every kind of pair 1e-3 inside the cut-off is positive, 1e-3 beyond it exactly 0,
+    # gradients included: in K(X, Y), K(Y, X) and K of both, in pair_integrals (pairs
+    # with a segment) and in point_row_pairs.
+    for gap, inside in ((_CUTOFF - 1e-3, True), (_CUTOFF + 1e-3, False)):
+        X, Y = _pairs_at_the_cutoff(dim, gap)
+        n = len(X)
+        both_K, both_G = integral_kernel(np.vstack([X, Y]), eval_gradient=True, anisotropic=True)
+        values = [
+            integral_kernel(X, Y).diagonal(),
+            integral_kernel(Y, X).diagonal(),
+            both_K[np.arange(n), n + np.arange(n)],
+        ]
+        grads = [both_G[np.arange(n), n + np.arange(n)]]
+        k, g = pair_integrals(X[1:], Y[1:], gradient="aniso")
+        values.append(k)
+        grads.append(g)
+        k, g = pair_integrals(Y[1:], X[1:], gradient="iso")
+        values.append(k)
+        grads.append(g)
+        is_point = np.all(X[:, :dim] == X[:, dim:], axis=1)
+        values.append(
+            point_row_pairs(
+                X[is_point, :dim], Y, np.arange(is_point.sum()), np.flatnonzero(is_point)
+            )
+        )
+        for v in values:
+            assert np.all(v > 0.0) if inside else np.all(v == 0.0), (gap, v)
+        for v in grads:  # (pairs, dims); a dimension along which the pair lies gives 0
+            assert np.all(v.sum(axis=1) > 0.0) if inside else np.all(v == 0.0), (gap, v)
