@@ -17,6 +17,7 @@ from skoccmap._integrals import (
     loose_upper_bound,
     pair_integrals,
     pair_upper_bound,
+    point_point,
     point_row_pairs,
     segment_point,
     segment_self,
@@ -43,12 +44,13 @@ def _closest_params(a1, d1, a2, d2):
     return sorted({float(p) for p in pts if 0.0 < p < 1.0})
 
 
-def reference_nested_quad(s1, s2, gradient_dim=None):
+def reference_nested_quad(s1, s2, gradient_dim=None, epsabs=1e-15):
     """Double integral by nested adaptive ``scipy.integrate.quad``.
 
     Breakpoints at the projections of the other segment's ends and at the lines' closest
     approach (outer), and at the closest point (inner), so that narrow peaks of long segments
-    are never missed. ``gradient_dim`` integrates ``dx_k**2 * kernel`` instead.
+    are never missed. ``gradient_dim`` integrates ``dx_k**2 * kernel`` instead; ``epsabs=0``
+    asks for relative accuracy only (for values far below 1e-15).
     """
     dim = len(s1) // 2
     a1, d1 = s1[:dim], s1[dim:] - s1[:dim]
@@ -68,10 +70,10 @@ def reference_nested_quad(s1, s2, gradient_dim=None):
             v0 = (p - a2) @ d2 / dd2
             if 0.0 < v0 < 1.0:
                 pts = [v0]
-        return integrate.quad(f, 0.0, 1.0, points=pts, epsabs=1e-15, epsrel=1e-12, limit=500)[0]
+        return integrate.quad(f, 0.0, 1.0, points=pts, epsabs=epsabs, epsrel=1e-12, limit=500)[0]
 
     pts = _closest_params(a1, d1, a2, d2) or None
-    return integrate.quad(inner, 0.0, 1.0, points=pts, epsabs=1e-15, epsrel=1e-11, limit=500)[0]
+    return integrate.quad(inner, 0.0, 1.0, points=pts, epsabs=epsabs, epsrel=1e-11, limit=500)[0]
 
 
 def reference_dblquad(s1, s2):
@@ -143,12 +145,15 @@ CASES_3D = {
     ids=list(CASES_2D) + list(CASES_3D),
 )
 def test_pairs_match_nested_quad(s1, s2):
-    expected = reference_nested_quad(s1, s2)
+    expected = reference_nested_quad(s1, s2, epsabs=0.0)
+    # The outer window leaves out about exp(-_WINDOW_MARGIN**2 / 2) ~ 2e-8 of the value (4e-8
+    # on the near miss, whose value is 1e-14): relative to the value, a window or a
+    # Gauss-Legendre order too small by a little shows here.
     k, _ = pair_integrals(s1[None], s2[None])
-    assert_close(k[0], expected)
+    assert_close(k[0], expected, rtol=1e-7, atol=0.0)
     # The kernel is symmetric in its arguments.
     k_swapped, _ = pair_integrals(s2[None], s1[None])
-    assert_close(k_swapped[0], expected)
+    assert_close(k_swapped[0], expected, rtol=1e-7, atol=0.0)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -200,13 +205,14 @@ def test_segment_point_matches_quad(length, offset):
     assert_close(grad, expected_grad)
 
 
-@pytest.mark.parametrize("length", [_SHORT * 1.001, 0.5, 3.0, 30.0])
+@pytest.mark.parametrize("length", [0.03, 0.049, _SHORT * 1.001, 0.25, 0.5, 3.0, 30.0])
 @pytest.mark.parametrize("beyond", [-7.9, -5.0, -2.0, 2.0, 5.0, 7.9])
 @pytest.mark.parametrize("aside", [0.0, 0.5, 3.0])
 def test_segment_point_tails_relative_to_value(length, beyond, aside):
     # Points past either end along the segment's line (and beside it): the value is a
     # difference of two far tails of the normal CDF, which must keep its relative digits
-    # up to the cut-off.
+    # up to the cut-off. Below _SHORT (0.03, 0.049) the Gauss-Legendre rule must keep them
+    # too, and at 0.25 the closed form, where that rule would not.
     a = np.array([1.5, -0.5])
     u = np.array([0.8, 0.6])
     d = length * u
@@ -221,7 +227,7 @@ def test_segment_point_tails_relative_to_value(length, beyond, aside):
     assert segment_point(a, d, p) == pytest.approx(expected, rel=1e-11, abs=0.0)
 
 
-@pytest.mark.parametrize("length", [0.0, 1e-6, 0.3, 0.999, 1.001, 2.5, 40.0])
+@pytest.mark.parametrize("length", [0.0, 1e-6, 0.3, 0.999, 1.0, 1.001, 2.5, 40.0])
 def test_segment_self_matches_quad(length):
     def f(t, power):
         return 2.0 * (1.0 - t) * t**power * np.exp(-0.5 * (length * t) ** 2)
@@ -331,7 +337,7 @@ def test_point_pairs_are_the_rbf_kernel():
     assert_close(G, diff**2 * expected[..., None], rtol=1e-14, atol=cut * _CUTOFF**2)
 
 
-@pytest.mark.parametrize("order", [1, 2, 5, 12, 20, len(_GL_MAX_WINDOW)])
+@pytest.mark.parametrize("order", range(1, len(_GL_MAX_WINDOW) + 1))
 def test_gauss_legendre_table(order):
     # The tabulated window for each order integrates a unit Gaussian centred anywhere to
     # 1e-12 of its mass, and the next-lower order would not.
@@ -603,6 +609,72 @@ def test_point_row_pairs_equal_the_kernel_matrix(dim, anisotropic):
     assert np.any(whole == 0.0) and np.any(whole > 1e-3)
 
 
+def test_point_point_is_the_rbf_kernel():
+    from sklearn.gaussian_process.kernels import RBF
+
+    rng = np.random.default_rng(70)
+    P, Q = rng.normal(size=(2, 40, 3))
+    expected = RBF(length_scale=1.0)(P, Q)
+    np.testing.assert_allclose(point_point(P[:, None, :], Q[None, :, :]), expected, rtol=1e-13)
+    # A segment of no length is its start point.
+    np.testing.assert_allclose(
+        segment_point(P, np.zeros_like(P), Q), np.diag(expected), rtol=1e-13, atol=0.0
+    )
+
+
+@pytest.mark.parametrize("excess", [41.0, 50.0, 79.0])
+@pytest.mark.parametrize("side", ["before", "after"])
+@pytest.mark.parametrize("aside", [0.0, 1.0])
+def test_segment_point_far_end_term(excess, side, aside):
+    # A point off one end of the segment, the squared distance to the far end ``excess``
+    # above that to the near end: the far end's erfc term is about exp(-excess / 2) of the
+    # value, 1e-9 at 41 (must be kept), 1e-18 at 79 (may be skipped).
+    r = 2.0
+    length = np.sqrt(r * r + excess) - r
+    u = np.array([0.6, 0.8])
+    a = np.array([0.4, -0.3])
+    d = length * u
+    along = -r if side == "before" else length + r
+    p = a + along * u + aside * np.array([-0.8, 0.6])
+
+    def f(v):
+        diff = a + v * d - p
+        return np.exp(-0.5 * diff @ diff)
+
+    expected = integrate.quad(f, 0, 1, epsabs=0.0, epsrel=1e-13, limit=200)[0]
+    assert segment_point(a, d, p) == pytest.approx(expected, rel=1e-12, abs=0.0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_point_against_segment_of_length_short(dim):
+    # A segment of exactly _SHORT, where Gauss-Legendre hands over to the closed form,
+    # against points beside, past and on it: every path with a point gives the integral.
+    a = np.zeros(dim)
+    a[0] = 0.5
+    d = np.zeros(dim)
+    d[-1] = _SHORT  # from 0 to _SHORT: the difference of the ends is _SHORT exactly
+    row = np.r_[a, a + d][None]
+    offsets = np.zeros((4, dim))
+    offsets[0, 0], offsets[1, -1], offsets[2, :2], offsets[3, -1] = 0.3, 2.0, [1.0, -0.7], -0.01
+    points = a + offsets
+
+    def f(v, p):
+        diff = a + v * d - p
+        return np.exp(-0.5 * diff @ diff)
+
+    expected = [integrate.quad(f, 0, 1, args=(p,), epsabs=0.0, epsrel=1e-13)[0] for p in points]
+    P = np.hstack([points, points])
+    zeros = np.zeros(len(points), dtype=int)
+    for k in (
+        segment_point(a, d, points),
+        integral_kernel(P, row, length_scale=1.0)[:, 0],
+        integral_kernel(row, P, length_scale=1.0)[0],
+        integral_kernel(np.vstack([P, row]), length_scale=1.0)[:-1, -1],
+        point_row_pairs(points, row, np.arange(len(points)), zeros),
+    ):
+        assert_close(k, expected, rtol=1e-12)
+
+
 def _pairs_at_the_cutoff(dim, gap):
     """Rows X, Y (scaled units) whose paired rows are ``gap`` apart, one of each kind:
     point-point, point past the far end of a short and of a long segment, point beside a
@@ -660,3 +732,80 @@ def test_pairs_at_the_cutoff(dim):
             assert np.all(v > 0.0) if inside else np.all(v == 0.0), (gap, v)
         for v in grads:  # (pairs, dims); a dimension along which the pair lies gives 0
             assert np.all(v.sum(axis=1) > 0.0) if inside else np.all(v == 0.0), (gap, v)
+
+
+@pytest.mark.parametrize("swap", [False, True])
+def test_crossing_bound_takes_the_smaller_strip(swap):
+    # A T: the second segment starts on the middle of the first, at right angles. The
+    # first's strip holds nearly all the normal mass, the second's half of it, as does
+    # their rectangle: the bound is the value, not twice it, whichever comes first.
+    s1, s2 = np.array([[-20.0, 0.0, 20.0, 0.0]]), np.array([[0.0, 0.0, 0.0, 20.0]])
+    if swap:
+        s1, s2 = s2, s1
+    k, _ = pair_integrals(s1, s2)
+    for bound in (crossing_upper_bound(s1, s2), pair_upper_bound(s1, s2)[0]):
+        assert k[0] <= bound[0] <= 1.05 * k[0]
+
+
+@pytest.mark.parametrize("swap", [False, True])
+def test_loose_upper_bound_uses_either_line(swap):
+    # A short segment whose line crosses a long one, 10 length scales off the long one's
+    # line: only the distance to that line keeps the screen below exp(-10**2 / 2).
+    s1, s2 = np.array([[0.0, 10.0, 0.0, 11.0]]), np.array([[-50.0, 0.0, 50.0, 0.0]])
+    if swap:
+        s1, s2 = s2, s1
+    exact, dist2 = pair_upper_bound(s1, s2)
+    assert dist2[0] == pytest.approx(100.0)
+    # Without that distance the screen is the length term, sqrt(2 pi) / 100.
+    assert exact[0] <= loose_upper_bound(s1, s2)[0, 0] <= np.exp(-0.5 * 9.99**2)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_tiled_points_hold_every_pair_within_the_cutoff(dim):
+    # Points on a grid finer than the tiles, around a point, a short and two long segments,
+    # with many pairs just inside and just beyond the cut-off; chunks of 64 pairs tile the
+    # points. Every pair takes its value from pair_integrals, 0 beyond the cut-off.
+    step = 0.3 if dim == 2 else 0.9
+    g = np.arange(-12.0, 12.01, step)
+    P = np.stack(np.meshgrid(*[g] * dim), -1).reshape(-1, dim)
+    rows = [[0.0, 0.0, 0.0, 0.0], [0.1, 0.2, 0.13, 0.21], [-3.0, -1.0, 4.0, 2.0], [2, 5, 2, -4]]
+    Y = np.array(rows, dtype=float)
+    if dim == 3:
+        Y = np.hstack(
+            [Y[:, :2], [[0.0], [0.1], [1.0], [-2.0]], Y[:, 2:], [[0.0], [0.1], [2.0], [3.0]]]
+        )
+    X = np.hstack([P, P])
+    K = integral_kernel(X, Y, length_scale=1.0, block_size=64)
+    ii, jj = np.meshgrid(np.arange(len(X)), np.arange(len(Y)), indexing="ij")
+    expected = pair_integrals(X[ii.ravel()], Y[jj.ravel()])[0].reshape(K.shape)
+    # pair_integrals does not cut pairs of two points.
+    expected[np.sum(P * P, axis=1) > _CUTOFF**2, 0] = 0.0
+    near = (expected > 0.0) & (expected < np.exp(-0.5 * (_CUTOFF - 0.5) ** 2))
+    assert near.sum() > 200
+    np.testing.assert_array_equal(K == 0.0, expected == 0.0)
+    assert_close(K, expected, rtol=1e-12, atol=0.0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_diagonal_gradient_matches_quad(dim):
+    # K(X, X)'s diagonal gradient: along a segment of direction d (scaled), the integrand's
+    # squared difference in dimension k is (u - v)**2 d_k**2, so the gradient is d_k**2 times
+    # 2 int_0^1 (1 - t) t**2 exp(-|d|**2 t**2 / 2) dt.
+    rng = np.random.default_rng(80 + dim)
+    direction = rng.normal(size=(4, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    start = rng.uniform(-1.0, 1.0, (4, dim))
+    X = np.hstack([start, start + [[0.0], [0.03], [0.7], [2.4]] * direction])
+    for scale, anisotropic in ((rng.uniform(0.5, 1.5, dim), True), (np.full(dim, 0.8), False)):
+        _, G = integral_kernel(X, length_scale=scale, eval_gradient=True, anisotropic=anisotropic)
+        for i, s in enumerate(X):
+            d = (s[dim:] - s[:dim]) / scale
+            length = np.linalg.norm(d)
+
+            def f(t, length=length):
+                return 2.0 * (1.0 - t) * t**2 * np.exp(-0.5 * (length * t) ** 2)
+
+            expected = d * d * integrate.quad(f, 0, 1, epsabs=0.0, epsrel=1e-13)[0]
+            if not anisotropic:
+                expected = [expected.sum()]
+            assert_close(G[i, i], expected, rtol=1e-11, atol=0.0)
