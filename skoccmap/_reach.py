@@ -31,9 +31,12 @@ _COVERAGE_CUT = 3.0
 # ExpertReach.coverage searches all cells at once for up to this many queries, and each
 # candidate expert's cells apart for more (see there).
 _COVERAGE_ALL_CELLS = 2048
-# ExpertReach.covering searches the cells near this many queries at once: the pairs found
-# (a hundred per point query on the Intel log, thousands in a dense 3-D map) stay tens of MB.
-_COVERING_QUERIES = 4096
+# ExpertReach.covering searches the cells near a batch of queries at once, sized so that
+# about this many (query, cell) pairs are found (a hundred per point query on the Intel
+# log, thousands where hundreds of experts overlap): tens of MB of temporaries. The first
+# batch, of _COVERING_FIRST queries, measures the pairs per query.
+_COVERING_PAIRS = 1 << 20
+_COVERING_FIRST = 256
 # Building the tree of all cells costs about as much as searching the cells of one
 # expert apart per this many cells (ad hoc, Intel log with every scan: 0.09 s for 682k
 # cells, against 25 us per expert searched apart for a single query).
@@ -586,11 +589,11 @@ class ExpertReach:
 
         The pairs :meth:`coverage` gives a positive value among a query's candidates
         (every expert with a cell within its cut is one), found without listing the
-        candidates: one search of the tree of all midpoint cells per
-        ``_COVERING_QUERIES`` queries, the cells summed per pair. A query on a dense log
-        has a hundred or more candidates and a score of them cover it, so this costs a
-        fraction of :meth:`coverage` over the candidates. The values equal
-        :meth:`coverage`'s to the bit (whole units of ``_COVER_UNIT``).
+        candidates: one search of the tree of all midpoint cells per batch of queries
+        (sized to find about ``_COVERING_PAIRS`` cells), the cells summed per pair. A
+        query on a dense log has a hundred or more candidates and a score of them cover
+        it, so this costs a fraction of :meth:`coverage` over the candidates. The values
+        equal :meth:`coverage`'s to the bit (whole units of ``_COVER_UNIT``).
 
         Parameters
         ----------
@@ -613,8 +616,9 @@ class ExpertReach:
         if cut < 0.0:
             return found[0]
         mids, half = self._mids_and_half_lengths(queries)
-        for start in range(0, len(queries), _COVERING_QUERIES):
-            rows = slice(start, start + _COVERING_QUERIES)
+        start, batch = 0, _COVERING_FIRST
+        while start < len(queries):
+            rows = slice(start, start + batch)
             tree = cKDTree(mids[rows], balanced_tree=False, compact_nodes=False)
             near = tree.sparse_distance_matrix(
                 self.centre_tree, cut + half[rows].max(), output_type="ndarray"
@@ -632,6 +636,8 @@ class ExpertReach:
             pairs.sort_indices()
             query = start + np.repeat(np.arange(tree.n), np.diff(pairs.indptr))
             found.append((query, pairs.indices.astype(np.intp), pairs.data * _COVER_UNIT))
+            start += tree.n
+            batch = int(np.clip(_COVERING_PAIRS * tree.n / max(near.size, 1), 1, 1 << 16))
         return tuple(np.concatenate(part) for part in zip(*found, strict=True))
 
     def _coverage_all_cells(self, mids, half, query_index, expert_index, cut, width):

@@ -351,9 +351,11 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_midpoint_cells(
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_covering_lists_exactly_the_candidates_of_positive_coverage(dim, monkeypatch):
-    # The pairs of positive coverage found from the cells alone, searched in batches of 64
-    # queries: those of the coverage over every candidate, with its values to the bit.
-    monkeypatch.setattr(_reach, "_COVERING_QUERIES", 64)
+    # The pairs of positive coverage found from the cells alone, searched in batches sized
+    # to find about 2000 cells (the first of 16 queries): those of the coverage over every
+    # candidate, with its values to the bit.
+    monkeypatch.setattr(_reach, "_COVERING_PAIRS", 2000)
+    monkeypatch.setattr(_reach, "_COVERING_FIRST", 16)
     segments, expert, n_experts = _random_experts(dim, seed=50 + dim)
     index = ExpertReach(segments, expert, n_experts, reach=2.0)
     rng = np.random.default_rng(60 + dim)
