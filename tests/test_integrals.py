@@ -104,6 +104,17 @@ def assert_close(actual, expected, rtol=RTOL, atol=ATOL):
     assert np.all(ok), f"actual={actual[~ok]}, expected={expected[~ok]}, err={err[~ok]}"
 
 
+def _segment_point_by_quad(a, d, p):
+    """The point kernel averaged along the segment ``a + v d`` against ``p`` (scaled
+    units), by adaptive quadrature to 1e-13 relative."""
+
+    def f(v):
+        diff = a + v * d - p
+        return np.exp(-0.5 * diff @ diff)
+
+    return integrate.quad(f, 0, 1, epsabs=0.0, epsrel=1e-13, limit=200)[0]
+
+
 def _seg(start, end):
     return np.concatenate([np.asarray(start, float), np.asarray(end, float)])
 
@@ -218,12 +229,7 @@ def test_segment_point_tails_relative_to_value(length, beyond, aside):
     d = length * u
     along = beyond if beyond < 0 else length + beyond
     p = a + along * u + aside * np.array([-0.6, 0.8])
-
-    def f(v):
-        diff = a + v * d - p
-        return np.exp(-0.5 * diff @ diff)
-
-    expected = integrate.quad(f, 0, 1, epsabs=0.0, epsrel=1e-13, limit=200)[0]
+    expected = _segment_point_by_quad(a, d, p)
     assert segment_point(a, d, p) == pytest.approx(expected, rel=1e-11, abs=0.0)
 
 
@@ -636,12 +642,7 @@ def test_segment_point_far_end_term(excess, side, aside):
     d = length * u
     along = -r if side == "before" else length + r
     p = a + along * u + aside * np.array([-0.8, 0.6])
-
-    def f(v):
-        diff = a + v * d - p
-        return np.exp(-0.5 * diff @ diff)
-
-    expected = integrate.quad(f, 0, 1, epsabs=0.0, epsrel=1e-13, limit=200)[0]
+    expected = _segment_point_by_quad(a, d, p)
     assert segment_point(a, d, p) == pytest.approx(expected, rel=1e-12, abs=0.0)
 
 
@@ -657,12 +658,7 @@ def test_point_against_segment_of_length_short(dim):
     offsets = np.zeros((4, dim))
     offsets[0, 0], offsets[1, -1], offsets[2, :2], offsets[3, -1] = 0.3, 2.0, [1.0, -0.7], -0.01
     points = a + offsets
-
-    def f(v, p):
-        diff = a + v * d - p
-        return np.exp(-0.5 * diff @ diff)
-
-    expected = [integrate.quad(f, 0, 1, args=(p,), epsabs=0.0, epsrel=1e-13)[0] for p in points]
+    expected = [_segment_point_by_quad(a, d, p) for p in points]
     P = np.hstack([points, points])
     zeros = np.zeros(len(points), dtype=int)
     for k in (
