@@ -69,6 +69,21 @@ def _cell_weights(d, width):
     return np.rint(np.exp(-0.5 * (np.maximum(d, 0.0) / width) ** 2) / _COVER_UNIT)
 
 
+def _cells_within(mids, half, cells, cut):
+    """``(query, cell, d)`` for every cell of the tree ``cells`` within ``cut`` of a query,
+    ``d`` the distance from the query's midpoint ``mids`` less half its length ``half``.
+
+    The queries' tree is used once: sliding-midpoint splits and no shrunk node boxes build
+    in half the time of the default's median splits (which dominated the coverage gate),
+    for the same pairs.
+    """
+    tree = cKDTree(mids, balanced_tree=False, compact_nodes=False)
+    near = tree.sparse_distance_matrix(cells, cut + half.max(), output_type="ndarray")
+    d = near["v"] - half[near["i"]]
+    inside = d <= cut
+    return near["i"][inside], near["j"][inside], d[inside]
+
+
 def threads_pay(n_pairs, n_experts):
     """Whether work on ``n_pairs`` (query, expert) pairs of ``n_experts`` experts, one task
     per expert, should run in threads: starting them costs milliseconds, and a task on a
@@ -555,17 +570,8 @@ class ExpertReach:
             if tree is None:
                 return
             q = query_index[pairs]
-            # A tree per expert and chunk, used once: sliding-midpoint splits and no
-            # shrunk node boxes build in half the time of the default's median splits
-            # (which dominated the gate), for the same pairs.
-            queries_tree = cKDTree(mids[q], balanced_tree=False, compact_nodes=False)
-            near = queries_tree.sparse_distance_matrix(
-                tree, cut + half[q].max(), output_type="ndarray"
-            )
-            d = near["v"] - half[q][near["i"]]
-            inside = d <= cut
-            weight = _cell_weights(d[inside], width)
-            cover[pairs] = np.bincount(near["i"][inside], weights=weight, minlength=q.size)
+            i, _, d = _cells_within(mids[q], half[q], tree, cut)
+            cover[pairs] = np.bincount(i, weights=_cell_weights(d, width), minlength=q.size)
 
         by_expert = list(self._pairs_by_expert(expert_index))
         if threads_pay(query_index.size, len(by_expert)):
@@ -618,45 +624,32 @@ class ExpertReach:
         mids, half = self._mids_and_half_lengths(queries)
         start, batch = 0, _COVERING_FIRST
         while start < len(queries):
-            rows = slice(start, start + batch)
-            tree = cKDTree(mids[rows], balanced_tree=False, compact_nodes=False)
-            near = tree.sparse_distance_matrix(
-                self.centre_tree, cut + half[rows].max(), output_type="ndarray"
-            )
-            d = near["v"] - half[rows][near["i"]]
-            inside = d <= cut
+            rows = slice(start, min(start + batch, len(queries)))
+            n_rows = rows.stop - rows.start
+            i, cell, d = _cells_within(mids[rows], half[rows], self.centre_tree, cut)
             # Summed per pair as the sparse matrix is built: whole units, exactly in any order.
             pairs = coo_matrix(
-                (
-                    _cell_weights(d[inside], width),
-                    (near["i"][inside], self.centre_expert[near["j"][inside]]),
-                ),
-                shape=(tree.n, self.n_experts),
+                (_cell_weights(d, width), (i, self.centre_expert[cell])),
+                shape=(n_rows, self.n_experts),
             ).tocsr()
             pairs.sort_indices()
-            query = start + np.repeat(np.arange(tree.n), np.diff(pairs.indptr))
+            query = start + np.repeat(np.arange(n_rows), np.diff(pairs.indptr))
             found.append((query, pairs.indices.astype(np.intp), pairs.data * _COVER_UNIT))
-            start += tree.n
-            batch = int(np.clip(_COVERING_PAIRS * tree.n / max(near.size, 1), 1, 1 << 16))
+            start = rows.stop
+            batch = int(np.clip(_COVERING_PAIRS * n_rows / max(i.size, 1), 1, 1 << 16))
         return tuple(np.concatenate(part) for part in zip(*found, strict=True))
 
     def _coverage_all_cells(self, mids, half, query_index, expert_index, cut, width):
         """:meth:`coverage` from one search of all cells."""
         asked = np.unique(query_index)
-        queries_tree = cKDTree(mids[asked], balanced_tree=False, compact_nodes=False)
-        near = queries_tree.sparse_distance_matrix(
-            self.centre_tree, cut + half[asked].max(), output_type="ndarray"
-        )
-        query = asked[near["i"]]
-        d = near["v"] - half[query]
-        inside = d <= cut
-        query, d = query[inside], d[inside]
+        i, cell, d = _cells_within(mids[asked], half[asked], self.centre_tree, cut)
+        query = asked[i]
         # The pair of each (query, expert) found: cells within the cut of a query belong
         # to its candidates, but a pair not asked for is dropped all the same.
         pair_key = query_index.astype(np.int64) * self.n_experts + expert_index
         order = np.argsort(pair_key, kind="stable")
         sorted_key = pair_key[order]
-        key = query.astype(np.int64) * self.n_experts + self.centre_expert[near["j"][inside]]
+        key = query.astype(np.int64) * self.n_experts + self.centre_expert[cell]
         pos = np.searchsorted(sorted_key, key).clip(max=order.size - 1)
         found = sorted_key[pos] == key
         weight = _cell_weights(d[found], width)
