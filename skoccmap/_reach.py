@@ -584,6 +584,13 @@ class ExpertReach:
                 cover_of(k, pairs)
         return cover * _COVER_UNIT
 
+    def prefers_covering(self, n_queries):
+        """Whether :meth:`covering` should find the covered pairs of ``n_queries``
+        queries rather than :meth:`coverage` over their candidates: for more queries than
+        the coverage's search of all cells is made for, or once the tree of all cells is
+        built (see :meth:`_search_all_cells`)."""
+        return n_queries > _COVERAGE_ALL_CELLS or getattr(self, "_centre_tree", None) is not None
+
     def _coverage_cut(self, width):
         """Distance beyond which :meth:`coverage` ignores a cell; negative for a grid
         coarser than about 11 reaches (very long segments, see _grid_scale), where no

@@ -28,7 +28,7 @@ from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._integrals import _POINT_CHUNK, point_row_pairs
-from ._reach import _COVERAGE_ALL_CELLS, ExpertReach, _extent, kernel_reach, threads_pay
+from ._reach import ExpertReach, _extent, kernel_reach, threads_pay
 from ._shared_kernel import (
     learn_shared_kernel,
     warn_at_bounds,
@@ -2670,7 +2670,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         """
         index = self._reach_index
         coverage = self._gate() == "coverage"
-        if coverage and self._gating_threshold() > 0.0 and self._covering_pays(Xc):
+        if coverage and self._gating_threshold() > 0.0 and index.prefers_covering(len(Xc)):
             return self._consulted_by_coverage(Xc)
         query, expert = index.candidates(Xc)
         if query.size == 0:
@@ -2703,13 +2703,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         query, expert, weights = query[near], expert[near], weights[near]
         order = np.argsort(expert, kind="stable")
         return query[order], expert[order], weights[order]
-
-    def _covering_pays(self, Xc):
-        """Whether :meth:`_consulted_by_coverage` should choose the experts: for more
-        queries than the coverage's search of all cells is made for, or once the tree of
-        all cells is built (see ``ExpertReach._search_all_cells``)."""
-        index = self._reach_index
-        return len(Xc) > _COVERAGE_ALL_CELLS or getattr(index, "_centre_tree", None) is not None
 
     def _consulted_by_coverage(self, Xc):
         """:meth:`_consulted` with the coverage gate and a positive threshold, from the

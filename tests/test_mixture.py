@@ -452,10 +452,10 @@ def test_coverage_gate_from_the_covering_pairs_equals_it_from_the_candidates(
     lo, hi = Q[:, :2].min(axis=0) - 2.5, Q[:, :2].max(axis=0) + 2.5
     ring = np.vstack([[[x, lo[1]], [x, hi[1]]] for x in np.linspace(lo[0], hi[0], 40)])
     Q = np.vstack([Q, as_segments(ring)])
-    assert model._covering_pays(Q)
+    assert model._reach_index.prefers_covering(len(Q))
     fast = model._consulted(Q)
     proba = model.predict_proba(Q)
-    monkeypatch.setattr(type(model), "_covering_pays", lambda self, Xc: False)
+    monkeypatch.setattr(type(model._reach_index), "prefers_covering", lambda self, n: False)
     slow = model._consulted(Q)
     for got, expected in zip(fast, slow, strict=True):
         np.testing.assert_array_equal(got, expected)
@@ -471,9 +471,10 @@ def test_few_queries_choose_their_experts_from_the_candidates_until_the_tree_is_
 ):
     model = _mixture(max_expert_size=100).fit(paper.X, paper.y)
     Q = as_segments(paper.X[paper.y == 1, :2][:5])
-    assert not model._covering_pays(Q)
+    assert not model._reach_index.prefers_covering(len(Q))
     model.predict_proba(np.repeat(Q, 1000, axis=0))
-    assert model._reach_index._centre_tree is not None and model._covering_pays(Q)
+    index = model._reach_index
+    assert index._centre_tree is not None and index.prefers_covering(len(Q))
 
 
 def test_coverage_gate_consults_the_experts_whose_data_are_at_the_query(paper):
