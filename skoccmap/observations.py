@@ -61,6 +61,9 @@ _UNIT_TOL = 1e-3
 
 # Pieces computed at once by split_segments (a few tens of MB of temporaries).
 _PIECE_BLOCK = 1 << 18
+# Relative rounding of a segment's length that split_segments ignores: a segment as long
+# as k pieces, or as a graded boundary, up to rounding, takes no sliver of a last piece.
+_LENGTH_ROUNDING = 1e-9
 
 _POSE_COLUMNS = {3: 2, 7: 3}
 
@@ -729,16 +732,14 @@ def split_segments(X, max_length, *, end_length=None, graded=None):
     is_graded = np.ones(X.shape[0], bool) if graded is None else np.asarray(graded, bool)
     if is_graded.shape != (X.shape[0],):
         raise ValueError(f"graded must have shape ({X.shape[0]},), got {is_graded.shape}.")
-    # Graded pieces that fit strictly inside each segment, then equal pieces for the rest.
-    # (The tolerance keeps a segment as long as a graded boundary, up to rounding, from
-    # a last piece of a rounding error's length: a 15 m beam has boundaries 1, 3, 7, 15.)
-    inside = ends[None, 1:] < lengths[:, None] * (1.0 - 1e-9)
+    # Graded pieces that fit strictly inside each segment (up to rounding: a 15 m beam has
+    # boundaries 1, 3, 7, 15), then equal pieces for the rest.
+    inside = ends[None, 1:] < lengths[:, None] * (1.0 - _LENGTH_ROUNDING)
     n_end = np.where(is_graded, np.sum(inside, axis=1), 0)
     rest = lengths - ends[n_end]
     n_rest = np.ones(X.shape[0], dtype=np.intp)
     if np.isfinite(max_length):
-        # (The tolerance keeps a segment of exactly k pieces' length, up to rounding, in k.)
-        n_rest = np.maximum(np.ceil(rest / max_length - 1e-9), 1).astype(np.intp)
+        n_rest = np.maximum(np.ceil(rest / max_length - _LENGTH_ROUNDING), 1).astype(np.intp)
     n_pieces = n_end + n_rest
     source = np.repeat(np.arange(X.shape[0]), n_pieces)
     d = X.shape[1] // 2
