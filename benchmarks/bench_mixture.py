@@ -13,7 +13,9 @@ against n is fitted over the sizes from 2000 up (the target is <= 1.2: expert si
 capped by ``max_expert_size``), and from 300k to 3M (target <= 1: linear). Each size also
 maps the whole world at 0.1 m (``OccupancyGrid.from_estimator``, probability and
 variance), and reports the peak resident memory of the process and its workers (sampled
-every 0.1 s with psutil, when installed) during fit and map.
+every 0.1 s with psutil, when installed) during fit and map. "largest" is the number of
+rows the largest expert is fitted on (beam pieces, after thinning), the size that
+``max_expert_size`` bounds.
 """
 
 import argparse
@@ -110,7 +112,9 @@ def run_size(n, args, grid):
         full_map, map_s = timed(
             lambda: OccupancyGrid.from_estimator(model, extent=extent, resolution=0.1)
         )
-    sizes = np.bincount(model.cluster_labels_)
+    # Rows each expert is fitted on (beam pieces after thinning), what max_expert_size
+    # bounds; the input observations anchored at an expert's hits can be many more.
+    sizes = np.array([getattr(e, "X_train_", np.empty((0,))).shape[0] for e in model.experts_])
     row = {
         "n": int(data.X.shape[0]),
         "fit_s": fit_s,
