@@ -28,6 +28,18 @@ def _robotlaser(
     return " ".join(fields) + "\n"
 
 
+# Two readings and two remissions: 9 fields up to the beam count, 2 readings, the remission
+# count, 2 remissions, then 12 fields up to ipc_timestamp, hostname and logger_timestamp: 28.
+_ROBOT_FIELDS = _robotlaser(
+    [1.0, 2.0], [0, 0, 0], start=-0.5, resolution=0.25, max_range=30.0, remissions=(7, 8)
+).split()
+assert len(_ROBOT_FIELDS) == 28
+
+
+def _robot_line(fields):
+    return " ".join(fields) + "\n"
+
+
 @pytest.fixture
 def tiny_log(tmp_path):
     """Three FLASER scans of 4 beams with an 80 m sentinel, plus lines the reader must ignore."""
@@ -108,6 +120,56 @@ def test_truncated_gzip_says_so(tiny_log, tmp_path):
     np.testing.assert_array_equal(scans.ranges, load_carmen(tiny_log).ranges)
 
 
+def test_damaged_gzip_says_so(tiny_log, tmp_path):
+    packed = gzip.compress(tiny_log.read_bytes())
+    # A byte flipped just after the 10-byte header breaks the deflate stream (zlib.error);
+    # one flipped in the trailer breaks only the checksum (gzip.BadGzipFile), after every line.
+    body = bytearray(packed)
+    body[12] ^= 0xFF
+    crc = bytearray(packed)
+    crc[-6] ^= 0xFF
+    for name, data in (("body.log.gz", body), ("crc.log.gz", crc)):
+        path = tmp_path / name
+        path.write_bytes(bytes(data))
+        with pytest.raises(ValueError, match=rf"{name}: the compressed log is damaged"):
+            load_carmen(path)
+    with pytest.warns(UserWarning, match="damaged or truncated after line 7"):
+        scans = load_carmen(tmp_path / "crc.log.gz", errors="skip")
+    np.testing.assert_array_equal(scans.ranges, load_carmen(tiny_log).ranges)
+
+
+def test_non_ascii_bytes_and_trailing_comments(tmp_path):
+    # A comment in Latin-1 and a hostname in UTF-8 do not stop the reader; a comment after a
+    # message is not read as its fields.
+    line = _flaser([1.0, 2.0, 3.0], [0.5, 0.0, 0.0], 4.0)
+    text = b"# caf\xe9\n" + line.replace("host", "h\u00f6st").encode("utf-8")
+    text += line.replace("\n", "  # a note: 1 2 3\n").encode("ascii")
+    for name, data in (("plain.log", text), ("packed.log.gz", gzip.compress(text))):
+        path = tmp_path / name
+        path.write_bytes(data)
+        scans = load_carmen(path, max_range=10.0)
+        np.testing.assert_array_equal(scans.ranges, [[1.0, 2.0, 3.0]] * 2)
+        np.testing.assert_array_equal(scans.timestamps, [4.0, 4.0])
+
+
+def test_skip_warning_counts_the_lines_it_does_not_list(tiny_log):
+    # Six bad lines: five listed by number, the sixth counted.
+    bad = ["FLASER 4 1.0\n"] * 6
+    tiny_log.write_text(tiny_log.read_text() + "".join(bad))  # lines 8 to 13
+    listed = ", ".join(f"line {n} .3 fields[^)]*." for n in range(8, 13))
+    with pytest.warns(
+        UserWarning, match=rf"skipped 6 malformed laser line\(s\): {listed} and 1 more\."
+    ):
+        scans = load_carmen(tiny_log, errors="skip")
+    assert len(scans) == 3
+
+
+def test_flaser_angles_needs_two_beams():
+    for n in (0, 1):
+        with pytest.raises(ValueError, match="n_beams must be at least 2"):
+            flaser_angles(n)
+
+
 def test_robotlaser_uses_its_own_geometry(tmp_path):
     path = tmp_path / "robot.log"
     line = _robotlaser(
@@ -160,6 +222,23 @@ def test_robotlaser_max_range_is_the_smallest_stated(tmp_path):
             _robotlaser([1.0, 2.0], [0, 0, 0], start=np.nan, resolution=0.1, max_range=8.0),
             "start angle must be finite",
         ),  # fmt: skip
+        ("FLASER\n", "missing the beam count"),
+        ("FLASER 1 2.0 0 0 0 0 0 0 1 host 1\n", "beam count is 1; a scan needs at least 2"),
+        ("FLASER 4 1.0 2 3.0 4.0 0 0 0 0 0 0 nan host nan\n", "non-finite pose or timestamp"),
+        # ROBOTLASER1 lines cut short: before the beam count, after the readings, and
+        # before ipc_timestamp (25 of the 26 fields up to it).
+        (_robot_line(_ROBOT_FIELDS[:8]), "too few fields before the readings"),
+        (_robot_line(_ROBOT_FIELDS[:11]), "11 fields, too few for 2 readings"),
+        (_robot_line(_ROBOT_FIELDS[:-3]), "25 fields, expected at least 26"),
+        (_robot_line(_ROBOT_FIELDS[:11] + ["-1"] + _ROBOT_FIELDS[12:]), "and -1 remissions"),
+        (
+            _robotlaser([1.0, 2.0], [0, 0, 0], start=-0.5, resolution=0.0, max_range=8.0),
+            "angular resolution and maximum range positive",
+        ),
+        (
+            _robotlaser([1.0, 2.0], [0, 0, 0], start=-0.5, resolution=0.1, max_range=0.0),
+            "angular resolution and maximum range positive",
+        ),
     ],
 )
 def test_malformed_line_raises_with_line_number(tiny_log, bad_line, reason):
@@ -201,8 +280,10 @@ def test_bad_arguments_and_empty_logs(tiny_log, tmp_path):
         load_carmen(tiny_log, errors="ignore")
     with pytest.raises(ValueError, match="message"):
         load_carmen(tiny_log, message="RLASER")
-    with pytest.raises(ValueError, match="max_range"):
-        load_carmen(tiny_log, max_range=-1.0)
+    # Refused before the file is opened: a path that does not exist is not reached.
+    for bad in (-1.0, 0.0, np.inf, np.nan):
+        with pytest.raises(ValueError, match="max_range must be a positive finite number"):
+            load_carmen(tmp_path / "missing.log", max_range=bad)
     empty = tmp_path / "empty.log"
     empty.write_text("# nothing\nODOM 0 0 0 0 0 0 1 host 1\n")
     with pytest.raises(ValueError, match="no valid FLASER or ROBOTLASER1"):
@@ -260,3 +341,33 @@ def test_max_range_above_the_sentinel_warns(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_carmen(path, max_range=100.0)
+
+
+def test_sentinel_warning_from_ten_repeats(tmp_path):
+    # The documented threshold: the largest reading seen 10 times is the sentinel, 9 times
+    # a real reading. Five scans with two 40 m readings each; then the last with one.
+    lines = [_flaser([1.5, 40.0, 2.0, 40.0], [float(i), 0.0, 0.0], i) for i in range(5)]
+    path = tmp_path / "log"
+    path.write_text("".join(lines))
+    with pytest.warns(UserWarning, match=r"10 readings equal 40 m") as caught:
+        load_carmen(path, max_range=100.0)
+    # The warning points at the caller, not into the reader.
+    assert [w.filename for w in caught] == [__file__]
+    lines[-1] = _flaser([1.5, 40.0, 2.0, 3.0], [4.0, 0.0, 0.0], 4)
+    path.write_text("".join(lines))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = load_carmen(path, max_range=100.0)
+    assert np.isfinite(scans.ranges).all()
+
+
+def test_a_log_without_returns_reads_with_max_range(tmp_path):
+    # Every beam without a return (an open field): no sentinel to infer, but with max_range
+    # the log reads, all beams free to max_range.
+    path = tmp_path / "open.log"
+    path.write_text(_flaser(["inf"] * 4, [0.0, 0.0, 0.0], 1.0) * 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = load_carmen(path, max_range=30.0)
+    assert scans.max_range == 30.0 and np.isinf(scans.ranges).all()
+    assert not scans.returned().any()

@@ -286,7 +286,10 @@ def test_tf_chain_with_a_static_laser_offset(tmp_path, ros_version):
     for stamp in stamps:
         bag.scan(stamp, [1.0, 2.0, 3.0], frame=f"{slash}laser")
     path = bag.write(_bag_path(tmp_path, ros_version))
-    with pytest.warns(UserWarning, match=r"skipped 1 of 5 scans .*outside the time range"):
+    # The static offset, sent once at 0 s, holds at every time: the poses span the dynamic
+    # transforms' [0, 4] s.
+    match = r"skipped 1 of 5 scans .*outside the time range of their poses \[0, 4\] s"
+    with pytest.warns(UserWarning, match=match):
         scans = load_rosbag(path)
     expected = []
     for t in stamps[:-1]:
@@ -333,6 +336,8 @@ def test_pose_topic_without_a_laser_offset_needs_base_frame(tmp_path):
     with pytest.raises(ValueError, match=r"base_frame='laser'"):
         load_rosbag(path, pose_topic="/odom")
     scans = load_rosbag(path, pose_topic="/odom", base_frame="laser")
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
+    scans = load_rosbag(path, pose_topic="/odom", base_frame="/laser")  # ROS 1's slash
     np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
 
 
@@ -490,6 +495,9 @@ def test_laser_frame_overrides_the_scans_frame(tmp_path):
     with pytest.raises(ValueError, match=r"scans' frame ''.*frames present: \['laser', 'map'\]"):
         load_rosbag(path)
     np.testing.assert_allclose(load_rosbag(path, laser_frame="laser").poses, [[1.0, 2.0, 0.5]])
+    # Frame arguments with ROS 1's leading slash name the same frames.
+    scans = load_rosbag(path, laser_frame="/laser", map_frame="/map")
+    np.testing.assert_allclose(scans.poses, [[1.0, 2.0, 0.5]])
 
 
 @pytest.mark.parametrize("angle_min, increment", [(-0.5, 0.0), (-0.5, np.nan), (np.inf, 0.1)])
@@ -863,7 +871,8 @@ def test_a_dynamic_laser_offset_limits_the_scans_of_a_pose_topic(tmp_path):
     bag.tf(1.0, "base_link", "laser", (0.5, 0.0, 0.0))
     bag.scan(0.5, [1.0, 2.0, 3.0])
     bag.scan(5.0, [1.0, 2.0, 3.0])
-    with pytest.warns(UserWarning, match=r"skipped 1 of 2 scans .*outside the time range"):
+    match = r"skipped 1 of 2 scans .*outside the time range of their poses \[0, 1\] s"
+    with pytest.warns(UserWarning, match=match):
         scans = load_rosbag(bag.write(tmp_path / "b"), pose_topic="/odom")
     np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0]], atol=1e-12)
     np.testing.assert_allclose(scans.timestamps, [0.5])
@@ -999,3 +1008,196 @@ def test_cli_max_range_reaches_the_bag_reader(tmp_path, capsys):
     assert f"{path}: 1 scans x 3 beams, max range 2.5 m" in capsys.readouterr().out
     assert scans.max_range == 2.5
     np.testing.assert_array_equal(scans.ranges, [[1.0, np.inf, 2.0]])
+
+
+# --------------------------------------------------------------------------------------------
+# Mutation audit: behaviour the tests above left open
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_folder_of_two_storage_files_is_refused(paper_scans, tmp_path):
+    # Without metadata.yaml there is no telling which storage file is the bag.
+    scans, _ = paper_scans
+    folder = tmp_path / "two"
+    folder.mkdir()
+    for name in ("a", "b"):
+        bag = write_rosbag(scans[:2], tmp_path / name, storage="mcap")
+        (storage,) = bag.glob("*.mcap")
+        storage.rename(folder / f"{name}.mcap")
+    with pytest.raises(ValueError, match="no metadata.yaml and 2 storage files"):
+        load_rosbag(folder)
+
+
+def test_a_quaternion_written_to_four_decimals_is_normalised(tmp_path):
+    # A hand-written transform facing +y, (w, z) = (0.7071, 0.7071), is 0.99999 long: read
+    # as a unit quaternion it turns the laser offset without shrinking it.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "base_link", (1.0, 2.0, 0.0), static=True)
+    bag.tf(0.0, "base_link", "laser", (0.5, 0.0, 0.0), static=True)
+    rounded = bag.store.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.7071, w=0.7071)
+    bag.messages[0][3].transforms[0].transform.rotation = rounded
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    # The laser 0.5 m ahead of a robot at (1, 2) facing +y: at (1, 2.5), facing +y.
+    np.testing.assert_allclose(scans.poses, [[1.0, 2.5, np.pi / 2]], atol=1e-12)
+
+
+def test_a_stamp_sent_twice_keeps_its_last_sample_among_many(tmp_path):
+    # 40 samples whose header stamps arrive out of order (a buffered publisher), the one at
+    # 0.6 s sent again, corrected, after all the others: the correction is kept.
+    bag = _Bag(2)
+    order = np.random.default_rng(0).permutation(40)
+    for k, index in enumerate(order):
+        bag.tf(0.1 * index, "map", "laser", (0.0 if index != 6 else 5.0, 0.0, 0.0))
+        topic, msgtype, _, message = bag.messages[-1]
+        bag.messages[-1] = (topic, msgtype, 10.0 + 0.01 * k, message)  # recorded in this order
+    bag.tf(0.6, "map", "laser", (0.0, 0.0, 0.0))
+    topic, msgtype, _, message = bag.messages[-1]
+    bag.messages[-1] = (topic, msgtype, 11.0, message)
+    bag.scan(0.6, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.poses, [[0.0, 0.0, 0.0]], atol=1e-12)
+
+
+def test_a_single_transform_sample_is_not_extrapolated(tmp_path):
+    # A dynamic transform seen once places a scan at its stamp, no other.
+    bag = _Bag(2)
+    bag.tf(1.0, "map", "laser", (1.0, 2.0, 0.0), yaw=0.5)
+    bag.scan(1.0, [1.0, 2.0, 3.0])
+    bag.scan(2.0, [1.0, 2.0, 3.0])
+    with pytest.warns(UserWarning, match=r"skipped 1 of 2 scans .*poses \[1, 1\] s"):
+        scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.poses, [[1.0, 2.0, 0.5]], atol=1e-12)
+    np.testing.assert_allclose(scans.timestamps, [1.0])
+
+
+def test_a_single_beam_scan_needs_no_angle_increment(tmp_path):
+    # One beam has a direction without an increment: angle_increment 0 is fine.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.0), yaw=0.5, static=True)
+    bag.scan(0.5, [2.0], angle_min=0.25, increment=0.0)
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.angles, [0.25], atol=1e-6)
+    np.testing.assert_allclose(
+        scans.hit_points(), [[1.0 + 2.0 * np.cos(0.75), 2.0 * np.sin(0.75)]], atol=1e-6
+    )
+
+
+def test_a_pose_topic_that_changes_frames_is_refused(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.odometry(0.0, (0.0, 0.0, 0.0), 0.0, frame="odom")
+    bag.odometry(1.0, (1.0, 0.0, 0.0), 0.0, frame="map")  # localised half-way
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    with pytest.raises(
+        ValueError, match=r"'/odom' changes frames \(header.frame_id \['map', 'odom'\]"
+    ):
+        load_rosbag(path, pose_topic="/odom")
+
+
+def test_a_pose_topic_that_places_nothing_is_refused(tmp_path):
+    # Odometry left at ROS 1's default, all-zero quaternion: no pose to interpolate.
+    bag = _Bag(2)
+    zero = bag.store.types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=0.0)
+    for stamp in (0.0, 1.0):
+        bag.odometry(stamp, (stamp, 0.0, 0.0), 0.0, child="laser")
+        bag.messages[-1][3].pose.pose.orientation = zero
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    with pytest.warns(UserWarning, match=r"left out 2 transform sample"):
+        with pytest.raises(ValueError, match="'/odom' holds no message that places a frame"):
+            load_rosbag(path, pose_topic="/odom")
+
+
+@pytest.mark.parametrize("range_min, range_max", [(0.1, 0.0), (np.nan, np.nan), (-1.0, 0.0)])
+def test_a_scan_without_range_limits_reads_with_max_range(tmp_path, range_min, range_max):
+    # Drivers that leave range_max at 0 or NaN, or range_min at NaN, state no limits: every
+    # reading counts, except the negative ones, which a negative range_min does not admit.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [-1.0, 1.0, 2.0, 3.0], angle_min=0.0, increment=0.1,
+             range_min=range_min, range_max=range_max)  # fmt: skip
+    path = bag.write(tmp_path / "b")
+    with pytest.raises(ValueError, match="state no positive finite range_max; pass max_range="):
+        load_rosbag(path)
+    scans = load_rosbag(path, max_range=10.0)
+    # The negative reading dropped: three beams, from the second.
+    np.testing.assert_array_equal(scans.ranges, [[1.0, 2.0, 3.0]])
+    np.testing.assert_allclose(scans.angles, [0.1, 0.2, 0.3], atol=1e-6)
+
+
+def test_level_tolerance_zero_keeps_a_level_laser_2d(tmp_path):
+    bag = _Bag(2)
+    for stamp in (0.0, 1.0):
+        bag.tf(stamp, "map", "laser", (1.0, 2.0, 0.3), yaw=0.5)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    scans = load_rosbag(bag.write(tmp_path / "b"), level_tolerance=0.0)
+    np.testing.assert_allclose(scans.poses, [[1.0, 2.0, 0.5]], atol=1e-12)
+
+
+def test_scans_without_a_usable_reading_are_skipped_and_counted(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))
+    bag.tf(2.0, "map", "laser", (2.0, 0.0, 0.0))
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    bag.scan(1.0, [0.0, -np.inf, 0.05])  # every reading below range_min 0.1
+    bag.scan(3.0, [1.0, 2.0, 3.0])  # after the transforms
+    path = bag.write(tmp_path / "b")
+    match = (
+        r"skipped 1 of 3 scans whose stamps lie outside the time range of their poses "
+        r"\[0, 2\] s .*; 1 scans without a reading within \[range_min, range_max\]\."
+    )
+    with pytest.warns(UserWarning, match=match) as caught:
+        scans = load_rosbag(path)
+    assert [w.filename for w in caught] == [__file__]  # the caller's line, not the reader's
+    np.testing.assert_allclose(scans.timestamps, [0.5])
+    np.testing.assert_array_equal(scans.ranges, [[1.0, 2.0, 3.0]])
+    # No scan left: the error says when the scans were.
+    bag.messages = [m for m in bag.messages if m[2] >= 1.0]
+    with pytest.warns(UserWarning, match="skipped"):
+        with pytest.raises(ValueError, match=r"no scan of '/scan' has a pose and a usable "
+                           r"reading; the scans span \[1, 3\] s"):  # fmt: skip
+            load_rosbag(bag.write(tmp_path / "c"))
+
+
+def test_write_rosbag_refuses_beams_out_of_the_laser_plane(tmp_path):
+    up = np.array([[np.cos(a), 0.0, np.sin(a)] for a in (-0.2, 0.0, 0.2)])  # a vertical fan
+    scans = Scans(poses=[[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]], ranges=[[1.0, 2.0, 3.0]],
+                  angles=up, max_range=10.0)  # fmt: skip
+    with pytest.raises(ValueError, match="LaserScan beams lie in the laser's xy-plane"):
+        write_rosbag(scans, tmp_path / "b")
+    assert not (tmp_path / "b").exists()
+
+
+def test_scans_without_timestamps_are_stamped_one_second_apart_from_zero(tmp_path):
+    scans = Scans(
+        poses=[[0.0, 0.0, 0.0], [1.0, 0.0, 0.5], [2.0, 0.0, 1.0]],
+        ranges=[[1.0, 2.0, 3.0]] * 3,
+        angles=[-0.1, 0.0, 0.1],
+        max_range=4.0,
+    )
+    back = load_rosbag(write_rosbag(scans, tmp_path / "b"))
+    np.testing.assert_array_equal(back.timestamps, [0.0, 1.0, 2.0])
+    np.testing.assert_allclose(back.poses, scans.poses, atol=1e-12)
+
+
+def test_write_rosbag_refuses_two_poses_at_one_stamp_out_of_order(tmp_path):
+    # Scans 0 and 2 share a stamp with scan 1 between them (timestamps not sorted).
+    scans = Scans(poses=[[0.0, 0.0, 0.0], [5.0, 5.0, 1.0], [10.0, 0.0, 2.0]],
+                  ranges=[[1.0, 2.0, 3.0]] * 3, angles=[-0.1, 0.0, 0.1], max_range=4.0,
+                  timestamps=[1.0, 2.0, 1.0])  # fmt: skip
+    with pytest.raises(ValueError, match="scans 0 and 2 share the timestamp 1 s"):
+        write_rosbag(scans, tmp_path / "dup")
+    assert not (tmp_path / "dup").exists()
+
+
+def test_a_map_stamp_is_rounded_to_the_nanosecond(grid, tmp_path):
+    # 1.001 s is 1 s and 1 000 000 ns (1.001 * 1e9 is 1000999999.9999999 in floats).
+    path = grid.write_rosbag(tmp_path / "map", stamp=1.001)
+    with AnyReader([path]) as reader:
+        ((conn, stamp, raw),) = list(reader.messages())
+        msg = reader.deserialize(raw, conn.msgtype)
+    assert stamp == 1_001_000_000
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1, 1_000_000)
+    assert (msg.info.map_load_time.sec, msg.info.map_load_time.nanosec) == (1, 1_000_000)
