@@ -257,8 +257,9 @@ def test_infinite_readings_are_beams_without_a_return(tmp_path):
     path = tmp_path / "inf.log"
     lines = [_flaser([1.0, 2.0, "inf", 1.5], [0, 0, 0]), _flaser([1, "1e400", 8, 1.5], [0, 0, 0])]
     path.write_text("".join(lines))
-    with pytest.warns(UserWarning, match=r"writes inf.*longest finite reading \(8 m\)"):
+    with pytest.warns(UserWarning, match=r"writes inf.*longest finite reading \(8 m\)") as caught:
         scans = load_carmen(path)
+    assert [w.filename for w in caught] == [__file__]  # the caller's line, not the reader's
     assert scans.max_range == 8.0
     np.testing.assert_array_equal(scans.returned(), [[1, 1, 0, 1], [1, 0, 0, 1]])
     nan = tmp_path / "nan.log"

@@ -519,8 +519,9 @@ def test_transform_samples_that_place_nothing_are_left_out(tmp_path, xyz, yaw):
     bag.tf(10.0, "map", "laser", (0.0, 0.0, 0.0))
     bag.tf(10.2, "map", "laser", (2.0, 0.0, 0.0))
     bag.scan(10.1, [1.0, 2.0, 3.0])
-    with pytest.warns(UserWarning, match=r"left out 2 transform sample.*map -> laser at 0.0"):
+    with pytest.warns(UserWarning, match=r"left out 2 transform sample.*map -> laser at 0.0") as w:
         scans = load_rosbag(bag.write(tmp_path / "b"))
+    assert [warning.filename for warning in w] == [__file__]  # the caller's line
     np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0]], atol=1e-9)
 
 
@@ -1105,9 +1106,10 @@ def test_a_pose_topic_that_places_nothing_is_refused(tmp_path):
         bag.messages[-1][3].pose.pose.orientation = zero
     bag.scan(0.5, [1.0, 2.0, 3.0])
     path = bag.write(tmp_path / "b")
-    with pytest.warns(UserWarning, match=r"left out 2 transform sample"):
+    with pytest.warns(UserWarning, match=r"left out 2 transform sample") as caught:
         with pytest.raises(ValueError, match="'/odom' holds no message that places a frame"):
             load_rosbag(path, pose_topic="/odom")
+    assert [w.filename for w in caught] == [__file__]  # the caller's line, not the reader's
 
 
 @pytest.mark.parametrize("range_min, range_max", [(0.1, 0.0), (np.nan, np.nan), (-1.0, 0.0)])

@@ -244,7 +244,7 @@ def _infer_flaser_max_range(readings, path):
             f"is taken as its longest finite reading ({largest:g} m), which becomes a beam "
             "without a return too. Pass max_range= with the sensor's range.",
             UserWarning,
-            stacklevel=3,
+            stacklevel=4,  # this function <- _to_scans <- load_carmen <- its caller
         )
     return float(largest)
 

@@ -362,7 +362,8 @@ def _places_frame(translation, rotation):
 
 
 def _warn_left_out(path, left_out):
-    """One warning for the transform samples that place nothing, naming the first."""
+    """One warning for the transform samples that place nothing, naming the first; called
+    by the reader of /tf or of the pose topic, from ``_poses``, from ``load_rosbag``."""
     if left_out:
         what, stamp = left_out[0]
         warnings.warn(
@@ -370,7 +371,7 @@ def _warn_left_out(path, left_out):
             f"translation or a zero or non-finite rotation, as tf2 would (the first: {what} "
             f"at {stamp * 1e-9:.9f} s).",
             UserWarning,
-            stacklevel=3,
+            stacklevel=5,
         )
 
 
