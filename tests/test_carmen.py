@@ -285,6 +285,10 @@ def test_bad_arguments_and_empty_logs(tiny_log, tmp_path):
     for bad in (-1.0, 0.0, np.inf, np.nan):
         with pytest.raises(ValueError, match="max_range must be a positive finite number"):
             load_carmen(tmp_path / "missing.log", max_range=bad)
+    # Not a length: True is not read as 1 m, nor a string compared with the ranges.
+    for bad in (True, "far"):
+        with pytest.raises(ValueError, match="max_range must be a positive number"):
+            load_carmen(tmp_path / "missing.log", max_range=bad)
     empty = tmp_path / "empty.log"
     empty.write_text("# nothing\nODOM 0 0 0 0 0 0 1 host 1\n")
     with pytest.raises(ValueError, match="no valid FLASER or ROBOTLASER1"):

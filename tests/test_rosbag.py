@@ -1203,3 +1203,11 @@ def test_a_map_stamp_is_rounded_to_the_nanosecond(grid, tmp_path):
     assert stamp == 1_001_000_000
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (1, 1_000_000)
     assert (msg.info.map_load_time.sec, msg.info.map_load_time.nanosec) == (1, 1_000_000)
+
+
+@pytest.mark.parametrize("bad", [-1.0, 0.0, np.inf, np.nan, True, "far"])
+def test_a_bad_max_range_is_refused_before_the_bag_is_read(tmp_path, bad):
+    # The path does not exist: the argument is judged first, as load_carmen does, not after
+    # every message was read (or behind the bag's own errors).
+    with pytest.raises(ValueError, match="max_range must be a positive"):
+        load_rosbag(tmp_path / "missing.bag", max_range=bad)

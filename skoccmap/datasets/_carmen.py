@@ -329,8 +329,10 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
         raise ValueError(f"errors must be 'raise' or 'skip', got {errors!r}.")
     if message not in (None, "FLASER", "ROBOTLASER1"):
         raise ValueError(f"message must be None, 'FLASER' or 'ROBOTLASER1', got {message!r}.")
-    if max_range is not None and not (np.isfinite(max_range) and max_range > 0):
-        raise ValueError(f"max_range must be a positive finite number or None, got {max_range!r}.")
+    if max_range is not None:
+        from ..observations import _check_max_range
+
+        max_range = _check_max_range(max_range)
     kinds = (message,) if message else tuple(_PARSERS)
     readings, skipped = _read_lines(path, kinds, errors)
     if skipped:

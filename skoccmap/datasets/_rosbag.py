@@ -532,11 +532,7 @@ def _rectangular(scans, max_range):
 
 def _scan_max_range(scans, max_range, path):
     if max_range is not None:
-        if not (np.isfinite(max_range) and max_range > 0):
-            raise ValueError(
-                f"max_range must be a positive finite number or None, got {max_range!r}."
-            )
-        return float(max_range)
+        return max_range  # checked by load_rosbag before the bag is read
     stated = [s.range_max for s in scans if np.isfinite(s.range_max) and s.range_max > 0]
     # range_max is a float32 field: its shortest decimal is the value the driver was given
     # (81.83, not 81.83000183).
@@ -710,6 +706,10 @@ def load_rosbag(
         raise ValueError("pose='topic' needs pose_topic, the topic to read poses from.")
     if not (level_tolerance >= 0):
         raise ValueError(f"level_tolerance must be >= 0 radians, got {level_tolerance!r}.")
+    if max_range is not None:
+        from ..observations import _check_max_range
+
+        max_range = _check_max_range(max_range)
     if base_frame is not None and pose != "topic":
         raise ValueError(
             "base_frame= applies only to poses read from a topic, given by pose_topic=. "
