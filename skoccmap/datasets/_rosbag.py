@@ -968,6 +968,21 @@ def write_rosbag(
     laser pose per time). Ranges are stored as float32 (as
     LaserScan defines them); no-return beams as ``+inf``, ``range_min`` 0 and ``range_max``
     the scans' ``max_range``.
+
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> from rosbags.highlevel import AnyReader
+    >>> from skoccmap.datasets import make_paper_scans, write_rosbag
+    >>> scans = make_paper_scans(random_state=0).scans[:3]
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     bag = write_rosbag(scans, os.path.join(tmp, "paper.bag"), ros_version=1)
+    ...     with AnyReader([bag]) as reader:
+    ...         topics = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
+    >>> topics["/scan"]
+    ('sensor_msgs/msg/LaserScan', 3)
+    >>> topics["/tf"][0]
+    'tf2_msgs/msg/TFMessage'
     """
     from ..observations import Scans
 
