@@ -194,3 +194,152 @@ def test_3d_slice_is_the_layer_holding_z(z, k):
     disp = OccupancyMapDisplay.from_grid(grid, z=z)
     np.testing.assert_allclose(disp.im_.get_array(), grid.probability[k])
     assert disp.ax_.get_title() == f"P(occupied), slice at z = {k + 0.5:.2f} m"
+
+
+def _rendered(fig):
+    """The figure rendered: RGB per pixel, row 0 at the top."""
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3] / 255.0
+
+
+def _colours_at(rgb, ax, extent, shape, at):
+    """Colour of ``rgb`` at fractions ``at = (fx, fy)`` across each cell of a map on ``ax``."""
+    xmin, xmax, ymin, ymax = extent
+    ny, nx = shape
+    dx, dy = (xmax - xmin) / nx, (ymax - ymin) / ny
+    out = np.empty((ny, nx, 3))
+    for i in range(ny):
+        for j in range(nx):
+            px, py = ax.transData.transform((xmin + (j + at[0]) * dx, ymin + (i + at[1]) * dy))
+            out[i, j] = rgb[int(rgb.shape[0] - py), int(px)]
+    return out
+
+
+def test_rendered_map_occupied_dark_row_0_at_the_bottom_and_unknown_in_its_colour():
+    # A map drawn as pixels: each cell one flat colour (no smoothing across cells), its
+    # grey level 1 - P(occupied) (occupied black, free white), row 0 at the lowest y, and
+    # the unknown cell in the unknown colour on both panels.
+    p = np.array([[0.0, 1.0, 0.25], [0.9, 0.0, 0.6]])
+    variance = np.array([[0.5, 2.0, 0.1], [1.0, 0.0, 0.5]])
+    unknown = np.zeros(p.shape, dtype=bool)
+    unknown[0, 0] = True
+    extent = (2.0, 5.0, -1.0, 1.0)
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3), dpi=40)
+    OccupancyMapDisplay(p, extent=extent, variance=variance, unknown=unknown).plot(
+        ax=axes, colorbar=False, unknown_color="red"
+    )
+    rgb = _rendered(fig)
+    grey = np.repeat((1.0 - p)[..., None], 3, axis=-1)
+    std_rgb = matplotlib.colormaps["viridis"](probability_std(p, variance) / 0.5)[..., :3]
+    known = ~unknown
+    for at in [(0.5, 0.5), (0.15, 0.5), (0.85, 0.5), (0.5, 0.15)]:
+        for ax, expected in zip(axes, [grey, std_rgb], strict=True):
+            shown = _colours_at(rgb, ax, extent, p.shape, at)
+            np.testing.assert_allclose(shown[known], expected[known], atol=0.02)
+            np.testing.assert_allclose(shown[unknown], [[1.0, 0.0, 0.0]], atol=0.02)
+
+
+def test_legend_shows_the_colour_unknown_cells_are_drawn_in():
+    p = np.full((2, 3), 0.5)
+    unknown = np.zeros(p.shape, dtype=bool)
+    disp = OccupancyMapDisplay(p, extent=(0, 3, 0, 2), unknown=unknown).plot()
+    assert disp.ax_.get_legend() is None  # no unknown cell: nothing to name
+    unknown[1, 1] = True
+    disp = OccupancyMapDisplay(p, extent=(0, 3, 0, 2), unknown=unknown).plot(
+        unknown_color="tab:orange"
+    )
+    (patch,) = disp.ax_.get_legend().get_patches()
+    orange = matplotlib.colors.to_rgba("tab:orange")
+    np.testing.assert_allclose(patch.get_facecolor(), orange)
+    masked = disp.im_.to_rgba(disp.im_.get_array())
+    np.testing.assert_allclose(masked[1, 1], orange)
+
+
+def test_cmap_argument_is_used():
+    p = np.array([[0.0, 1.0]])
+    disp = OccupancyMapDisplay(p, extent=(0, 2, 0, 1)).plot(cmap="viridis")
+    np.testing.assert_allclose(
+        disp.im_.to_rgba(p), matplotlib.colormaps["viridis"]([0.0, 1.0])[None]
+    )
+
+
+def test_3d_grid_slices_every_panel_at_the_same_layer():
+    # Five layers of 0.5 m from z = 1: the default is the middle one (layer 2, centre 2.25 m);
+    # probability, std and unknown cells all come from the layer drawn.
+    rng = np.random.default_rng(3)
+    shape = (5, 2, 3)
+    probability = rng.uniform(0.05, 0.95, size=shape)
+    variance = rng.uniform(0.1, 3.0, size=shape)
+    unknown = rng.uniform(size=shape) < 0.3
+    grid = OccupancyGrid(probability, (0.0, 0.0, 1.0), 0.5, variance=variance, unknown=unknown)
+    for z, k in [(None, 2), (1.2, 0), (3.4, 4)]:
+        disp = OccupancyMapDisplay.from_grid(grid, z=z)
+        std = disp.images_[1].get_array()
+        np.testing.assert_allclose(disp.im_.get_array().data, probability[k])
+        np.testing.assert_allclose(std.data, probability_std(probability[k], variance[k]))
+        for image in disp.images_:
+            np.testing.assert_array_equal(np.ma.getmaskarray(image.get_array()), unknown[k])
+        height = 1.0 + (k + 0.5) * 0.5
+        assert [a.get_title() for a in disp.axes_] == [
+            f"P(occupied), slice at z = {height:.2f} m",
+            f"std of P(occupied), slice at z = {height:.2f} m",
+        ]
+    # The grid spans z in [1, 3.5): a height on either side of it has no layer.
+    for z in (0.9, 3.5):
+        with pytest.raises(ValueError, match="outside"):
+            OccupancyMapDisplay.from_grid(grid, z=z)
+
+
+def test_points_are_overlaid_on_every_panel_with_the_given_style():
+    grid = _grid()
+    points = np.array([[1.2, -0.8], [2.5, 0.1], [1.9, -0.3]])
+    disp = OccupancyMapDisplay.from_grid(grid, points=points, colorbar=False)
+    for ax in disp.axes_:
+        (scatter,) = ax.collections
+        np.testing.assert_allclose(scatter.get_offsets(), points)
+    disp = OccupancyMapDisplay.from_grid(
+        grid, kind="probability", points=points, point_kwargs={"s": 9, "c": "blue"}
+    )
+    (scatter,) = disp.ax_.collections
+    np.testing.assert_allclose(scatter.get_sizes(), [9])
+    np.testing.assert_allclose(scatter.get_facecolors(), [matplotlib.colors.to_rgba("blue")])
+
+
+def test_colorbar_one_per_panel_labelled_or_none():
+    grid = _grid()
+    disp = OccupancyMapDisplay.from_grid(grid, colorbar=False)
+    assert len(disp.figure_.axes) == 2
+    disp = OccupancyMapDisplay.from_grid(grid)
+    bars = [a for a in disp.figure_.axes if a not in list(disp.axes_)]
+    assert sorted(a.get_ylabel() for a in bars) == ["P(occupied)", "std of P(occupied)"]
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(probability=np.full((2, 3), 1.5)), r"values in \[0, 1\]"),
+        (dict(probability=np.full((2, 3), -0.1)), r"values in \[0, 1\]"),
+        (dict(probability=np.full((2, 3, 3), 0.5)), "2-D"),
+        (dict(extent=(3.0, 0.0, 0.0, 2.0)), "extent"),
+        (dict(extent=(0.0, 3.0, 2.0, 0.0)), "extent"),
+        (dict(extent=(0.0, np.inf, 0.0, 2.0)), "extent"),
+    ],
+)
+def test_values_and_extents_a_map_cannot_have(kwargs, match):
+    # A probability outside [0, 1] has no colour on the fixed scale; a (ny, nx, 3) array
+    # would be drawn as RGB; a reversed extent mirrors the map.
+    args = dict(probability=np.full((2, 3), 0.5), extent=(0.0, 3.0, 0.0, 2.0)) | kwargs
+    disp = OccupancyMapDisplay(args.pop("probability"), **args)
+    with pytest.raises(ValueError, match=match):
+        disp.plot(kind="probability")
+
+
+def test_boundary_values_are_drawn():
+    # Certain cells (P = 0 or 1), zero variance, and no variance for unknown cells are valid.
+    p = np.array([[0.0, 1.0, 0.5]])
+    variance = np.array([[0.0, 0.0, np.nan]])
+    unknown = np.array([[False, False, True]])
+    disp = OccupancyMapDisplay(p, extent=(0, 3, 0, 1), variance=variance, unknown=unknown)
+    disp.plot(kind="variance")
+    np.testing.assert_allclose(disp.im_.get_array()[0, :2], [0.0, 0.0])
+    assert disp.im_.get_array().mask.tolist() == [[False, False, True]]
