@@ -239,7 +239,15 @@ class OccupancyMapDisplay:
             else:
                 variance = np.asarray(self.variance, dtype=np.float64)
                 if panel == "std":
-                    values, limits = probability_std(probability, variance), (0.0, 0.5)
+                    # Unknown cells are masked, never drawn, and may hold no value (NaN,
+                    # see _check_arrays): those stand in as P = 1/2 and variance 0.
+                    hole = self._unknown_mask(probability.shape) & ~(
+                        (probability >= 0.0) & (probability <= 1.0) & (variance >= 0.0)
+                    )
+                    values = probability_std(
+                        np.where(hole, 0.5, probability), np.where(hole, 0.0, variance)
+                    )
+                    limits = (0.0, 0.5)
                     label = "std of P(occupied)"
                 else:
                     values, limits = variance, (None, None)
@@ -280,9 +288,7 @@ class OccupancyMapDisplay:
                     f"{name} must have the probability's shape {probability.shape}, got "
                     f"{np.shape(value)}."
                 )
-        known = np.ones(probability.shape, dtype=bool)
-        if self.unknown is not None:
-            known = ~np.asarray(self.unknown, dtype=bool)
+        known = ~self._unknown_mask(probability.shape)
         if not np.all(((probability >= 0.0) & (probability <= 1.0)) | ~known):
             raise ValueError(
                 "probability must hold values in [0, 1] (no NaN) in the known cells; mark "
@@ -302,6 +308,11 @@ class OccupancyMapDisplay:
             raise ValueError(
                 f"extent must be (x_min, x_max, y_min, y_max) with max > min, got {self.extent!r}."
             )
+
+    def _unknown_mask(self, shape):
+        if self.unknown is None:
+            return np.zeros(shape, dtype=bool)
+        return np.asarray(self.unknown, dtype=bool)
 
     @staticmethod
     def _axes(plt, ax, n_panels):

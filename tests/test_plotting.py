@@ -343,3 +343,17 @@ def test_boundary_values_are_drawn():
     disp.plot(kind="variance")
     np.testing.assert_allclose(disp.im_.get_array()[0, :2], [0.0, 0.0])
     assert disp.im_.get_array().mask.tolist() == [[False, False, True]]
+
+
+def test_std_panel_of_a_map_without_values_in_its_unknown_cells():
+    # NaN probability and variance in cells marked unknown are accepted (no value to draw):
+    # the std panel used to pass them to probability_std, which refused them.
+    p = np.array([[0.2, np.nan, 0.9], [0.5, 0.7, np.nan]])
+    variance = np.array([[1.0, np.nan, 0.3], [0.0, 2.0, np.nan]])
+    unknown = np.isnan(p)
+    disp = OccupancyMapDisplay(p, extent=(0, 3, 0, 2), variance=variance, unknown=unknown)
+    disp.plot(kind="both")
+    shown = disp.images_[1].get_array()
+    np.testing.assert_array_equal(np.ma.getmaskarray(shown), unknown)
+    known = ~unknown
+    np.testing.assert_allclose(shown[known], probability_std(p[known], variance[known]))
