@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validation import caller_stacklevel
+
 __all__ = ["load_carmen", "flaser_angles"]
 
 # Fields after the n readings of a FLASER line, up to and including ipc_timestamp.
@@ -189,7 +191,7 @@ def _lines(fh, path, errors, skipped):
             f"{path}: the compressed log is damaged or truncated after line {lineno} ({exc}); "
             "the scans read up to there are kept.",
             UserWarning,
-            stacklevel=4,
+            stacklevel=caller_stacklevel(),
         )
 
 
@@ -244,7 +246,7 @@ def _infer_flaser_max_range(readings, path):
             f"is taken as its longest finite reading ({largest:g} m), which becomes a beam "
             "without a return too. Pass max_range= with the sensor's range.",
             UserWarning,
-            stacklevel=4,  # this function <- _to_scans <- load_carmen <- its caller
+            stacklevel=caller_stacklevel(),
         )
     return float(largest)
 
@@ -265,7 +267,7 @@ def _warn_if_sentinel_below(ranges, max_range, path):
             f"{largest:g} m away. Pass max_range={largest:g}, or leave it out, to read them "
             "as beams without a return.",
             UserWarning,
-            stacklevel=4,
+            stacklevel=caller_stacklevel(),
         )
 
 
@@ -341,7 +343,7 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
         warnings.warn(
             f"{path}: skipped {len(skipped)} malformed laser line(s): {shown}{more}.",
             UserWarning,
-            stacklevel=2,
+            stacklevel=caller_stacklevel(),
         )
     if message is None and any(r.message == "ROBOTLASER1" for r in readings):
         readings = [r for r in readings if r.message == "ROBOTLASER1"]

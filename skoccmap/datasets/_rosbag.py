@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validation import caller_stacklevel
+
 __all__ = ["load_rosbag", "write_rosbag"]
 
 _INSTALL_HINT = (
@@ -371,7 +373,7 @@ def _warn_left_out(path, left_out):
             f"translation or a zero or non-finite rotation, as tf2 would (the first: {what} "
             f"at {stamp * 1e-9:.9f} s).",
             UserWarning,
-            stacklevel=5,
+            stacklevel=caller_stacklevel(),
         )
 
 
@@ -574,7 +576,8 @@ def _warn_skipped(path, topic, n_total, outside, span, no_beams):
     if no_beams:
         notes.append(f"{no_beams} scans without a reading within [range_min, range_max]")
     if notes:
-        warnings.warn(f"{path}, {topic}: skipped " + "; ".join(notes) + ".", UserWarning, 3)
+        message = f"{path}, {topic}: skipped " + "; ".join(notes) + "."
+        warnings.warn(message, UserWarning, stacklevel=caller_stacklevel())
 
 
 def load_rosbag(
