@@ -12,7 +12,7 @@ import warnings
 import numpy as np
 import pytest
 from scipy.special import ndtr
-from sklearn.base import clone
+from sklearn.base import BaseEstimator, ClassifierMixin, clone
 from sklearn.cluster import KMeans
 from sklearn.gaussian_process import GaussianProcessClassifier
 from sklearn.gaussian_process.kernels import RBF
@@ -1342,3 +1342,104 @@ def test_small_experts_are_no_error(paper):
     # The bound on a hit's rows is absolute as well: a few dozen rows per hit are common.
     model = MixtureGPOccupancyMap(max_expert_size=4, random_state=0).fit(paper.X, paper.y)
     assert model.n_experts_ > 100
+
+
+# --- prediction where no expert reaches, and of query segments ---------------------------
+
+
+class _RowCountPriorExpert(ClassifierMixin, BaseEstimator):
+    """Stand-in expert whose prior variance is its number of training rows (the experts
+    of one mixture then have different priors) and whose posterior is its prior."""
+
+    def __init__(self, length_scale=1.5):
+        self.length_scale = length_scale
+
+    def fit(self, X, y):
+        self.classes_ = np.unique(y)
+        self.kernel_ = C(float(X.shape[0])) * RBF(self.length_scale)
+        return self
+
+    def latent_mean_and_variance(self, X):
+        return np.zeros(X.shape[0]), self.kernel_.diag(X)
+
+
+def test_queries_beyond_every_expert_get_the_experts_mean_prior_precision(paper):
+    # Without shared hyperparameters the prior where no expert reaches is the experts' mean
+    # prior precision (averaged over all of them when there are at most 16).
+    model = _mixture(expert=_RowCountPriorExpert(), share_hyperparameters=False)
+    model.fit(paper.X, paper.y)
+    rows = np.array([e.kernel_.diag(paper.X[:1])[0] for e in model.experts_])
+    assert model.shared_kernel_ is None and 1 < model.n_experts_ <= 16
+    assert np.unique(rows).size > 1
+    far = as_segments([[1e3, 1e3], [-50.0, 0.0], [0.0, 1e4]])
+    expected = 1.0 / np.mean(1.0 / rows)
+    for combiner in COMBINERS:
+        model.set_params(combiner=combiner)
+        mean, var = model.latent_mean_and_variance(far)
+        np.testing.assert_array_equal(model.predict_proba(far), 0.5)
+        np.testing.assert_array_equal(mean, 0.0)
+        np.testing.assert_allclose(var, expected, rtol=1e-12)
+        np.testing.assert_allclose(model.prior_variance(far), expected, rtol=1e-12)
+
+
+def test_many_queries_beyond_every_expert_get_the_prior(default_model):
+    # More queries than the coverage's search of all cells takes: the coverage gate looks
+    # for the covering pairs, and finds none.
+    rng = np.random.default_rng(0)
+    far = as_segments(rng.uniform(500.0, 600.0, size=(3000, 2)))
+    assert default_model._reach_index.prefers_covering(len(far))
+    proba, mean, var = default_model._merged(far)
+    np.testing.assert_array_equal(proba, 0.5)
+    np.testing.assert_array_equal(mean, 0.0)
+    np.testing.assert_array_equal(var, default_model.shared_kernel_.diag(far))
+    np.testing.assert_array_equal(default_model.prior_variance(far), var)
+
+
+def test_query_segments_merge_the_experts_own_predictions_and_priors(default_model, grid):
+    # Under the integral kernel a segment's prior variance falls with its length: the
+    # committee machines take each expert's prior at each query segment, as the experts
+    # compute it themselves.
+    _, Q = grid
+    rng = np.random.default_rng(0)
+    Q = Q[::20].copy()
+    Q[:, 2:] += rng.uniform(-2.0, 2.0, size=(Q.shape[0], 2))
+    prior = default_model.shared_kernel_.diag(Q)
+    assert np.ptp(prior) > 0.03 * prior.max()
+    weights = _consulted_weights(default_model, Q)
+    means, variances = zip(
+        *(e.latent_mean_and_variance(Q) for e in default_model.experts_), strict=True
+    )
+    priors = np.column_stack([e.kernel_.diag(Q) for e in default_model.experts_])
+    # rbcm last: the fixture's own combiner.
+    for combiner in ("bcm", "rbcm"):
+        model = default_model.set_params(combiner=combiner)
+        expected = combine(
+            np.column_stack(means),
+            np.column_stack(variances),
+            weights,
+            method=combiner,
+            prior_variance=priors,
+        )
+        proba, _, var = model._merged(Q)
+        np.testing.assert_allclose(proba, expected.proba, rtol=1e-10)
+        np.testing.assert_allclose(var, expected.variance, rtol=1e-10)
+
+
+def test_prior_variance_validates_its_queries_as_predict_does(default_model):
+    from sklearn.exceptions import NotFittedError
+
+    with pytest.raises(NotFittedError):
+        MixtureGPOccupancyMap().prior_variance([[0.0, 0.0, 1.0, 1.0]])
+    with pytest.raises(ValueError, match=r"pass skoccmap.as_segments\(points\)"):
+        default_model.prior_variance([[5.0, 5.0]])
+    with pytest.raises(ValueError):
+        default_model.prior_variance([[np.nan, 0.0, 1.0, 1.0]])
+
+
+def test_predict_is_the_more_probable_class(default_model, grid):
+    _, Q = grid
+    proba = default_model.predict_proba(Q)[:, 1]
+    assert np.any(proba > 0.5) and np.any(proba < 0.5)
+    np.testing.assert_array_equal(
+        default_model.predict(Q), default_model.classes_[(proba > 0.5).astype(int)]
+    )
