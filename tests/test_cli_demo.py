@@ -166,3 +166,38 @@ def test_demo_options_reach_the_experiment(tmp_path, monkeypatch):
                     "verbose": 0}  # fmt: skip
     run_demo([*argv, "--quick"])
     assert seen["single_hyperparameters"] == "from_mixture"
+
+
+def test_demo_defaults_reach_the_experiment(tmp_path, monkeypatch):
+    # The help's defaults; a missing --out is made with its parents.
+    seen = {}
+
+    def fake(methods, **kwargs):
+        seen.update(kwargs, methods=methods)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr("skoccmap.experiment.run_paper_experiment", fake)
+    out = tmp_path / "new" / "demo"
+    rc, _, stderr = run_demo(["--out", str(out)])
+    assert rc == 2 and "stop here" in stderr
+    assert out.is_dir()
+    assert seen == {"methods": ["moe", "bcm", "single"], "resolution": 0.2, "noise_std": 0.0,
+                    "single_hyperparameters": "learn", "random_state": 0, "n_jobs": 1,
+                    "verbose": 1}  # fmt: skip
+
+
+@pytest.mark.parametrize("methods, note", [(["moe", "single"], True), (["moe", "bcm"], False)])
+def test_demo_quick_note_only_with_the_single_gp(methods, note, tmp_path, monkeypatch):
+    # --quick changes only the single GP: without it the note would misdescribe the run.
+    from types import SimpleNamespace
+
+    from skoccmap import experiment
+
+    monkeypatch.setattr(experiment, "run_paper_experiment",
+                        lambda m, **kwargs: SimpleNamespace(methods=m))  # fmt: skip
+    monkeypatch.setattr(experiment, "format_tables", lambda result: "tables")
+    monkeypatch.setattr(experiment, "save_maps", lambda result, out: [])
+    monkeypatch.setattr(experiment, "save_figures", lambda result, out: [])
+    rc, stdout, _ = run_demo(["--quick", "--methods", ",".join(methods), "--out", str(tmp_path)])
+    assert rc == 0
+    assert ("--quick: the single GP used the mixture's kernel" in stdout) == note

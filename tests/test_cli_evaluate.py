@@ -55,6 +55,8 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
         (["--seed", "-1"], "--seed must be non-negative"),
         (["--seeds", "1", "1", "2"], "--seeds must be distinct, got 1 1 2"),
         (["--grid-resolution", "0"], "--grid-resolution must be positive"),
+        (["--grid-resolution", "nan"], "--grid-resolution must be positive"),
+        (["--free-per-beam", "0"], "--free-per-beam must be >= 1"),
     ],
 )
 def test_evaluate_bad_options(paper_log, capsys, options, message):
@@ -132,3 +134,99 @@ def test_evaluate_each_seed_draws_its_own_split_points_and_mixture(paper_log, pr
     assert not all(p.shape == points[0].shape and np.array_equal(p, points[0])
                    for p in points[1:3])  # fmt: skip
     assert _models(args, 5)["mixture of GP experts"].random_state == 5
+
+
+def _numbered_scans(n_scans):
+    """Scans whose pose x is their index, each with two 2 m beams (returns)."""
+    from skoccmap.observations import Scans
+
+    poses = np.c_[np.arange(n_scans, dtype=float), np.zeros((n_scans, 2))]
+    return Scans(poses, np.full((n_scans, 2), 2.0), [-0.5, 0.5], max_range=8.0)
+
+
+def test_evaluate_every_nth_defaults_split(paper_log):
+    # Held out: every 10th scan from the 5th (between training scans); trained on: every
+    # 10th of the others; one free point per held-out beam.
+    from skoccmap._cmd_evaluate import _split
+
+    args = _parsed(paper_log)
+    assert (args.holdout_every, args.train_every, args.free_per_beam) == (10, 10, 1)
+    train, test, points, labels = _split(_numbered_scans(26), args, 0)
+    assert test.poses[:, 0].tolist() == [5, 15, 25]
+    remaining = [i for i in range(26) if i % 10 != 5]
+    assert train.poses[:, 0].tolist() == remaining[::10]
+    assert (int(labels.sum()), int((labels == 0).sum())) == (6, 6)  # 3 scans x 2 beams
+    args = _parsed(paper_log, "--free-per-beam", "3")
+    assert int((_split(_numbered_scans(26), args, 0)[3] == 0).sum()) == 18
+
+
+@pytest.mark.parametrize(
+    "options, n_scans, message",
+    [
+        ([], 5, "--holdout-every 10 holds out no scan of the log's 5"),
+        (["--protocol", "blocks", "--block-size", "4"], 4,
+         "--block-size 4 leaves no training scan of the log's 4"),
+    ],
+)  # fmt: skip
+def test_evaluate_split_refuses_a_log_too_short(paper_log, options, n_scans, message):
+    from skoccmap._cmd_evaluate import _split
+
+    with pytest.raises(ValueError, match=re.escape(message)):
+        _split(_numbered_scans(n_scans), _parsed(paper_log, *options), 0)
+    _split(_numbered_scans(n_scans + 1), _parsed(paper_log, *options), 0)
+
+
+def test_evaluate_grid_resolution_reaches_the_counting_grid(paper_log):
+    from skoccmap._cmd_evaluate import _models
+
+    models = _models(_parsed(paper_log, "--grid-resolution", "0.3"), 0)
+    assert models["counting grid (0.3 m)"].resolution == 0.3
+
+
+def test_evaluate_table_times_the_fit_and_the_prediction(paper_log, monkeypatch, capsys):
+    # A model whose fit takes 0.3 s and whose prediction takes none: the table says so.
+    import time
+
+    from skoccmap import _cmd_evaluate
+
+    class SlowFit:
+        classes_ = np.array([0, 1])
+
+        def fit(self, X, y):
+            time.sleep(0.3)
+            return self
+
+        def predict_proba(self, X):
+            return np.c_[np.full(len(X), 0.5), np.full(len(X), 0.5)]
+
+    monkeypatch.setattr(_cmd_evaluate, "_models", lambda args, seed: {"slow": SlowFit()})
+    argv = ["evaluate", str(paper_log[0]), "--holdout-every", "4", "--quiet"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    header, separator, row = out[out.index("| model |") :].splitlines()[:3]
+    assert separator.count("|") == header.count("|") == 5
+    name, auc, fit_s, predict_s = [cell.strip() for cell in row.strip("|").split("|")]
+    assert (name, auc) == ("slow", "0.5000")
+    assert float(fit_s) >= 0.3 > float(predict_s)
+
+
+def test_evaluate_missing_log(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path / "missing.log")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("skoccmap evaluate: error: ") and "No such file" in err
+
+
+def test_evaluate_refuses_held_out_scans_without_a_hit(tmp_path, capsys):
+    # Odd scans see nothing within the 8 m sentinel: held out every 2nd from the 1st, they
+    # leave no hit to score, and the fits are not paid for.
+    lines = []
+    for t in range(6):
+        ranges = "8.0 8.0 8.0" if t % 2 else "1.0 2.0 1.5"
+        lines.append(f"FLASER 3 {ranges} {0.1 * t} 0 0 {0.1 * t} 0 0 {t}.0 sim {t}.0\n")
+    log = tmp_path / "blind.log"
+    log.write_text("".join(lines))
+    argv = ["evaluate", str(log), "--max-range", "8", "--holdout-every", "2", "--quiet"]
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert "every held-out point is free: the AUC is undefined" in err
+    assert "seed 0: training on" not in out

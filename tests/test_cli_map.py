@@ -1,10 +1,13 @@
+import os
 import re
+import struct
+from pathlib import Path
 
 import numpy as np
 import pytest
 from sklearn.metrics import roc_auc_score
 
-from skoccmap import OccupancyGrid
+from skoccmap import MixtureGPOccupancyMap, OccupancyGrid
 from skoccmap._cmd_map import log_stem
 from skoccmap.cli import main
 from skoccmap.datasets import load_carmen
@@ -392,3 +395,247 @@ def test_a_log_with_a_single_hit_is_refused(tmp_path, capsys):
     assert "1 beam(s) of the 3 training scans return a hit" in err
     assert "a map needs at least 2 hits" in err
     assert not out.exists()
+
+
+def test_no_command_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([])
+    assert exit_info.value.code == 2
+    assert "COMMAND" in capsys.readouterr().err
+
+
+def test_version(capsys):
+    import skoccmap
+
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out.strip() == f"skoccmap {skoccmap.__version__}"
+
+
+def test_module_run_exits_with_the_commands_status(tmp_path):
+    # python -m skoccmap.cli: a refused run must not exit 0.
+    import subprocess
+    import sys
+
+    import skoccmap
+
+    env = {**os.environ, "PYTHONPATH": str(Path(skoccmap.__file__).parents[1])}
+    argv = [sys.executable, "-m", "skoccmap.cli", "map", str(tmp_path / "missing.log")]
+    done = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 2
+    assert "No such file" in done.stderr
+
+
+# A corridor the tests can map in about a second: the laser drives along +x from (0.1 t, 0),
+# its five FLASER beams at -90, -45, 0, 45 and 90 degrees. A wall 0.95 m to its right;
+# ahead, an end wall at x = 4 (the first scan sees through a door to x = 6); at 45 degrees
+# nothing within the 8 m sentinel; at 90 degrees no reading (0).
+_WALL_Y = -0.95
+
+
+def _corridor_readings(t):
+    ahead = 6.0 if t == 0 else 4.0 - 0.1 * t
+    return [-_WALL_Y, -_WALL_Y * np.sqrt(2), ahead, 8.0, 0.0]
+
+
+def _corridor_log(path, n_scans=23, readings=_corridor_readings):
+    lines = []
+    for t in range(n_scans):
+        ranges = " ".join(f"{r:.6f}" for r in readings(t))
+        pose = f"{0.1 * t:.6f} 0 0"
+        lines.append(f"FLASER 5 {ranges} {pose} {pose} {t}.0 sim {t}.0\n")
+    path.write_text("".join(lines))
+    return path
+
+
+def _corridor_hits(n_scans=23):
+    """The hit points of the corridor log, from its geometry."""
+    hits = []
+    for t in range(n_scans):
+        x = 0.1 * t
+        hits += [(x, _WALL_Y), (x - _WALL_Y, _WALL_Y), (6.0 if t == 0 else 4.0, 0.0)]
+    return np.array(hits)
+
+
+def _read_map_server(yaml_path):
+    """resolution, origin and pixel rows (top row first) of a map_server pair, parsed here."""
+    fields = dict(line.split(": ", 1) for line in yaml_path.read_text().splitlines())
+    origin = [float(v) for v in fields["origin"].strip("[]").split(",")]
+    data = (yaml_path.parent / fields["image"]).read_bytes()
+    magic, size, maxval, pixels = data.split(b"\n", 3)
+    width, height = map(int, size.split())
+    assert (magic, maxval, len(pixels)) == (b"P5", b"255", width * height)
+    image = np.frombuffer(pixels, dtype=np.uint8).reshape(height, width)
+    return float(fields["resolution"]), origin, image
+
+
+def test_map_defaults_on_a_small_log(tmp_path, monkeypatch, capsys):
+    # Every scan, 0.1 m cells, files in ./<log name>_map: the defaults the help states.
+    _corridor_log(tmp_path / "corridor.log")
+    monkeypatch.chdir(tmp_path)
+    argv = ["map", "corridor.log", "--max-range", "8", "--n-jobs", "1", "--quiet"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    # Per scan 3 hits (each with its return beam), 1 no-return beam and 1 beam without reading.
+    assert "training on 23 scans: 161 observations (69 hits, 69 return beams, 23 no-return" in out
+    folder = tmp_path / "corridor_map"
+    for suffix in (".yaml", ".pgm", ".npz", ".png"):
+        assert (folder / f"corridor{suffix}").is_file()
+        assert f"wrote {Path('corridor_map') / f'corridor{suffix}'}" in out
+    grid = OccupancyGrid.load(folder / "corridor.npz")
+    assert grid.resolution == 0.1
+    # The map covers every hit, the first scan's through the door included.
+    hits = _corridor_hits()
+    xmin, xmax, ymin, ymax = grid.extent
+    assert xmin <= hits[:, 0].min() and hits[:, 0].max() <= xmax
+    assert ymin <= hits[:, 1].min() and hits[:, 1].max() <= ymax
+    # The PNG: probability and uncertainty panels side by side.
+    width, height = struct.unpack(">II", (folder / "corridor.png").read_bytes()[16:24])
+    assert width > 1.5 * height
+
+
+def test_map_server_files_put_the_walls_where_the_log_saw_them(tmp_path, capsys):
+    # The PGM read as map_server reads it: origin at the lower-left corner, top row first.
+    log = _corridor_log(tmp_path / "corridor.log")
+    argv = ["map", str(log), "--max-range", "8", "--n-jobs", "1", "--quiet",
+            "--resolution", "0.2", "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    resolution, origin, image = _read_map_server(tmp_path / "corridor.yaml")
+    assert resolution == 0.2
+
+    def pixel(x, y):
+        row = image.shape[0] - 1 - int((y - origin[1]) // resolution)
+        return image[row, int((x - origin[0]) // resolution)]
+
+    # Occupied (0): the right wall, hit at every step; free (254): the corridor the beams
+    # to it crossed.
+    for x in (0.5, 1.1, 1.7):
+        assert pixel(x, _WALL_Y - 0.05) == 0
+        assert pixel(x, -0.5) == 254
+
+
+def test_online_defaults_batches_and_snapshots(tmp_path, capsys):
+    # Default 10 scans per batch, a snapshot every 10 batches and after the last.
+    log = _corridor_log(tmp_path / "corridor.log")
+    snaps = tmp_path / "new" / "snaps"
+    argv = ["map", str(log), "--max-range", "8", "--n-jobs", "1", "--quiet", "--online",
+            "--snapshots", str(snaps), "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    rows = re.findall(r"^\| (\d+) \| (\d+) \| (\d+) \|", capsys.readouterr().out, re.M)
+    # batch, scans seen, observations (7 per scan)
+    assert rows == [("1", "10", "70"), ("2", "20", "70"), ("3", "23", "21")]
+    assert sorted(p.name for p in snaps.iterdir()) == ["batch_00003.npz", "batch_00003.png"]
+    snapshot = OccupancyGrid.load(snaps / "batch_00003.npz")
+    final = OccupancyGrid.load(tmp_path / "corridor.npz")
+    np.testing.assert_allclose(snapshot.probability, final.probability)
+
+
+def test_online_waits_for_two_hits_holding_the_batches_before(tmp_path, capsys):
+    # The first scan has a single hit (it cannot be clustered): it waits for the second
+    # and enters the model with it.
+    def readings(t):
+        return [8.0, 8.0, 3.0, 8.0, 8.0] if t == 0 else _corridor_readings(t)
+
+    log = _corridor_log(tmp_path / "corridor.log", n_scans=4, readings=readings)
+    argv = ["map", str(log), "--max-range", "8", "--n-jobs", "1", "--quiet", "--online",
+            "--batch-scans", "1", "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    rows = re.findall(r"^\| (\d+) \| (\d+) \| (\d+) \|", capsys.readouterr().out, re.M)
+    # Scan 0: 1 hit, 1 return beam, 4 no-return beams; each later scan 7 rows.
+    assert rows == [("2", "2", "13"), ("3", "3", "7"), ("4", "4", "7")]
+
+
+def _online_args(*options):
+    from skoccmap._cmd_map import _check_online_options
+    from skoccmap.cli import build_parser
+
+    args = build_parser().parse_args(["map", "log.txt", *options])
+    _check_online_options(args)
+    return args
+
+
+def test_online_options_given_are_kept_and_checked():
+    args = _online_args("--online", "--batch-scans", "3", "--refit-fraction", "0",
+                        "--snapshot-every", "2")  # fmt: skip
+    assert (args.batch_scans, args.refit_fraction, args.snapshot_every) == (3, 0.0, 2)
+    args = _online_args("--online")
+    assert (args.batch_scans, args.refit_fraction, args.snapshot_every) == (10, None, 10)
+    for option, value, message in [
+        ("--batch-scans", "0", "--batch-scans must be >= 1"),
+        ("--refit-fraction", "-0.5", "--refit-fraction must be >= 0"),
+        ("--refit-fraction", "nan", "--refit-fraction must be >= 0"),
+        ("--snapshot-every", "0", "--snapshot-every must be >= 1"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            _online_args("--online", option, value)
+
+
+def test_refit_fraction_reaches_the_online_mixture(tmp_path):
+    from skoccmap._cmd_map import _replay
+
+    train = load_carmen(_corridor_log(tmp_path / "corridor.log", n_scans=4), max_range=8.0)
+    for options, expected in [([], MixtureGPOccupancyMap().refit_fraction),
+                              (["--refit-fraction", "0.25"], 0.25)]:  # fmt: skip
+        args = _online_args("--online", "--n-jobs", "1", "--quiet", *options)
+        model = _replay(args, train, None)
+        assert model.refit_fraction == expected and model.n_experts_ >= 1
+
+
+def test_map_option_defaults_are_the_documented_ones():
+    from skoccmap._cmd_map import make_mixture
+    from skoccmap.cli import build_parser
+
+    model = make_mixture(build_parser().parse_args(["map", "log.txt"]))
+    defaults = MixtureGPOccupancyMap()
+    assert model.max_expert_size == defaults.max_expert_size == 400
+    assert model.combiner == defaults.combiner == "rbcm"
+    assert model.n_jobs == -1  # all cores
+    assert model.verbose == 1  # progress messages unless --quiet
+    assert make_mixture(build_parser().parse_args(["map", "log.txt", "--quiet"])).verbose == 0
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--max-expert-size", "1"], "--max-expert-size must be >= 2, got 1"),
+        (["--seed", "4294967296"], "--seed must be an integer in [0, 2**32), got 4294967296"),
+        (["--resolution", "0"], "--resolution must be a positive number, got 0.0"),
+        (["--resolution", "nan"], "--resolution must be a positive number"),
+    ],
+)
+def test_bad_option_at_its_bound_is_refused(argv, message, tmp_path, capsys):
+    log = _corridor_log(tmp_path / "corridor.log", n_scans=2)
+    assert main(["map", str(log), *argv, "--out", str(tmp_path / "out")]) == 2
+    out, err = capsys.readouterr()
+    assert message in err and "scans x" not in out  # before the log is read
+    assert not (tmp_path / "out").exists()
+
+
+def test_min_hit_frequency_takes_both_ends():
+    from skoccmap.cli import build_parser
+
+    for value in ("0", "1"):
+        args = build_parser().parse_args(["map", "log.txt", "--min-hit-frequency", value])
+        assert args.min_hit_frequency == float(value)
+
+
+def test_stopwatch_table_totals_its_rows():
+    from skoccmap._cmd_map import Stopwatch
+
+    watch = Stopwatch()
+    watch.rows = [("read log", 1.25), ("fit mixture", 2.5)]
+    assert watch.table().splitlines()[-1] == "| total | 3.8 |"
+
+
+def test_a_bag_without_the_ros_extra_is_a_clear_error(tmp_path, monkeypatch, capsys):
+    # Without rosbags, the reader's advice to install it, not a traceback.
+    def without_rosbags(*args, **kwargs):
+        raise ImportError("reading ROS bags needs the rosbags package")
+
+    monkeypatch.setattr("skoccmap.datasets.load_rosbag", without_rosbags)
+    bag = tmp_path / "run.bag"
+    bag.write_bytes(b"")
+    assert main(["map", str(bag), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err == "skoccmap map: error: reading ROS bags needs the rosbags package\n"
+    assert not (tmp_path / "out").exists()

@@ -147,3 +147,30 @@ def test_the_metres_check_reads_the_median_beam_and_skips_hits():
     ends[4, 0] = 620
     with pytest.warns(UserWarning, match="median length is 510"):
         warn_unless_metres(starts, ends)
+
+
+def test_an_interrupted_fit_leaves_the_estimator_unfitted(monkeypatch):
+    # Ctrl-C in a long fit is no Exception: the half-fitted model must not predict either.
+    from skoccmap import baselines
+
+    X, y = _paper_xy()
+    grid = OccupancyGridMap().fit(X, y)
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(baselines, "warn_unless_metres", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        grid.fit(X, y)
+    with pytest.raises(NotFittedError):
+        grid.predict(X)
+    assert grid.get_params() == OccupancyGridMap().get_params()
+
+
+def test_the_metres_check_keeps_quiet_at_its_bound():
+    # A median beam of exactly 500 m is within the bound: no warning.
+    starts = np.zeros((3, 2))
+    ends = np.c_[[400, 500, 600], np.zeros(3)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_unless_metres(starts, ends)

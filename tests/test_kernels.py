@@ -116,8 +116,9 @@ def test_cross_kernel_is_transpose_and_diag_is_closed_form():
         (np.zeros((3, 3)), "even number of columns"),
         (np.array([[0.0, np.nan, 1.0, 1.0]]), "NaN"),
         (np.zeros(4), "2-D"),
+        (np.zeros((3, 0)), r"0 column\(s\)"),
     ],
-    ids=["odd columns", "nan", "1-D"],
+    ids=["odd columns", "nan", "1-D", "zero_columns"],
 )
 def test_bad_input_raises(X, match):
     with pytest.raises(ValueError, match=match):
