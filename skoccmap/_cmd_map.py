@@ -244,7 +244,10 @@ def _or_none(convert, what, valid, bound):
     return parse
 
 
-_length_or_none = _or_none(float, "a length in metres", lambda v: v > 0, "a positive length")
+# inf is no length: the mixture would refuse it, but only once the log has been read.
+_length_or_none = _or_none(
+    float, "a length in metres", lambda v: 0 < v < math.inf, "a positive finite length"
+)
 _count_or_none = _or_none(int, "a whole number", lambda v: v >= 1, "at least 1")
 _fraction_or_none = _or_none(float, "a number", lambda v: 0 <= v <= 1, "between 0 and 1")
 

@@ -217,8 +217,9 @@ def test_beam_piece_options_reach_the_mixture(options, expected):
 
 @pytest.mark.parametrize(
     "option, value",
-    [("--max-beam-length", v) for v in ["0", "-1", "long"]]
-    + [("--hyperparameter-beam-length", v) for v in ["0", "-1", "long"]]
+    [("--max-beam-length", v) for v in ["0", "-1", "long", "inf"]]
+    + [("--hyperparameter-beam-length", v) for v in ["0", "-1", "long", "inf"]]
+    + [("--beam-end-length", v) for v in ["0", "inf"]]
     + [("--max-pieces-per-cell", v) for v in ["0", "1.5", "many"]]
     + [("--min-hit-frequency", v) for v in ["-0.1", "2", "often"]],
 )
