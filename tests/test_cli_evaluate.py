@@ -56,6 +56,9 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
         (["--seeds", "1", "1", "2"], "--seeds must be distinct, got 1 1 2"),
         (["--grid-resolution", "0"], "--grid-resolution must be positive"),
         (["--grid-resolution", "nan"], "--grid-resolution must be positive"),
+        # It was refused only after the log was read and the mixture fitted, in the
+        # counting grid's words.
+        (["--grid-resolution", "inf"], "--grid-resolution must be positive and finite, got inf"),
         (["--free-per-beam", "0"], "--free-per-beam must be >= 1"),
     ],
 )
