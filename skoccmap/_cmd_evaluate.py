@@ -122,6 +122,8 @@ def _check_options(args):
         args.seeds = [args.seed]
     if min(args.seeds) < 0:
         raise ValueError(f"{option} must be non-negative integers")
+    if max(args.seeds) >= 2**32:
+        raise ValueError(f"{option} must be below 2**32, got {max(args.seeds)}")
     if len(set(args.seeds)) < len(args.seeds):
         # A repeated seed repeats a run and would count twice in the mean.
         raise ValueError(f"--seeds must be distinct, got {' '.join(map(str, args.seeds))}")

@@ -54,6 +54,8 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
         (["--seeds", "-1"], "--seeds must be non-negative"),
         (["--seed", "-1"], "--seed must be non-negative"),
         (["--seeds", "1", "1", "2"], "--seeds must be distinct, got 1 1 2"),
+        # It was numpy's "Seed must be between 0 and 2**32 - 1", after the log was read.
+        (["--seeds", "0", "4294967296"], "--seeds must be below 2**32, got 4294967296"),
         (["--grid-resolution", "0"], "--grid-resolution must be positive"),
         (["--grid-resolution", "nan"], "--grid-resolution must be positive"),
         # It was refused only after the log was read and the mixture fitted, in the
