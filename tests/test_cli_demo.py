@@ -149,7 +149,9 @@ def test_full_demo(tmp_path):
         assert (tmp_path / name).read_bytes()[:8] == PNG_MAGIC
 
 
-def test_demo_options_reach_the_experiment(tmp_path, monkeypatch):
+@pytest.fixture
+def experiment_arguments(monkeypatch):
+    """The arguments the demo passes to the experiment, which then stops (exit code 2)."""
     seen = {}
 
     def fake(methods, **kwargs):
@@ -157,6 +159,11 @@ def test_demo_options_reach_the_experiment(tmp_path, monkeypatch):
         raise ValueError("stop here")
 
     monkeypatch.setattr("skoccmap.experiment.run_paper_experiment", fake)
+    return seen
+
+
+def test_demo_options_reach_the_experiment(tmp_path, experiment_arguments):
+    seen = experiment_arguments
     argv = ["--methods", "moe, bcm", "--resolution", "0.5", "--noise-std", "0.05", "--seed", "7",
             "--n-jobs", "2", "--quiet", "--out", str(tmp_path)]  # fmt: skip
     rc, _, stderr = run_demo(argv)
@@ -168,15 +175,9 @@ def test_demo_options_reach_the_experiment(tmp_path, monkeypatch):
     assert seen["single_hyperparameters"] == "from_mixture"
 
 
-def test_demo_defaults_reach_the_experiment(tmp_path, monkeypatch):
+def test_demo_defaults_reach_the_experiment(tmp_path, experiment_arguments):
     # The help's defaults; a missing --out is made with its parents.
-    seen = {}
-
-    def fake(methods, **kwargs):
-        seen.update(kwargs, methods=methods)
-        raise ValueError("stop here")
-
-    monkeypatch.setattr("skoccmap.experiment.run_paper_experiment", fake)
+    seen = experiment_arguments
     out = tmp_path / "new" / "demo"
     rc, _, stderr = run_demo(["--out", str(out)])
     assert rc == 2 and "stop here" in stderr
