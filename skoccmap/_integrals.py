@@ -1000,6 +1000,56 @@ def _points_against(P, Ys, cols, gradient, chunk):
             yield pi, cj, k, grad
 
 
+def _point_block(P, Ys):
+    """Kernel values of points ``P`` against every segment row of ``Ys``, as a dense block.
+
+    For a few queries against an expert's rows, where every pair is evaluated anyway: the
+    differences are broadcast per coordinate (an (n_points, n_rows) array each) instead of
+    gathered pair by pair, and the block is written whole. Each pair goes through the
+    operations of :func:`_points_against` in the same order, so the values are the same to
+    the bit; pairs beyond ``_CUTOFF`` are exactly 0.
+    """
+    dim = P.shape[1]
+    A = Ys[:, :dim]
+    D = Ys[:, dim:] - A
+    length = np.sqrt(_dot(D, D))
+    K = np.empty((len(P), len(Ys)))
+    kinds = (
+        (length == 0.0, "point"),
+        ((length > 0.0) & (length < _SHORT), "short"),
+        (length >= _SHORT, "long"),
+    )
+    for mask, kind in kinds:
+        sub = slice(None) if np.all(mask) else np.flatnonzero(mask)
+        if not isinstance(sub, slice) and sub.size == 0:
+            continue
+        # w[j] = P[:, j] - A[sub, j]: as _dot sums over a pair's coordinates, in order.
+        w = [P[:, j, None] - A[None, sub, j] for j in range(dim)]
+        if kind == "short":  # Gauss-Legendre takes rows of pairs
+            shape = w[0].shape
+            d = np.broadcast_to(D[None, sub], (*shape, dim)).reshape(-1, dim)
+            k, _, dist2 = _point_short_values(np.stack(w, axis=-1).reshape(-1, dim), d, None)
+            k, dist2 = k.reshape(shape), dist2.reshape(shape)
+        else:
+            f0 = _coordinate_dot(w, w)
+            if kind == "point":
+                k, dist2 = np.exp(-0.5 * f0), f0
+            else:
+                dw = _coordinate_dot(w, [D[None, sub, j] for j in range(dim)])
+                k, *_, dist2 = _inner_scalars(f0, dw, length[None, sub], ends=False)
+        k[dist2 > _CUTOFF**2] = 0.0
+        K[:, sub] = k
+    return K
+
+
+def _coordinate_dot(x, y):
+    """``sum_j x[j] * y[j]`` over lists of per-coordinate arrays, in the order of :func:`_dot`."""
+    out = x[0] * y[0]
+    for xj, yj in zip(x[1:], y[1:], strict=True):
+        out += xj * yj
+    return out
+
+
 def point_row_pairs(points, rows, point_index, row_index, *, length_scale=1.0):
     """Integral kernel of points against segment rows, for a list of (point, row) pairs.
 
@@ -1132,8 +1182,11 @@ def integral_kernel(
     y_pts, y_segs = np.flatnonzero(y_point), np.flatnonzero(~y_point)
 
     # Point rows of X against every column (symmetric: the other points after them and all
-    # segments), then segment rows of X against the point columns of Y.
-    if x_pts.size:
+    # segments), then segment rows of X against the point columns of Y. A few points against
+    # all of Y (an expert's cross-covariances at a chunk of queries) are one dense block.
+    if x_pts.size and not symmetric and not eval_gradient and x_pts.size * m <= point_chunk:
+        K[x_pts] = _point_block(Xs[x_pts, :dim], Ys)
+    elif x_pts.size:
         cols = np.arange(m) if not symmetric else np.r_[x_pts, x_segs]
         for pi, cj, k, g in _points_against(Xs[x_pts, :dim], Ys, cols, gradient, point_chunk):
             rr, cc = x_pts[pi], cols[cj]
