@@ -47,9 +47,6 @@ _WINDOW_MARGIN = 6.0
 _SHORT = 0.05
 # Gauss-Legendre order for pairs of short segments (error < 1e-12 for lengths below _SHORT).
 _SHORT_ORDER = 5
-# A line-point tail term whose exponent exceeds the minimum by this much is below exp(-40) < 5e-18
-# of the integral and is skipped (see _inner_scalars).
-_TAIL = 80.0
 
 # _GL_MAX_WINDOW[n - 1]: the longest interval (scaled units) on which n-point Gauss-Legendre
 # integrates a unit Gaussian, centred anywhere, with an error below 5e-13 of its mass
@@ -122,16 +119,14 @@ def _inner_scalars(f0, dw, length, ends=True):
 
         M0 = sqrt(2 pi) / length * exp(-h**2 / 2) * (Phi(x2) - Phi(x1))
 
-    The difference of CDFs is written with ``erfc`` of non-negative arguments only,
-    ``Phi(x) = erfc(|x| / sqrt 2) / 2`` for x <= 0 and the upper tail by symmetry, so neither
-    tail cancels. ``erfc`` is accurate relative to its value far into the tail (it
-    underflows only where ``exp(-x**2 / 2)`` does), so the Gaussian factor ``exp(-h**2 / 2)``
-    can stay outside: half the cost of the equivalent ``erfcx(z) exp(-f / 2)`` form.
-
-    A tail term at an end where ``f`` exceeds its minimum by more than ``_TAIL`` is below
-    ``exp(-_TAIL / 2)`` of the result (erfc decreases, and the other end or the peak
-    dominates), so its erfc is skipped: erfc of ``inf`` is 0 and costs a fraction of a
-    finite argument.
+    The difference of CDFs is that of upper tails, ``Q(x1) - Q(x2)`` with
+    ``Q(x) = erfc(x / sqrt 2) / 2``, or ``Q(-x2) - Q(-x1)`` by symmetry: whichever puts the
+    segment's middle at or beyond the closest point, so that its lower end ``lo`` is at
+    least ``-length / 2`` and neither tail cancels (the upper end ``lo + length`` is
+    positive). ``erfc`` is accurate relative to its value far into the tail (it underflows
+    only where ``exp(-x**2 / 2)`` does), so the Gaussian factor ``exp(-h**2 / 2)`` can stay
+    outside: half the cost of the equivalent ``erfcx(z) exp(-f / 2)`` form. The closest
+    point of the segment is ``max(lo, 0)`` along it from the foot of the perpendicular.
 
     ``e0 = exp(-f0 / 2)`` and ``e1 = exp(-f(1) / 2)``, which only the gradients need, are
     None unless ``ends``.
@@ -139,17 +134,16 @@ def _inner_scalars(f0, dw, length, ends=True):
     inv_len = 1.0 / length
     x1 = -dw * inv_len
     x2 = x1 + length
-    f1 = f0 - 2.0 * dw + length * length
     h2 = np.maximum(f0 - x1 * x1, 0.0)
-    # Peak before the segment (x1 >= 0), after it (x2 <= 0), or inside it.
-    before, after = x1 >= 0.0, x2 <= 0.0
-    fmin = np.where(before, f0, np.where(after, f1, h2))
-    t1 = erfc(np.where(f0 - fmin <= _TAIL, np.abs(x1) * _SQRT_HALF, np.inf))
-    t2 = erfc(np.where(f1 - fmin <= _TAIL, np.abs(x2) * _SQRT_HALF, np.inf))
-    diff = np.where(before, t1 - t2, np.where(after, t2 - t1, 2.0 - t1 - t2))
+    lo = np.where(x1 + x2 >= 0.0, x1, -x2)
+    diff = erfc(lo * _SQRT_HALF) - erfc((lo + length) * _SQRT_HALF)
     m0 = (0.5 * _SQRT_2PI) * inv_len * np.exp(-0.5 * h2) * diff
-    e0, e1 = (np.exp(-0.5 * f0), np.exp(-0.5 * f1)) if ends else (None, None)
-    return m0, x1, x2, e0, e1, h2, inv_len, fmin
+    beyond = np.maximum(lo, 0.0)
+    fmin = h2 + beyond * beyond
+    if not ends:
+        return m0, x1, x2, None, None, h2, inv_len, fmin
+    f1 = f0 - 2.0 * dw + length * length
+    return m0, x1, x2, np.exp(-0.5 * f0), np.exp(-0.5 * f1), h2, inv_len, fmin
 
 
 def _inner_gradient_iso(m0, x1, x2, e0, e1, h2, inv_len):
