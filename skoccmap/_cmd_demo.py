@@ -7,6 +7,7 @@ Figure 2 (clustered data), Figure 4 (maps and uncertainty), Figure 5 (ROC curves
 (with matplotlib) and every map as a ROS map_server PGM + YAML pair.
 """
 
+import math
 import sys
 
 _DEFAULT_OUT = "skoccmap_demo"
@@ -43,19 +44,34 @@ def add_arguments(parser):
     parser.add_argument("--quiet", action="store_true", help="no progress messages")
 
 
+def _check_options(args, methods):
+    """The options the experiment would refuse in its own words, refused in theirs."""
+    from ._cmd_map import check_jobs_and_seed
+    from .experiment import METHODS
+
+    if not methods or set(methods) - set(METHODS) or len(set(methods)) < len(methods):
+        raise ValueError(
+            f"--methods must name distinct maps among {', '.join(METHODS)}, got {args.methods!r}"
+        )
+    if not (math.isfinite(args.resolution) and args.resolution > 0):
+        raise ValueError(f"--resolution must be a positive finite length, got {args.resolution:g}")
+    if not (math.isfinite(args.noise_std) and args.noise_std >= 0):
+        raise ValueError(f"--noise-std must be a finite length >= 0, got {args.noise_std:g}")
+    check_jobs_and_seed(args.n_jobs, args.seed)
+
+
 def run(args):
     from pathlib import Path
 
+    from ._cmd_map import _output_folder, remove_empty
     from .experiment import format_tables, run_paper_experiment, save_figures, save_maps
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    created = []
     try:
-        if args.noise_std < 0:
-            raise ValueError("--noise-std must be >= 0")
+        _check_options(args, methods)
         # Before the fits: a folder that cannot be made would fail only after them.
-        if Path(args.out).exists() and not Path(args.out).is_dir():
-            raise ValueError(f"--out {args.out} exists and is not a folder")
-        Path(args.out).mkdir(parents=True, exist_ok=True)
+        _output_folder(Path(args.out), "--out", created)
         result = run_paper_experiment(
             methods,
             resolution=args.resolution,
@@ -66,6 +82,7 @@ def run(args):
             verbose=0 if args.quiet else 1,
         )
     except (ValueError, OSError) as exc:
+        remove_empty(created)
         print(f"skoccmap demo: error: {exc}", file=sys.stderr)
         return 2
     print()

@@ -415,12 +415,17 @@ def run(args):
             _output_folder(Path(args.snapshots), "--snapshots", created)
         return _run(args, unknown_variance, out)
     except (ValueError, OSError) as exc:
-        # Made for this run, which wrote nothing into them: deepest first.
-        for folder in sorted(created, key=lambda f: len(f.parts), reverse=True):
-            if folder.is_dir() and not any(folder.iterdir()):
-                folder.rmdir()
+        remove_empty(created)
         print(f"skoccmap map: error: {exc}", file=sys.stderr)
         return 2
+
+
+def remove_empty(created):
+    """Remove the folders of ``created`` (made for a run that failed) that it left empty,
+    deepest first."""
+    for folder in sorted(created, key=lambda f: len(f.parts), reverse=True):
+        if folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
 
 
 # Defaults of the options only --online reads (None: the option was not given).
@@ -472,14 +477,20 @@ def check_model_arguments(args):
     """The mixture's options a fit would refuse, refused before the log is read."""
     if args.max_expert_size < 2:
         raise ValueError(f"--max-expert-size must be >= 2, got {args.max_expert_size}")
-    if args.n_jobs == 0:
-        raise ValueError("--n-jobs must not be 0 (-1: all cores, 1: one)")
-    seed = getattr(args, "seed", 0)
-    if not 0 <= seed < 2**32:
-        raise ValueError(f"--seed must be an integer in [0, 2**32), got {seed}")
+    check_jobs_and_seed(args.n_jobs, getattr(args, "seed", 0))
+    if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
+        raise ValueError(f"--max-range must be a positive finite length, got {args.max_range:g}")
     tolerance = _bag_option(args, "level_tolerance")
     if not tolerance >= 0:
         raise ValueError(f"--level-tolerance must be >= 0 radians, got {tolerance}")
+
+
+def check_jobs_and_seed(n_jobs, seed):
+    """--n-jobs and --seed as the estimators take them, refused in the options' names."""
+    if n_jobs == 0:
+        raise ValueError("--n-jobs must not be 0 (-1: all cores, 1: one)")
+    if not 0 <= seed < 2**32:
+        raise ValueError(f"--seed must be an integer in [0, 2**32), got {seed}")
 
 
 # Suffixes the default output names drop: the log's name stays otherwise whole, so that

@@ -113,9 +113,15 @@ def test_demo_without_matplotlib(tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     "argv, match",
     [
-        (["--methods", "moe,gp"], "methods"),
-        (["--resolution", "-1"], "resolution"),
-        (["--noise-std", "-0.1"], "noise-std"),
+        (["--methods", "moe,gp"], "--methods"),
+        (["--methods", "moe,moe"], "--methods"),
+        (["--resolution", "-1"], "--resolution"),
+        (["--resolution", "inf"], "--resolution"),
+        (["--noise-std", "-0.1"], "--noise-std"),
+        (["--noise-std", "nan"], "--noise-std"),
+        (["--n-jobs", "0"], "--n-jobs"),
+        (["--seed", "-1"], "--seed"),
+        (["--seed", str(2**32)], "--seed"),
         # At 5 m every observed cell touches a wall: no AUC, refused before the fits.
         (["--methods", "moe", "--resolution", "5"], "the AUC is undefined"),
     ],
@@ -124,6 +130,13 @@ def test_demo_bad_arguments(argv, match, tmp_path):
     rc, stdout, stderr = run_demo([*argv, "--out", str(tmp_path)])
     assert rc == 2
     assert stderr.startswith("skoccmap demo: error:") and match in stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_refused_demo_removes_the_out_folder_it_made(tmp_path):
+    # Refused after --out was made (with its parents): nothing is left behind.
+    rc, _, stderr = run_demo(["--n-jobs", "0", "--out", str(tmp_path / "new" / "demo")])
+    assert rc == 2 and "--n-jobs" in stderr
     assert not list(tmp_path.iterdir())
 
 
@@ -150,12 +163,14 @@ def test_full_demo(tmp_path):
 
 
 @pytest.fixture
-def experiment_arguments(monkeypatch):
-    """The arguments the demo passes to the experiment, which then stops (exit code 2)."""
+def experiment_arguments(monkeypatch, tmp_path):
+    """The arguments the demo passes to the experiment, which then stops (exit code 2), and
+    what ``tmp_path`` held when it was called (``"made"``)."""
     seen = {}
 
     def fake(methods, **kwargs):
-        seen.update(kwargs, methods=methods)
+        made = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*"))
+        seen.update(kwargs, methods=methods, made=made)
         raise ValueError("stop here")
 
     monkeypatch.setattr("skoccmap.experiment.run_paper_experiment", fake)
@@ -170,21 +185,22 @@ def test_demo_options_reach_the_experiment(tmp_path, experiment_arguments):
     assert rc == 2 and "stop here" in stderr
     assert seen == {"methods": ["moe", "bcm"], "resolution": 0.5, "noise_std": 0.05,
                     "single_hyperparameters": "learn", "random_state": 7, "n_jobs": 2,
-                    "verbose": 0}  # fmt: skip
+                    "verbose": 0, "made": []}  # fmt: skip
     run_demo([*argv, "--quick"])
     assert seen["single_hyperparameters"] == "from_mixture"
 
 
 def test_demo_defaults_reach_the_experiment(tmp_path, experiment_arguments):
-    # The help's defaults; a missing --out is made with its parents.
+    # The help's defaults; a missing --out is made with its parents before the fits, and
+    # removed when the run fails having written nothing into it.
     seen = experiment_arguments
     out = tmp_path / "new" / "demo"
     rc, _, stderr = run_demo(["--out", str(out)])
     assert rc == 2 and "stop here" in stderr
-    assert out.is_dir()
     assert seen == {"methods": ["moe", "bcm", "single"], "resolution": 0.2, "noise_std": 0.0,
                     "single_hyperparameters": "learn", "random_state": 0, "n_jobs": 1,
-                    "verbose": 1}  # fmt: skip
+                    "verbose": 1, "made": ["new", "new/demo"]}  # fmt: skip
+    assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("methods, note", [(["moe", "single"], True), (["moe", "bcm"], False)])

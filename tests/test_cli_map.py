@@ -602,6 +602,8 @@ def test_map_option_defaults_are_the_documented_ones():
         (["--seed", "4294967296"], "--seed must be an integer in [0, 2**32), got 4294967296"),
         (["--resolution", "0"], "--resolution must be a positive number, got 0.0"),
         (["--resolution", "nan"], "--resolution must be a positive number"),
+        (["--max-range", "0"], "--max-range must be a positive finite length, got 0"),
+        (["--max-range", "inf"], "--max-range must be a positive finite length, got inf"),
     ],
 )
 def test_bad_option_at_its_bound_is_refused(argv, message, tmp_path, capsys):
