@@ -75,6 +75,24 @@ def _consulted_weights(model, Q):
     return dense
 
 
+def _combined_by_hand(model, Q, combiners):
+    """Each combiner's :func:`combine` of every expert's own mean, variance and prior at
+    ``Q``, weighted by the gate of the experts each query consults."""
+    weights = _consulted_weights(model, Q)
+    means, variances = zip(*(e.latent_mean_and_variance(Q) for e in model.experts_), strict=True)
+    priors = np.column_stack([e.kernel_.diag(Q) for e in model.experts_])
+    return {
+        combiner: combine(
+            np.column_stack(means),
+            np.column_stack(variances),
+            weights,
+            method=combiner,
+            prior_variance=priors,
+        )
+        for combiner in combiners
+    }
+
+
 def test_observation_kinds_recovered_from_geometry(paper):
     model = _mixture().fit(paper.X, paper.y)
     np.testing.assert_array_equal(model.observation_kind_, paper.kind)
@@ -527,19 +545,9 @@ def test_merge_matches_combine_on_expert_outputs(paper, grid):
     far = as_segments([[1e3, 1e3], [-50.0, 0.0]])
     np.testing.assert_allclose(model.predict_proba(far)[:, 1], 0.5)
     np.testing.assert_allclose(model.predict_var(far), model.shared_kernel_.diag(far))
-    weights = _consulted_weights(model, Q)
-    assert np.all(weights.sum(axis=1) > 0)
-    means, variances = zip(*(e.latent_mean_and_variance(Q) for e in model.experts_), strict=True)
-    prior = np.column_stack([e.kernel_.diag(Q) for e in model.experts_])
-    for combiner in COMBINERS:
+    assert np.all(_consulted_weights(model, Q).sum(axis=1) > 0)
+    for combiner, expected in _combined_by_hand(model, Q, COMBINERS).items():
         model.set_params(combiner=combiner)
-        expected = combine(
-            np.column_stack(means),
-            np.column_stack(variances),
-            weights,
-            method=combiner,
-            prior_variance=prior,
-        )
         np.testing.assert_allclose(model.predict_proba(Q)[:, 1], expected.proba, rtol=1e-12)
         np.testing.assert_allclose(model.predict_var(Q), expected.variance, rtol=1e-12)
 
@@ -1405,21 +1413,9 @@ def test_query_segments_merge_the_experts_own_predictions_and_priors(default_mod
     Q[:, 2:] += rng.uniform(-2.0, 2.0, size=(Q.shape[0], 2))
     prior = default_model.shared_kernel_.diag(Q)
     assert np.ptp(prior) > 0.03 * prior.max()
-    weights = _consulted_weights(default_model, Q)
-    means, variances = zip(
-        *(e.latent_mean_and_variance(Q) for e in default_model.experts_), strict=True
-    )
-    priors = np.column_stack([e.kernel_.diag(Q) for e in default_model.experts_])
     # rbcm last: the fixture's own combiner.
-    for combiner in ("bcm", "rbcm"):
+    for combiner, expected in _combined_by_hand(default_model, Q, ("bcm", "rbcm")).items():
         model = default_model.set_params(combiner=combiner)
-        expected = combine(
-            np.column_stack(means),
-            np.column_stack(variances),
-            weights,
-            method=combiner,
-            prior_variance=priors,
-        )
         proba, _, var = model._merged(Q)
         np.testing.assert_allclose(proba, expected.proba, rtol=1e-10)
         np.testing.assert_allclose(var, expected.variance, rtol=1e-10)
