@@ -1145,6 +1145,12 @@ def integral_kernel(
     dim = X.shape[1] // 2
     scale = np.broadcast_to(np.asarray(length_scale, dtype=float), (dim,))
     scale2 = np.concatenate([scale, scale])
+    point_chunk = _POINT_CHUNK if block_size is None else min(block_size, _POINT_CHUNK)
+    few = Y is not None and X.shape[0] * Y.shape[0] <= point_chunk
+    if few and not eval_gradient and _fast and np.array_equal(X[:, :dim], X[:, dim:]):
+        # A few points against all of Y (an expert's cross-covariances at a chunk of
+        # queries): one dense block, without the bookkeeping of the general case.
+        return _point_block(X[:, :dim] / scale, Y / scale2)
     Xs = X / scale2
     symmetric = Y is None
     Ys = Xs if symmetric else Y / scale2
@@ -1153,7 +1159,6 @@ def integral_kernel(
     n_grad = dim if anisotropic else 1
     K = np.zeros((n, m))
     G = np.zeros((n, m, n_grad)) if eval_gradient else None
-    point_chunk = _POINT_CHUNK if block_size is None else min(block_size, _POINT_CHUNK)
     if block_size is None:
         block_size = int(np.clip(n * m // 16, 4096, 1 << 18))
 
@@ -1177,7 +1182,7 @@ def integral_kernel(
 
     # Point rows of X against every column (symmetric: the other points after them and all
     # segments), then segment rows of X against the point columns of Y. A few points against
-    # all of Y (an expert's cross-covariances at a chunk of queries) are one dense block.
+    # all of Y are one dense block.
     if x_pts.size and not symmetric and not eval_gradient and x_pts.size * m <= point_chunk:
         K[x_pts] = _point_block(Xs[x_pts, :dim], Ys)
     elif x_pts.size:
