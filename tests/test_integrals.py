@@ -634,7 +634,7 @@ def test_point_point_is_the_rbf_kernel():
 def test_segment_point_far_end_term(excess, side, aside):
     # A point off one end of the segment, the squared distance to the far end ``excess``
     # above that to the near end: the far end's erfc term is about exp(-excess / 2) of the
-    # value, 1e-9 at 41 (must be kept), 1e-18 at 79 (may be skipped).
+    # value, 1e-9 at 41, 1e-18 at 79: kept to 1e-12 of the value, whatever the far end.
     r = 2.0
     length = np.sqrt(r * r + excess) - r
     u = np.array([0.6, 0.8])
