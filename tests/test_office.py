@@ -32,6 +32,53 @@ def test_office_environment_extent_and_doors():
     assert_array_equal(env.occupancy([[12.3, 11.35], [15.8, 3.5], [10.0, 7.5]]), [1, 1, 0])
 
 
+def test_office_furniture():
+    env = make_office_environment()
+    rooms = make_office_scans(2, 2).rooms
+    path = _office_path()
+    labels = _room_of(path)
+    north = np.flatnonzero(rooms[:, 2] == 8.5)
+    south = np.flatnonzero(rooms[:, 3] == 6.5)
+    meeting = north[np.argsort(rooms[north, 0])[2]]  # the third north room
+    hall = south[np.argmax(rooms[south, 0])]  # the south-east hall
+    # Blocks are outlined by walls, closed all round: measured from a point inside, the
+    # table is 1.6 m x 0.8 m and the pillar 0.5 m x 0.5 m (each centred in its room's loop),
+    # and the shelf against the west wall of the south-west room is 2 m long.
+    axes = [[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]
+    angle = np.linspace(0.0, 2 * np.pi, 360, endpoint=False)
+    around = np.column_stack([np.cos(angle), np.sin(angle)])
+    blocks = [
+        (path[labels == meeting].mean(axis=0), 1.6, 0.8),
+        (path[labels == hall].mean(axis=0), 0.5, 0.5),
+        (np.array([0.2, 2.5]), None, 2.0),  # midway along the shelf, 0.2 m off the wall
+    ]
+    for inside, width, depth in blocks:
+        east, west, north_, south_ = env.cast([inside] * 4, axes)
+        if width is not None:
+            assert abs(east + west + env.wall_thickness - width) < 1e-9
+        assert abs(north_ + south_ + env.wall_thickness - depth) < 1e-9
+        assert np.all(env.cast(np.repeat([inside], 360, axis=0), around) < 1.0)
+    # The partition (x = 12) stands free in the middle south room, 2.5 m long: one run of
+    # occupied points along it, 2.5 m plus its round caps, clear of the room's walls.
+    y = np.arange(0.1, 6.4, 0.001)
+    occupied = env.occupancy(np.column_stack([np.full_like(y, 12.0), y]))
+    edges = np.flatnonzero(np.diff(occupied))
+    assert len(edges) == 2
+    assert abs((edges[1] - edges[0]) * 0.001 - (2.5 + env.wall_thickness)) < 2e-3
+
+
+def test_office_poses_run_from_end_to_end_of_the_path():
+    # The first pose is the path's start at the corridor's west end, the last its end at
+    # the east end, both heading east along the corridor.
+    path = _office_path()
+    for n_poses in (2, 7, 30):
+        poses = _office_poses(n_poses)
+        assert_allclose(poses[[0, -1], :2], path[[0, -1]], atol=1e-9)
+        assert poses[0, 0] < 1.0 and poses[-1, 0] > 19.0
+        assert np.all((poses[[0, -1], 1] > 6.5) & (poses[[0, -1], 1] < 8.5))
+        assert_allclose(poses[[0, -1], 2], 0.0, atol=1e-9)
+
+
 @pytest.mark.parametrize("n_poses", [2, 7, 30, 120])
 def test_office_poses_in_free_space(n_poses):
     data = make_office_scans(n_poses, 3)

@@ -1,3 +1,6 @@
+import math
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -117,6 +120,21 @@ def test_cast_cap_tangent_and_offset_ray():
     assert_allclose(ranges, [2.0, 3.0 - np.sqrt(1 - 0.25), np.inf])
 
 
+def test_cast_closed_surfaces_and_max_range():
+    # The occupied set is closed: a ray tangent to a round cap meets it at the point of
+    # contact, and an origin on the surface is inside (range 0) whichever way it looks.
+    disc = Environment2D([[0.0, 0.0, 0.0, 0.0]], wall_thickness=2.0)  # a disc of radius 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a wall of zero length has no direction: no 0 / 0
+        ranges = disc.cast([[-3.0, 1.0], [-1.0, 0.0], [0.0, 1.0]], [[1, 0], [-1, 0], [0, 1]])
+    assert_array_equal(ranges, [3.0, 0.0, 0.0])
+    assert_array_equal(disc.occupancy([[-1.0, 0.0], [0.0, 1.0]]), [1, 1])
+    # A wall exactly at max_range gives no return: nothing meets the ray closer than it.
+    wall = Environment2D([[3.0, -1.0, 3.0, 1.0]], wall_thickness=0.0)
+    assert_array_equal(wall.cast([[0, 0]], [[1, 0]], max_range=3.0), [np.inf])
+    assert_array_equal(wall.cast([[0, 0]], [[1, 0]], max_range=3.5), [3.0])
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), thickness=st.sampled_from([0.0, 0.1, 0.6]))
 def test_cast_matches_marching(seed, thickness):
@@ -181,6 +199,34 @@ def test_ground_truth_grid_matches_supersampling():
     assert sure_in.sum() > 10
 
 
+def test_grid_cell_counts_and_touching_cells():
+    # A width of a whole number of cells gets that many cells, also where the division
+    # rounds up (2.1 / 0.3 = 7.000000000000001): the last cell overhangs only when it must.
+    env = Environment2D([[0.0, 0.0, 1.0, 0.0]], wall_thickness=0.1)
+    grid = env.ground_truth_grid(0.3, extent=(0.0, 2.1, 0.0, 2.7))
+    assert grid.shape == (9, 7)
+    assert_allclose(grid.extent, [0.0, 2.1, 0.0, 2.7])
+    assert env.ground_truth_grid(0.3, extent=(0.0, 2.2, 0.0, 2.7)).shape == (9, 8)
+    # Closed sets: the column of cells whose left side lies on the wall's surface (x = 0.1)
+    # overlaps the wall; the columns beyond it do not.
+    wall = Environment2D([[0.0, 0.0, 0.0, 1.0]], wall_thickness=0.2)
+    grid = wall.ground_truth_grid(0.1, extent=(0.1, 0.5, 0.0, 1.0))
+    occupied = grid.occupied.reshape(grid.shape)
+    assert grid.shape == (10, 4)
+    assert_array_equal(occupied[:, 0], 1)
+    assert_array_equal(occupied[:, 1:], 0)
+
+
+def test_cells_crossed_counts_a_start_on_a_cell_boundary():
+    # A point on a cell boundary belongs to the cell above it (floor), a start point as an
+    # end point: on a 0.5 m grid the segment between x = 1.0 and x = 0.2 sees cells 0 to 2,
+    # whichever way it runs.
+    lo, counts, _ = _grid((0, 4, 0, 1), 0.5, 2)
+    a, b = np.array([[1.0, 0.25]]), np.array([[0.2, 0.25]])
+    assert_array_equal(np.flatnonzero(_cells_crossed(a, b, lo, 0.5, counts)), [0, 1, 2])
+    assert_array_equal(np.flatnonzero(_cells_crossed(b, a, lo, 0.5, counts)), [0, 1, 2])
+
+
 def test_cells_crossed_matches_box_test():
     rng = np.random.default_rng(1)
     lo, counts, centres = _grid((0, 4, 0, 3), 0.5, 2)
@@ -234,6 +280,17 @@ def test_ground_truth_grid_observed_mask():
     assert_array_equal(observed, expected)
 
 
+def test_ground_truth_grid_observed_mask_no_return_and_unread():
+    # A beam without a return observes the cells up to max_range (here it leaves the grid
+    # westwards); a reading of 0, no measurement, observes nothing (the beam north).
+    env = Environment2D([[3.0, -1.0, 3.0, 1.0]], wall_thickness=0.0)
+    scans = Scans([[0.5, 0.25, 0.0]], [[np.inf, 0.0]], [np.pi, np.pi / 2], max_range=2.0)
+    grid = env.ground_truth_grid(0.5, extent=(0, 4, 0, 1), scans=scans)
+    expected = np.zeros((2, 8), bool)
+    expected[0, :2] = True
+    assert_array_equal(grid.observed.reshape(grid.shape), expected)
+
+
 # --------------------------------------------------------------------------------------------
 # simulate_scans
 # --------------------------------------------------------------------------------------------
@@ -282,6 +339,23 @@ def test_simulate_scans_noise_statistics():
     assert abs(r.std() - 0.1) < 0.01
 
 
+def test_simulate_scans_noise_is_clipped_at_zero_and_at_max_range():
+    # Noise that takes a reading below 0 is clipped to 0; noise that takes it to max_range
+    # or beyond makes it a no-return (inf). For walls 0.05 m from the sensor, and 0.05 m
+    # short of max_range, each happens with probability P(N(0, 0.1) > 0.05), about 31 %.
+    tail = 0.5 * math.erfc(0.5 / math.sqrt(2.0))
+    near = Environment2D([[0.05, -50.0, 0.05, 50.0]], wall_thickness=0.0)
+    r = simulate_scans(near, np.zeros((1, 3)), np.zeros(4000), 8.0, noise_std=0.1, random_state=0)
+    r = r.ranges.ravel()
+    assert np.all(np.isfinite(r)) and r.min() == 0.0
+    assert abs(np.mean(r == 0.0) - tail) < 0.03
+    far = Environment2D([[7.95, -50.0, 7.95, 50.0]], wall_thickness=0.0)
+    r = simulate_scans(far, np.zeros((1, 3)), np.zeros(4000), 8.0, noise_std=0.1, random_state=1)
+    r = r.ranges.ravel()
+    assert np.all(np.isinf(r) | (r < 8.0))
+    assert abs(np.mean(np.isinf(r)) - tail) < 0.03
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
@@ -307,10 +381,26 @@ def test_simulate_scans_bad_input(kwargs, match):
         (lambda: Environment2D(np.zeros((0, 4))), "walls must have shape"),
         (lambda: Environment2D([[0, 0, np.nan, 1]]), "walls contains NaN"),
         (lambda: Environment2D([[0, 0, 1, 1]], wall_thickness=-0.1), "wall_thickness"),
+        (lambda: Environment2D([[0, 0, 1, 1]], wall_thickness=np.inf), "wall_thickness"),
         (lambda: make_paper_environment().cast([[0, 0]], [[0, 0]]), "zero vectors"),
+        (
+            lambda: make_paper_environment().cast([[1, 1], [2, 2]], [[1, 0]]),
+            "directions must have the shape of origins",
+        ),
+        (lambda: make_paper_environment().cast([[1, 1]], [[1, 0]], max_range=0.0), "max_range"),
+        (lambda: make_paper_environment().cast([[1, 1]], [[1, 0]], max_range=-1), "max_range"),
         (lambda: make_paper_environment().cast([[0, 0, 0]], [[1, 0, 0]]), "origins must"),
         (lambda: make_paper_environment().occupancy([[0, np.nan]]), "points contains NaN"),
-        (lambda: make_paper_environment().ground_truth_grid(0.0), "resolution"),
+        (lambda: make_paper_environment().ground_truth_grid(0.0), "resolution must be a positive"),
+        (
+            lambda: make_paper_environment().ground_truth_grid(np.inf),
+            "resolution must be a positive",
+        ),
+        (
+            lambda: make_paper_environment().ground_truth_grid(0.2, (0, np.inf, 0, 1)),
+            "extent must be 4 finite numbers",
+        ),
+        (lambda: make_paper_environment().ground_truth_grid(0.2, (0, 1, 2, 2)), "max > min"),
         (lambda: make_paper_environment().ground_truth_grid(0.2, (0, 1, 2)), "extent"),
         (lambda: make_paper_environment().ground_truth_grid(0.2, (1, 0, 0, 1)), "max > min"),
         (lambda: make_paper_environment().ground_truth_grid(1e-5), "too large"),
@@ -321,9 +411,15 @@ def test_simulate_scans_bad_input(kwargs, match):
             "2-D",
         ),
         (lambda: Room3D(size=(1, 1)), "size"),
+        (lambda: Room3D(size=(1, 0, 1)), "size"),
+        (lambda: Room3D(size=(1, np.inf, 1)), "size"),
         (lambda: Room3D(obstacles=[[0, 0, 0, 1, 1]]), "obstacles must have shape"),
         (lambda: Room3D(obstacles=[[1, 1, 1, 0, 0, 0]]), "max >= min"),
+        (lambda: Room3D(obstacles=[[1, 1, 1, 2, np.nan, 2]]), "finite boxes"),
+        (lambda: Room3D(wall_thickness=0.0), "wall_thickness"),
         (lambda: make_room3d_scans(n_azimuths=0), "n_azimuths"),
+        (lambda: make_room3d_scans(n_elevations=2.5), "n_elevations"),
+        (lambda: make_paper_scans(n_poses_per_piece=1), "n_poses_per_piece"),
     ],
 )
 def test_environment_bad_input(make, match):
@@ -366,6 +462,37 @@ def test_paper_scans_noise_is_seeded():
     assert not np.array_equal(a.X, c.X)
 
 
+def test_paper_pieces_and_west_rooms():
+    data = make_paper_scans()
+    poses, piece = data.scans.poses, data.piece
+    # Each piece is a run of consecutive scans along one smooth path: its poses lie about
+    # 1 m apart, each heading towards the next (the sensor looks where the robot drives).
+    assert np.all(np.diff(piece) >= 0)
+    for k in (0, 1):
+        run = poses[piece == k]
+        step = np.diff(run[:, :2], axis=0)
+        assert np.linalg.norm(step, axis=1).max() < 1.5
+        turn = np.arctan2(step[:, 1], step[:, 0]) - run[:-1, 2]
+        assert np.abs(np.angle(np.exp(1j * turn))).max() < 0.2
+    # The three west rooms (x in [0, 5], 6 m each) are walled off from one another across
+    # their full width: their doors face east.
+    x = np.linspace(0.0, 5.0, 5001)
+    for y in (6.0, 12.0):
+        assert np.all(data.environment.occupancy(np.column_stack([x, np.full_like(x, y)])))
+    # Two beams point to the two edges of the 180 degrees.
+    assert_allclose(make_paper_scans(n_beams=2).scans.angles, [-np.pi / 2, np.pi / 2])
+
+
+def _returns_stop_short_of_a_hit(data, free_margin):
+    """Largest gap between a return beam's end moved on by ``free_margin`` and a hit."""
+    start, end = segment_endpoints(data.X)
+    ret = data.kind == RETURN
+    d = (end[ret] - start[ret]) / np.linalg.norm(end[ret] - start[ret], axis=1, keepdims=True)
+    target = end[ret] + free_margin * d
+    hits = start[data.kind == HIT]
+    return np.linalg.norm(target[:, None] - hits[None], axis=-1).min(axis=1).max()
+
+
 def test_paper_free_margin_passed_on():
     data = make_paper_scans(free_margin=0.3)
     ret = data.kind == RETURN
@@ -392,6 +519,22 @@ def test_room_cast_hand_computed():
     for bad in (0.0, -1.0, np.nan):
         with pytest.raises(ValueError, match="max_range must be a positive finite number"):
             room.cast([[1, 2.5, 0.5]], [[1, 0, 0]], max_range=bad)
+
+
+def test_room_cast_grazing_rays_and_max_range():
+    # Obstacles are closed boxes: a ray in the plane of a face (y = 2) meets the face's
+    # edge at x = 2, and a ray through a vertical edge only (x = 2, y = 3) meets it there.
+    room = Room3D(size=(4, 4, 2), obstacles=[[2, 2, 0, 3, 3, 1]])
+    origins = [[1, 2, 0.5], [1, 3, 0.5], [1, 2.5, 1.0], [1, 2, 0.5]]
+    dirs = [[1, 0, 0], [1, 0, 0], [1, 0, 0], [1, 1, 0]]
+    assert_allclose(room.cast(origins, dirs), [1.0, 1.0, 1.0, np.sqrt(2)])
+    assert_array_equal(room.occupancy([[2, 2, 0.5], [2, 3, 0.5]]), [1, 1])
+    # An obstacle exactly at max_range gives no return.
+    assert_array_equal(room.cast([[1, 2.5, 0.5]], [[1, 0, 0]], max_range=1.0), [np.inf])
+    assert_array_equal(room.cast([[1, 2.5, 0.5]], [[1, 0, 0]], max_range=1.5), [1.0])
+    # A flat box (max = min on an axis: a plate) is a valid obstacle.
+    plate = Room3D(size=(4, 4, 2), obstacles=[[2, 1, 0, 2, 3, 2]])
+    assert_array_equal(plate.cast([[1, 2, 1]], [[1, 0, 0]]), [1.0])
 
 
 def test_room_cast_matches_marching():
@@ -446,6 +589,22 @@ def test_room3d_scans():
     noisy_b = make_room3d_scans(noise_std=0.02, random_state=5)
     assert_array_equal(noisy_a.X, noisy_b.X)
     assert not np.array_equal(noisy_a.X[noisy_a.kind == HIT], X[kind == HIT])
+
+
+def test_room3d_scans_setup():
+    # Four poses at 1.2 m height, each turned to a different heading; the elevations span
+    # [-30, 30] degrees; max_range and free_margin are passed on.
+    data = make_room3d_scans(n_elevations=2, max_range=2.5, free_margin=0.3)
+    poses = data.scans.poses
+    assert_allclose(poses[:, 2], 1.2)
+    yaw = np.mod(2.0 * np.arctan2(poses[:, 6], poses[:, 3]), 2 * np.pi)
+    assert len(np.unique(yaw.round(6))) == 4
+    elevation = np.rad2deg(np.arcsin(data.scans.angles[:, 2]))
+    assert_allclose(np.unique(elevation.round(9)), [-30.0, 30.0])
+    assert data.scans.max_range == 2.5
+    start, end = segment_endpoints(data.X)
+    assert_allclose(np.linalg.norm(end - start, axis=1)[data.kind == NO_RETURN], 2.5)
+    assert _returns_stop_short_of_a_hit(data, 0.3) < 1e-9
 
 
 def test_scanner_directions():
