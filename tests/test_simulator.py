@@ -419,6 +419,9 @@ def test_simulate_scans_bad_input(kwargs, match):
         (lambda: Room3D(wall_thickness=0.0), "wall_thickness"),
         (lambda: make_room3d_scans(n_azimuths=0), "n_azimuths"),
         (lambda: make_room3d_scans(n_elevations=2.5), "n_elevations"),
+        (lambda: make_room3d_scans(n_azimuths=True), "n_azimuths"),
+        (lambda: make_room3d_scans(n_elevations=True), "n_elevations"),
+        (lambda: make_paper_scans(n_beams=True), "n_beams"),
         (lambda: make_paper_scans(n_poses_per_piece=1), "n_poses_per_piece"),
     ],
 )

@@ -131,7 +131,7 @@ def make_paper_scans(
         ("n_beams", n_beams, 1),
         ("n_poses_per_piece", n_poses_per_piece, 2),
     ):
-        if not isinstance(value, numbers.Integral) or value < least:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
             raise ValueError(f"{name} must be an integer >= {least}, got {value!r}.")
     environment = make_paper_environment()
     angles = _spread(-np.pi / 2, np.pi / 2, n_beams)

@@ -311,7 +311,7 @@ def make_room3d_scans(
     (6, 4, 48)
     """
     for name, value in (("n_azimuths", n_azimuths), ("n_elevations", n_elevations)):
-        if not isinstance(value, (int, np.integer)) or value < 1:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}.")
     room = make_room3d_environment()
     positions = np.array([[1.2, 1.2, 1.2], [4.5, 1.8, 1.2], [4.8, 4.0, 1.2], [2.0, 2.4, 1.2]])
