@@ -6,7 +6,9 @@ from skoccmap.datasets import Environment2D, make_office_environment, make_offic
 from skoccmap.datasets._office import _office_path, _office_poses, _room_of
 from skoccmap.observations import HIT, NO_RETURN, segment_endpoints
 
-CLEARANCE = 0.3  # least distance between the sensor and any wall surface
+# Least distance between the sensor and any wall surface: 0.4 m, at the jambs of the 0.9 m
+# door (half its width less half the wall thickness), less rounding.
+CLEARANCE = 0.45 - 0.05 - 1e-9
 
 
 def _clearance(env, points):
