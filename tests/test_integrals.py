@@ -743,6 +743,52 @@ def test_crossing_bound_takes_the_smaller_strip(swap):
         assert k[0] <= bound[0] <= 1.05 * k[0]
 
 
+def _pair_by_erf_and_quad(s1, s2):
+    """Mean of exp(-|p - q|^2 / 2) over two 2-D segments: the first segment's integral in
+    closed form (erf) at each point of the second, that one by adaptive quadrature, all in
+    the first segment's frame (no large coordinates cancel)."""
+    a1, a2 = s1[:2], s2[:2]
+    len1, len2 = np.linalg.norm(s1[2:] - a1), np.linalg.norm(s2[2:] - a2)
+    e1, e2 = (s1[2:] - a1) / len1, (s2[2:] - a2) / len2
+    n1 = np.array([-e1[1], e1[0]])
+    along0, across0 = (a2 - a1) @ e1, (a2 - a1) @ n1
+    cos_t, sin_t = e2 @ e1, e2 @ n1
+
+    def f(u):
+        along, across = along0 + u * cos_t, across0 + u * sin_t
+        return np.exp(-0.5 * across * across) * (ndtr(len1 - along) - ndtr(-along))
+
+    # The integrand lives where the second segment runs beside the first one.
+    ends = sorted([-along0 / cos_t, (len1 - along0) / cos_t])
+    pts = np.clip(np.linspace(ends[0] - 12.0, ends[1] + 12.0, 61), 0.0, len2)
+    edges = np.unique(np.r_[0.0, pts, len2])
+    quad = dict(epsabs=1e-15, epsrel=1e-12, limit=200)
+    pieces = zip(edges[:-1], edges[1:], strict=True)
+    total = sum(integrate.quad(f, lo, hi, **quad)[0] for lo, hi in pieces)
+    return np.sqrt(2.0 * np.pi) * total / (len1 * len2)
+
+
+def test_strip_slack_keeps_the_crossing_bound_above_the_integral():
+    # Nearly parallel segments (|sin t| about 1e-3) 1e4 from the origin, a short one beside
+    # one 2.4e4 (2.7e4) long: the strips' ends come from t1, t2, which cancel here. Without
+    # the slack that widens the strips, the bound of these two pairs falls 6e-10 below the
+    # integral (with this platform's rounding); with it, it stays 2e-4 above. The reference
+    # agrees with a 40-digit mpmath evaluation to about 1e-12; pair_integrals is 4e-8 above
+    # the integral here, which is why comparisons with it cannot see the slack.
+    s1 = np.array([
+        [10149.006734178163, -4491.561094054192, 10148.569894423707, -4492.290800074641],
+        [9353.693050052705, 8413.975777076756, 9354.577624068042, 8415.345068083083],
+    ])  # fmt: skip
+    s2 = np.array([
+        [16112.236230668768, 5499.219880767117, 3713.616327376558, -15271.049267245544],
+        [1808.285632456149, -3291.611362861344, 16508.653863301923, 19515.164625278958],
+    ])  # fmt: skip
+    expected = np.array([_pair_by_erf_and_quad(a, b) for a, b in zip(s1, s2, strict=True)])
+    assert np.all(expected > 1e-6)  # the integrals are not negligible
+    for bound in (crossing_upper_bound(s1, s2), pair_upper_bound(s1, s2)[0]):
+        assert np.all(bound >= expected * (1.0 + 1e-10))
+
+
 @pytest.mark.parametrize("swap", [False, True])
 def test_loose_upper_bound_uses_either_line(swap):
     # A short segment whose line crosses a long one, 10 length scales off the long one's
