@@ -20,6 +20,7 @@ from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.utils.parallel import Parallel, delayed
 
+from ._validation import caller_stacklevel
 from .classifier import _check_learnable, _minimize_in_bounds
 
 __all__ = ["learn_shared_kernel", "warn_at_bounds", "warn_beyond_extent", "window_pieces"]
@@ -162,7 +163,7 @@ def warn_at_bounds(kernel, where):
             f"({np.exp(value):.3g}). Widen its bounds in the kernel if the map needs it, "
             "or fix it (bounds='fixed').",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=caller_stacklevel(),
         )
 
 
@@ -189,5 +190,5 @@ def warn_beyond_extent(kernel, extent, where):
                 "constant. Learn it on smaller pieces (hyperparameter_window=None or a "
                 "smaller window), narrow its bounds in the kernel, or fix it.",
                 ConvergenceWarning,
-                stacklevel=3,
+                stacklevel=caller_stacklevel(),
             )

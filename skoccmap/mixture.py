@@ -197,7 +197,7 @@ def _warn_if_every_hit_transient(transient_hit, bound):
             "cross each hit's cell far more often than it is hit, so the map shows no "
             "obstacle. Set min_hit_frequency=None to keep every hit.",
             UserWarning,
-            stacklevel=3,
+            stacklevel=caller_stacklevel(),
         )
 
 
@@ -788,7 +788,7 @@ def _warn_once_each(expert_warnings, n_experts):
     Messages that differ only in their numbers (a residual, an iteration count) are one
     kind; the first expert's message stands for them.
     """
-    kinds = {}
+    kinds, stacklevel = {}, caller_stacklevel()
     for caught in expert_warnings:
         seen = set()
         for category, message in caught:
@@ -798,7 +798,9 @@ def _warn_once_each(expert_warnings, n_experts):
                 first, count = kinds.get(key, (message, 0))
                 kinds[key] = (first, count + 1)
     for (category, _), (message, count) in kinds.items():
-        warnings.warn(f"{count} of {n_experts} expert(s): {message}", category, stacklevel=3)
+        warnings.warn(
+            f"{count} of {n_experts} expert(s): {message}", category, stacklevel=stacklevel
+        )
 
 
 def _learns_kernel(expert):

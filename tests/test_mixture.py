@@ -990,6 +990,29 @@ def test_expert_warnings_in_threads_are_not_recorded(paper):
     assert any(w.category is ConvergenceWarning for w in caught)
 
 
+def test_warnings_of_fit_and_partial_fit_name_the_callers_line(paper):
+    # The experts' warnings, passed back and counted, and the shared kernel's: each names
+    # the line that called fit or partial_fit (as the package's other warnings do), not a
+    # line of the mixture's own code.
+    from sklearn.exceptions import ConvergenceWarning
+
+    from skoccmap import EPGaussianProcessClassifier
+
+    expert = EPGaussianProcessClassifier(C(4.0) * RBF(1.0), optimizer=None, max_iter=1)
+    model = _mixture(expert=expert, share_hyperparameters=False)
+    for fit in (model.fit, model.partial_fit):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            fit(paper.X, paper.y)
+        counted = [w for w in caught if "expert(s): " in str(w.message)]
+        assert counted and {w.filename for w in counted} == {__file__}
+    at_bound = GaussianProcessClassifier(C(1.0, (1e-2, 2.0)) * RBF(1.0, (1e-2, 1e2)))
+    with pytest.warns(ConvergenceWarning, match="shared kernel hyperparameter") as caught:
+        _mixture(expert=at_bound).fit(paper.X, paper.y)
+    shared = [w for w in caught if "shared kernel" in str(w.message)]
+    assert {w.filename for w in shared} == {__file__}
+
+
 @pytest.mark.parametrize(
     "kernel, expected",
     [
@@ -1163,6 +1186,7 @@ def test_shared_length_scale_beyond_the_data_warns(paper, length_scale, warns):
         if w.category is ConvergenceWarning and "beyond the extent" in str(w.message)
     ]
     assert len(beyond) == int(warns)
+    assert all(w.filename == __file__ for w in beyond)  # the caller's line
 
 
 def test_beam_pieces_shrink_towards_hits_and_grow_away_from_the_sensor():

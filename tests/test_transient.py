@@ -204,6 +204,21 @@ def test_a_map_without_a_lasting_hit_says_so():
     assert model.predict_proba(X[-1:])[0, 1] > 0.5
 
 
+def test_a_map_without_a_lasting_hit_says_so_at_the_callers_line():
+    # The warning names the line that called fit or partial_fit, not the mixture's own.
+    y_beam = np.linspace(0.01, 0.09, 40)
+    beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 2.0), y_beam])
+    X = np.vstack([beams, np.tile([0.05, 0.05, 0.05, 0.05], (3, 1))])
+    y = np.r_[np.zeros(40, int), np.ones(3, int)]
+    model = MixtureGPOccupancyMap(random_state=0)
+    # The fit, and an update of more beams (its own three hits would make the cell lasting).
+    for fit, rows in ((model.fit, slice(None)), (model.partial_fit, slice(40))):
+        with pytest.warns(UserWarning, match="Every hit was left out") as caught:
+            fit(X[rows], y[rows])
+        every = [w for w in caught if "Every hit was left out" in str(w.message)]
+        assert every and {w.filename for w in every} == {__file__}
+
+
 def test_counts_taken_in_chunks_equal_the_counts_taken_at_once(monkeypatch):
     import skoccmap._transient as transient
 
