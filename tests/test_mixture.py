@@ -114,6 +114,36 @@ def test_hits_and_return_beams_follow_their_hit(paper):
         assert labels[row] == labels[nearest]
 
 
+def test_free_points_follow_their_nearest_hit_however_far():
+    # layout="points": free points are return beams of no length, whatever the distance to
+    # the nearest hit (return_radius bounds beams only), and follow that hit.
+    X, y = _wall_and_post()
+    model = MixtureGPOccupancyMap(layout="points", random_state=0).fit(X, y)
+    assert np.all(model.observation_kind_[y == 0] == RETURN)
+    hits = X[y == 1]
+    dist = np.linalg.norm(X[y == 0][:, None] - hits[None], axis=-1)
+    assert dist.min(axis=1).max() > 10 * model.return_radius
+    chosen = dist[np.arange(dist.shape[0]), model._row_hit[y == 0]]
+    np.testing.assert_allclose(chosen, dist.min(axis=1), rtol=1e-12)
+
+
+def test_without_return_beams_a_beam_follows_the_hit_nearest_to_its_midpoint():
+    # Beams that stop 2 m short of a wall (no hit near their end) listed before the hits:
+    # each follows the hit nearest to its midpoint.
+    rng = np.random.default_rng(0)
+    wall = np.column_stack([np.full(30, 5.0), np.linspace(-3, 3, 30)])
+    y_beam = rng.uniform(-3, 3, 40)
+    beams = np.column_stack([np.zeros(40), y_beam, np.full(40, 3.0), rng.uniform(-3, 3, 40)])
+    X = np.vstack([beams, as_segments(wall)])
+    y = np.r_[np.zeros(40, int), np.ones(30, int)]
+    model = _mixture(min_hit_frequency=None).fit(X, y)
+    assert np.all(model.observation_kind_[:40] == NO_RETURN)
+    mids = 0.5 * (beams[:, :2] + beams[:, 2:])
+    dist = np.linalg.norm(mids[:, None] - wall[None], axis=-1)
+    chosen = dist[np.arange(40), model._row_hit[:40]]
+    np.testing.assert_allclose(chosen, dist.min(axis=1), rtol=1e-12)
+
+
 @pytest.mark.parametrize("length_scale", [0.3, 1.0, [0.5, 2.0]])
 def test_no_return_rule_matches_brute_force(paper, length_scale):
     # Pruning by upper bounds must not change the argmax of the integral kernel.
@@ -143,6 +173,27 @@ def test_no_return_rule_on_samples_of_return_beams(paper, monkeypatch):
     assert np.median(better) < 0.1
     # Every block draws its own sample, so the choices spread beyond one sample.
     assert np.unique(got).size > 30
+
+
+def test_no_return_beams_of_a_block_choose_among_its_sample(paper, monkeypatch):
+    import skoccmap.mixture as mixture
+
+    # Blocks of 40 no-return beams, each compared with a sample of at most 3 return beams.
+    monkeypatch.setattr(mixture, "_NO_RETURN_PAIRS", 40 * 3)
+    X, kind = paper.X, paper.kind
+    ret, nr = X[kind == RETURN], X[kind == NO_RETURN]
+    assert ret.shape[0] > 3 and nr.shape[0] > 80
+    got = _assign_no_return(nr, ret, np.arange(len(ret)), 1.0, max_references=3, random_state=0)
+    K = IntegralKernel(1.0)(nr, ret)
+    for start in range(0, len(nr), 40):
+        block = np.arange(start, min(start + 40, len(nr)))
+        sample = np.unique(got[block])
+        # At most the sample's return beams are chosen, and each beam takes the most
+        # similar of those (all of them are in its block's sample).
+        assert sample.size <= 3
+        np.testing.assert_array_equal(
+            got[block], sample[np.argmax(K[np.ix_(block, sample)], axis=1)]
+        )
 
 
 def test_no_return_beam_out_of_reach_joins_the_nearest_return_beam():
@@ -406,6 +457,19 @@ def test_bisection_splits_at_the_median():
     assert sorted(sorted(p.tolist()) for p in pieces) == [[0, 1, 2, 3], [4, 5, 6, 7]]
 
 
+def test_bisection_cuts_across_the_principal_axis_wherever_the_points_lie():
+    # A cloud 10 m long (along x) and 1 m wide: the first cut is across its length at the
+    # median, however far from the origin the cloud lies.
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-5, 5, 64), rng.uniform(-0.5, 0.5, 64)])
+    median = np.median(points[:, 0])
+    for offset in ([0.0, 0.0], [0.0, 100.0], [-300.0, 40.0]):
+        pieces = _bisect(points + offset, 32)
+        assert len(pieces) == 2
+        left, right = sorted(pieces, key=lambda p: points[p, 0].mean())
+        assert points[left, 0].max() < median < points[right, 0].min()
+
+
 def test_clusters_of_min_size_are_kept_and_smaller_ones_merged_into_the_nearest():
     # Observations of clusters 0 (20), 1 (50) and 2 (5); hits at x = 0, 10 and 2.
     labels = np.repeat([0, 1, 2], [20, 50, 5])
@@ -416,6 +480,48 @@ def test_clusters_of_min_size_are_kept_and_smaller_ones_merged_into_the_nearest(
     assert _merge_small(labels, hit_points, hit_labels, 20).tolist() == [0, 1, 0]
     # With room for 26 the merged cluster of 25 joins cluster 1 as well.
     assert _merge_small(labels, hit_points, hit_labels, 26).tolist() == [0, 0, 0]
+
+
+def _merge_small_by_hand(labels, hit_points, hit_labels, min_size):
+    """The documented rule, a cluster (a set of hits) at a time: the smallest cluster under
+    min_size joins the one whose hits' centroid is nearest to its own (ties: lowest index)."""
+    n = hit_labels.max() + 1
+    members = {c: [c] for c in range(n)}
+    size = {c: int(np.sum(labels == c)) for c in range(n)}
+    while len(members) > 1:
+        small = min(members, key=lambda c: (size[c], c))
+        if size[small] >= min_size:
+            break
+
+        def centroid(c):
+            return hit_points[np.isin(hit_labels, members[c])].mean(axis=0)
+
+        others = [c for c in members if c != small]
+        target = min(others, key=lambda c: (np.linalg.norm(centroid(c) - centroid(small)), c))
+        members[target] += members.pop(small)
+        size[target] += size.pop(small)
+    merged = np.empty(n, dtype=int)
+    for rank, c in enumerate(sorted(members)):
+        merged[members[c]] = rank
+    return merged
+
+
+def test_merge_small_matches_the_rule_worked_by_hand():
+    # Random clusters of a few hits each, merged in chains (a merged cluster's centroid is
+    # that of all its hits, and it may be merged again), down to one cluster when
+    # min_size exceeds all observations.
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n = rng.integers(2, 9)
+        n_hits = rng.integers(1, 6, size=n)
+        hit_labels = np.repeat(np.arange(n), n_hits)
+        hit_points = rng.uniform(0, 10, size=(hit_labels.size, 2))
+        labels = np.repeat(np.arange(n), n_hits + rng.integers(0, 30, size=n))
+        min_size = int(rng.integers(1, labels.size + 10))
+        np.testing.assert_array_equal(
+            _merge_small(labels, hit_points, hit_labels, min_size),
+            _merge_small_by_hand(labels, hit_points, hit_labels, min_size),
+        )
 
 
 def test_coverage_gate_is_each_experts_share_of_the_data_near_the_query(paper, grid):
@@ -729,6 +835,21 @@ def test_occupied_rows_with_a_length_warn(paper):
     assert not any("layout='points'" in str(w.message) for w in record)
 
 
+def test_hits_warn_only_when_most_of_them_have_a_length():
+    from skoccmap.mixture import _check_hits_are_points
+
+    # Four occupied rows beside two beams: "most" is more than half of the occupied rows.
+    beams = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    occupied = np.r_[False, False, True, True, True, True]
+    for n_long, warns in [(2, False), (3, True)]:
+        hits = np.tile([2.0, 2.0, 2.0, 2.0], (4, 1))
+        hits[:n_long, 2] += 0.5
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            _check_hits_are_points(np.vstack([beams, hits]), occupied, np.array([0, 1]))
+        assert any("Most rows labelled occupied" in str(w.message) for w in caught) == warns
+
+
 def test_verbose_reports_progress(paper, capsys):
     _mixture(verbose=2, max_expert_size=100).fit(paper.X, paper.y)
     out = capsys.readouterr().out
@@ -773,6 +894,21 @@ def test_bad_input_raises_clear_errors(paper):
         model.predict(np.zeros((3, 6)))
     with pytest.raises(ValueError, match="combiner"):
         _mixture(combiner="mean").fit(paper.X, paper.y)
+
+
+def test_two_hits_are_enough_to_map():
+    # The fewest hits the default clusterer takes: two hits and the beams to them.
+    X = np.array(
+        [
+            [1.0, 0.0, 1.0, 0.0],
+            [0.0, 1.0, 0.0, 1.0],
+            [0.0, 0.0, 0.95, 0.0],
+            [0.0, 0.0, 0.0, 0.95],
+        ]
+    )
+    model = MixtureGPOccupancyMap(random_state=0).fit(X, [1, 1, 0, 0])
+    p = model.predict_proba(np.array([[1.0, 0.0, 1.0, 0.0], [0.3, 0.0, 0.3, 0.0]]))[:, 1]
+    assert p[0] > 0.5 > p[1]
 
 
 # --- reproducibility and sklearn integration ----------------------------------------------
@@ -990,6 +1126,31 @@ def test_expert_warnings_in_threads_are_not_recorded(paper):
     assert any(w.category is ConvergenceWarning for w in caught)
 
 
+def test_expert_warnings_are_counted_once_per_expert_and_kind():
+    from sklearn.exceptions import ConvergenceWarning
+
+    from skoccmap.mixture import _warn_once_each
+
+    caught = [
+        # One expert warning twice of one kind (numbers of any width) counts once.
+        [
+            (ConvergenceWarning, "EP stopped after 7 sweeps (residual 0.0012)"),
+            (ConvergenceWarning, "EP stopped after 120 sweeps (residual 3.5e-05)"),
+        ],
+        [(ConvergenceWarning, "EP stopped after 15 sweeps (residual -2e+3)")],
+        [],
+        # Another category is another kind.
+        [(UserWarning, "EP stopped after 7 sweeps (residual 0.0012)")],
+    ]
+    with warnings.catch_warnings(record=True) as got:
+        warnings.simplefilter("always")
+        _warn_once_each(caught, 5)
+    assert [(w.category, str(w.message)) for w in got] == [
+        (ConvergenceWarning, "2 of 5 expert(s): EP stopped after 7 sweeps (residual 0.0012)"),
+        (UserWarning, "1 of 5 expert(s): EP stopped after 7 sweeps (residual 0.0012)"),
+    ]
+
+
 def test_warnings_of_fit_and_partial_fit_name_the_callers_line(paper):
     # The experts' warnings, passed back and counted, and the shared kernel's: each names
     # the line that called fit or partial_fit (as the package's other warnings do), not a
@@ -1134,6 +1295,29 @@ def test_nearest_with_room_matches_a_greedy_assignment():
     assert np.any(chosen != order[:, 0])
 
 
+def test_free_pieces_follow_the_nearest_hit_whatever_its_index():
+    # Hit 0 at the origin and hit 1 at (4, 0); a beam to hit 1 passes 0.4 m from hit 0. Its
+    # pieces follow the hit nearest to their midpoint (within nearest_hit_radius=2), hit 0
+    # for those at its end of the beam.
+    X = np.array(
+        [
+            [0.0, 0.0, 0.0, 0.0],
+            [4.0, 0.0, 4.0, 0.0],
+            [-1.0, 0.5, 3.95, 0.0],
+            [4.0, -3.0, 4.0, -0.05],
+        ]
+    )
+    y = np.array([1, 1, 0, 0])
+    model = MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(X, y)
+    free = model._piece_y == 0
+    pieces = model._pieces[free]
+    mids = 0.5 * (pieces[:, :2] + pieces[:, 2:])
+    dist = np.linalg.norm(mids[:, None] - X[None, :2, :2], axis=-1)
+    expected = np.where(dist.min(axis=1) <= 2.0, dist.argmin(axis=1), 1)
+    assert np.any(expected == 0) and np.any(expected == 1)
+    np.testing.assert_array_equal(model._piece_hit[free], expected)
+
+
 def test_nearest_hit_experts_learn_their_kernel_on_whole_beams(paper):
     # The shared kernel is learned on the experts the paper's rule would make: every piece of
     # a beam in one group, groups of at most max_expert_size pieces, every piece in one.
@@ -1151,6 +1335,50 @@ def test_nearest_hit_experts_learn_their_kernel_on_whole_beams(paper):
     # ... which the experts are not: their pieces follow the nearest hit.
     experts = _expert_pieces(model, pieces)
     assert any(np.unique(experts[source == r]).size > 1 for r in np.unique(source))
+
+
+class _SideClusterer(BaseEstimator):
+    """Hits left of x = 1 in one cluster, the others in another."""
+
+    def fit(self, X):
+        self.labels_ = self.predict(X)
+        return self
+
+    def predict(self, X):
+        return (np.asarray(X)[:, 0] > 1.0).astype(int)
+
+
+def test_shared_kernel_is_learned_on_groups_that_hold_both_classes(monkeypatch):
+    import skoccmap.mixture as mixture_module
+
+    seen = []
+    learn = mixture_module.learn_shared_kernel
+
+    def recording(learner, pieces, **kwargs):
+        seen.extend(pieces)
+        return learn(learner, pieces, **kwargs)
+
+    monkeypatch.setattr(mixture_module, "learn_shared_kernel", recording)
+    # Forty beams cross the cell [0, 0.1)^2 to a wall at x = 2; three hits in that cell
+    # (a passer-by, left out as transient) are seen by three beams from below. The paper's
+    # rule groups pieces by their beam's hit: the passer-by's cluster keeps its beams'
+    # pieces, all free, as a group, which has no evidence to learn from.
+    y_beam = np.linspace(0.01, 0.09, 40)
+    wall = np.column_stack([np.full(40, 2.0), y_beam, np.full(40, 2.0), y_beam])
+    beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 1.95), y_beam])
+    passer = np.tile([0.05, 0.05, 0.05, 0.05], (3, 1))
+    below = np.tile([0.05, -2.0, 0.05, 0.0], (3, 1))
+    X = np.vstack([wall, beams, passer, below])
+    y = np.r_[np.ones(40, int), np.zeros(40, int), np.ones(3, int), np.zeros(3, int)]
+    model = MixtureGPOccupancyMap(
+        _SideClusterer(),
+        GaussianProcessClassifier(C(4.0, "fixed") * RBF(1.0)),
+        min_expert_size=1,
+        max_pieces_per_cell=None,
+        random_state=0,
+    ).fit(X, y)
+    assert model.n_clusters_ == 2 and model.transient_hits_[80:83].all()
+    assert seen and all(0 < labels.mean() < 1 for _, labels in seen)
 
 
 def test_shared_hyperparameter_at_its_bound_warns(paper):
@@ -1187,6 +1415,27 @@ def test_shared_length_scale_beyond_the_data_warns(paper, length_scale, warns):
     ]
     assert len(beyond) == int(warns)
     assert all(w.filename == __file__ for w in beyond)  # the caller's line
+
+
+def test_reach_bounds_every_experts_own_kernel(paper):
+    from sklearn.exceptions import ConvergenceWarning
+
+    # Experts that learn their own kernels: beyond reach_ every one of them has fallen
+    # below reach_tolerance of its peak, the one with the longest length scale included.
+    expert = GaussianProcessClassifier(C(2.0, "fixed") * RBF(1.5, (0.05, 20.0)))
+    model = _mixture(expert=expert, share_hyperparameters=False, max_expert_size=150)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # a few end at their bound
+        model.fit(paper.X, paper.y)
+    scales = {e.kernel_.k2.length_scale for e in model.experts_ if hasattr(e, "kernel_")}
+    assert len(scales) > 1
+    origin = np.zeros((1, 4))
+    for e in model.experts_:
+        for axis in (0, 1):
+            at = np.zeros((1, 4))
+            at[0, [axis, axis + 2]] = model.reach_
+            ratio = e.kernel_(origin, at)[0, 0] / e.kernel_(origin)[0, 0]
+            assert ratio <= model.reach_tolerance * (1 + 1e-6)
 
 
 def test_beam_pieces_shrink_towards_hits_and_grow_away_from_the_sensor():
@@ -1338,6 +1587,27 @@ def test_a_beam_far_longer_than_the_map_is_a_clear_error(paper):
         MixtureGPOccupancyMap(random_state=0).fit(X, y)
 
 
+def test_split_hits_bounds_at_exactly_the_limits():
+    from skoccmap.mixture import _split_hits
+
+    # Two clusters of three hits on a line; piece_hit gives each hit its pieces.
+    hits = np.column_stack([np.arange(6.0), np.zeros(6)])
+    hit_cluster = np.array([0, 0, 0, 1, 1, 1])
+    # Cluster 0 carries exactly max_size = 30 pieces: one expert. Cluster 1 carries 31: split.
+    piece_hit = np.repeat(np.arange(6), [10, 10, 10, 10, 10, 11])
+    hit_expert, expert_cluster = _split_hits(hits, hit_cluster, 2, piece_hit, 30)
+    assert hit_expert[:3].tolist() == [0, 0, 0]
+    assert expert_cluster[0] == 0 and np.count_nonzero(expert_cluster == 1) >= 2
+    assert np.bincount(hit_expert[piece_hit]).max() <= 30
+    # A hit may carry up to the larger of 10 x max_size and 10_000 rows, not one more.
+    for max_size in (5, 2000):
+        limit = max(10 * max_size, 10_000)
+        one = np.zeros(limit, dtype=np.intp)
+        _split_hits(hits[:1], np.zeros(1, np.intp), 1, one, max_size)
+        with pytest.raises(ValueError, match=f"carries {limit + 1} rows"):
+            _split_hits(hits[:1], np.zeros(1, np.intp), 1, np.r_[one, 0], max_size)
+
+
 def test_points_as_queries_get_a_hint(paper):
     model = MixtureGPOccupancyMap(random_state=0).fit(paper.X, paper.y)
     with pytest.raises(ValueError, match=r"pass skoccmap.as_segments\(points\)"):
@@ -1368,6 +1638,45 @@ def test_an_expert_without_rows_is_the_prior():
     mean, var = fitted.latent_mean_and_variance(np.array([[1.0, 2.0, 1.0, 2.0]]))
     np.testing.assert_allclose(mean, 0.0, atol=1e-12)
     np.testing.assert_allclose(var, 1e3)
+
+
+def test_a_one_class_expert_of_another_kind_is_the_smoothed_frequency():
+    # A non-EP expert on free rows only: Phi(mean / sqrt(1 + var)) = (0 + 1) / (n + 2); on
+    # hits only, (n + 1) / (n + 2).
+    from skoccmap.mixture import _fit_expert
+
+    X = np.tile([0.0, 0.0, 1.0, 0.0], (8, 1))
+    Q = np.array([[0.0, 0.0, 1.0, 1.0], [3.0, 3.0, 3.0, 3.0]])
+    expert = _fast_expert()
+    for label, expected in [(0, 1 / 10), (1, 9 / 10)]:
+        est, _, _ = _fit_expert(expert, X, np.full(8, label))
+        assert isinstance(est, _ConstantExpert)
+        mean, var = est.latent_mean_and_variance(Q)
+        np.testing.assert_allclose(var, expert.kernel.diag(Q))
+        np.testing.assert_allclose(ndtr(mean / np.sqrt(1 + var)), expected)
+
+
+def test_a_one_class_ep_expert_is_the_same_whether_its_kernel_matrix_is_kept():
+    # Hits along a wall and no free row, or free rows alone: the GP posterior of one class,
+    # whether the kernel matrix is kept for later refits or not.
+    from skoccmap import EPGaussianProcessClassifier
+    from skoccmap.mixture import _fit_expert
+
+    rng = np.random.default_rng(0)
+    wall = as_segments(np.column_stack([np.zeros(15), rng.uniform(-2, 2, 15)]))
+    Q = wall + [0.3, 0.0, 0.3, 0.0]
+    kernel = C(1e2, "fixed") * IntegralKernel(1.0, "fixed")
+    for label in (0, 1):
+        y = np.full(15, label)
+        fitted = [
+            _fit_expert(EPGaussianProcessClassifier(kernel, optimizer=None), wall, y, **kw)[0]
+            for kw in ({}, {"keep_kernel": True})
+        ]
+        for est in fitted:
+            np.testing.assert_array_equal(est.classes_, [0, 1])
+        p = [est.predict_proba(Q)[:, 1] for est in fitted]
+        np.testing.assert_allclose(p[1], p[0], rtol=1e-10)
+        assert np.all(p[0] > 0.5) if label else np.all(p[0] < 0.5)
 
 
 def test_small_experts_are_no_error(paper):

@@ -8,6 +8,7 @@ import warnings
 
 import numpy as np
 import pytest
+from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process.kernels import ConstantKernel
 from sklearn.metrics import roc_auc_score
@@ -19,7 +20,7 @@ from skoccmap import (
     MixtureGPOccupancyMap,
 )
 from skoccmap.datasets import make_office_scans, make_paper_scans
-from skoccmap.observations import as_segments
+from skoccmap.observations import NO_RETURN, RETURN, as_segments
 
 
 def _model(**params):
@@ -111,6 +112,13 @@ def test_new_pieces_join_the_expert_of_the_hit_nearest_to_them(office, online):
         for expert in after.experts_
     ]
     assert all(row.tobytes() in rows_of[k] for row, k in zip(pieces[free], expected, strict=True))
+    # Each new free piece remembers its own beam's hit (by which the paper's rule groups
+    # the pieces that learn the shared kernel), wherever it went.
+    kept = np.flatnonzero(after._piece_y == 0)[-np.count_nonzero(free) :]
+    np.testing.assert_array_equal(after._pieces[kept], pieces[free])
+    beam_hit = after._row_hit[-X.shape[0] :][source[free]]
+    np.testing.assert_array_equal(after._piece_beam_hit[kept], beam_hit)
+    assert np.any(after._piece_hit[kept] != beam_hit)
 
 
 def test_experts_stay_bounded_and_rows_follow_experts(online):
@@ -159,6 +167,99 @@ def test_far_batch_opens_a_new_cluster_and_expert():
     near = roc_auc_score(labels, model.predict_proba(as_segments(points))[:, 1])
     far_auc = roc_auc_score(labels, model.predict_proba(as_segments(points + 500.0))[:, 1])
     assert far_auc > 0.99 and far_auc >= near - 0.005
+
+
+class _StripClusterer(BaseEstimator):
+    """Clusters by strips of x 50 m wide (no partial_fit: later hits are predicted)."""
+
+    def fit(self, X):
+        self.labels_ = self.predict(X)
+        return self
+
+    def predict(self, X):
+        return np.floor(np.asarray(X)[:, 0] / 50.0).astype(int)
+
+
+def _wall(x, n_hits, n_beams):
+    """Hits along x = const and return beams from 3 m before it, stopping 0.05 m short."""
+    y = np.linspace(-2.0, 2.0, n_hits)
+    hits = np.column_stack([np.full(n_hits, x), y, np.full(n_hits, x), y])
+    beams = np.column_stack(
+        [np.full(n_beams, x - 3.0), y[:n_beams], np.full(n_beams, x - 0.05), y[:n_beams]]
+    )
+    return np.vstack([hits, beams]), np.r_[np.ones(n_hits, int), np.zeros(n_beams, int)]
+
+
+def test_a_new_clusterer_cluster_gets_an_expert_from_min_expert_size_rows():
+    for n_beams, opens in [(10, True), (9, False)]:
+        model = _model(clusterer=_StripClusterer(), min_expert_size=20, max_expert_size=None)
+        model.fit(*_wall(0.0, 30, 30))
+        assert model.n_clusters_ == 1
+        n_experts = model.n_experts_
+        # A wall 200 m off, in a strip no hit was in: 10 hits and n_beams return beams.
+        X, y = _wall(200.0, 10, n_beams)
+        model.partial_fit(X, y)
+        new = model.cluster_labels_[-len(y) :]
+        if opens:
+            # Its 20 rows reach min_expert_size: a cluster and an expert of their own.
+            assert model.n_clusters_ == 2 and model.n_experts_ == n_experts + 1
+            assert np.all(new == n_experts) and model.expert_cluster_[n_experts] == 1
+        else:
+            # 19 rows: they join the nearest cluster, the only one.
+            assert model.n_clusters_ == 1 and model.n_experts_ == n_experts
+            assert np.all(model.expert_cluster_[new] == 0)
+
+
+def test_two_new_clusterer_clusters_in_one_batch_are_two_clusters():
+    model = _model(clusterer=_StripClusterer(), min_expert_size=20).fit(*_wall(0.0, 30, 30))
+    (Xa, ya), (Xb, yb) = _wall(200.0, 10, 10), _wall(300.0, 10, 10)
+    model.partial_fit(np.vstack([Xa, Xb]), np.r_[ya, yb])
+    assert model.n_clusters_ == 3
+    clusters = model.expert_cluster_[model.cluster_labels_]
+    a, b = clusters[-40:-20], clusters[-20:]
+    assert np.unique(a).size == 1 and np.unique(b).size == 1
+    assert {a[0], b[0]} == {1, 2}
+    # Each cluster's experts are numbered together, from its first expert on.
+    np.testing.assert_array_equal(
+        model._first_expert, np.searchsorted(model.expert_cluster_, np.arange(3))
+    )
+
+
+def test_a_later_beam_ending_short_of_an_old_hit_is_its_return_beam(office):
+    # One beam a batch, stopping 0.05 m short of an old hit (return_radius is 0.1 m), from
+    # each of the four directions: the hit may lie on either side of the beam's end.
+    data, _ = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    hit = model._hits[np.argmax(model._hits[:, 0])]
+    for direction in np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]):
+        end = hit + 0.05 * direction
+        beam = np.r_[end + 2.0 * direction, end][None, :]
+        dist = np.linalg.norm(model._hits - end, axis=1).min()
+        model.partial_fit(beam, [0])
+        assert model.observation_kind_[-1] == RETURN
+        # Its hit is the one nearest to its end (by brute force), within the radius.
+        assert np.linalg.norm(model._hits[model._row_hit[-1]] - end) == pytest.approx(dist)
+        assert dist <= 0.05 + 1e-12
+
+
+def test_a_later_batch_without_return_beams_follows_the_hit_nearest_to_each_midpoint(office):
+    data, _ = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    hits = model._hits
+    # Beams from the map's centre, 6 m long, that end far (> 0.1 m) from every hit.
+    centre = 0.5 * (hits.min(axis=0) + hits.max(axis=0))
+    angles = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    ends = centre + 6.0 * np.column_stack([np.cos(angles), np.sin(angles)])
+    far = np.linalg.norm(ends[:, None] - hits[None], axis=-1).min(axis=1) > 0.1
+    X = np.hstack([np.tile(centre, (far.sum(), 1)), ends[far]])
+    n = X.shape[0]
+    assert n > 5
+    model.partial_fit(X, np.zeros(n, dtype=int))
+    assert np.all(model.observation_kind_[-n:] == NO_RETURN)
+    mids = 0.5 * (X[:, :2] + X[:, 2:])
+    dist = np.linalg.norm(mids[:, None] - hits[None], axis=-1)
+    chosen = dist[np.arange(n), model._row_hit[-n:]]
+    np.testing.assert_allclose(chosen, dist.min(axis=1), rtol=1e-12)
 
 
 def test_one_class_batch(office):
@@ -340,6 +441,17 @@ def test_refit_hyperparameters_empties_the_kernel_cache():
     assert not set(map(id, model._kernel_cache)) & set(map(id, before))
 
 
+def test_a_relearn_on_no_two_class_group_leaves_no_shared_kernel(office):
+    # Nothing to learn from: each expert keeps its own kernel, and the previous shared
+    # kernel must not stay behind as every expert's prior.
+    data, _ = office
+    model = _model(piece_assignment="beam").partial_fit(*_batch(data, 0, 5), classes=[0, 1])
+    assert model.shared_kernel_ is not None
+    expert = model._make_expert()
+    assert model._learn_shared([], expert, model._rng) is expert
+    assert model.shared_kernel_ is None
+
+
 @pytest.mark.parametrize("growth, relearns", [(2.0, True), (2.5, False), (None, False)])
 def test_hyperparameters_relearned_when_the_rows_grow(growth, relearns):
     data = make_paper_scans(random_state=0)
@@ -365,13 +477,27 @@ def test_hyperparameters_relearned_when_the_rows_grow(growth, relearns):
         assert set(map(id, model._kernel_cache)) <= set(map(id, model.experts_))
 
 
-def test_fixed_kernel_is_not_relearned(office):
+@pytest.mark.parametrize("optimizer", [None, "fmin_l_bfgs_b"])
+def test_fixed_kernel_is_not_relearned(office, optimizer):
+    # A kernel whose hyperparameters are all fixed learns nothing, with an optimiser or not.
     data, _ = office
-    model = _model().partial_fit(*_batch(data, 0, 5), classes=[0, 1])
+    model = _model()
+    model.expert.set_params(optimizer=optimizer)
+    model.partial_fit(*_batch(data, 0, 5), classes=[0, 1])
     n_rows, kernel = model._pieces.shape[0], model.shared_kernel_
     model.partial_fit(*_batch(data, 5, 15))
     assert model._pieces.shape[0] >= 2 * n_rows
     assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
+
+
+@pytest.mark.parametrize("growth", [2.0, 1.5])
+def test_hyperparameters_are_relearned_once_the_rows_grow_by_exactly_the_factor(growth):
+    model = MixtureGPOccupancyMap(hyperparameter_growth=growth)
+    model._learned_rows = 100
+    assert model._relearns_at(int(growth * 100))
+    assert not model._relearns_at(int(growth * 100) - 1)
+    model.set_params(share_hyperparameters=False)
+    assert not model._relearns_at(int(growth * 100))
 
 
 def _settled_and_absorbed(model):
@@ -405,6 +531,29 @@ def test_refit_fraction_refits_after_a_share_of_added_rows(office, fraction):
     assert (absorbed_seen > 0) == (fraction > 0)
     model.refit_hyperparameters()
     assert not _settled_and_absorbed(model)[:, 1].any()
+
+
+def test_experts_due_for_a_refit_run_ep_on_all_their_sites(office):
+    # With refit_fraction=0 every touched expert is refitted: EP on all its sites, from the
+    # sites it had, reaches the fixed point a fit from scratch on the same rows reaches.
+    data, queries = office
+    model = _model(refit_fraction=0.0)
+    model.partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    model.partial_fit(*_batch(data, 10, 12))
+    checked = 0
+    for k in model.touched_experts_:
+        est = model.experts_[k]
+        if not hasattr(est, "site_nu_") or np.ptp(est.y_train_) == 0:
+            continue
+        fresh = clone(est).fit(est.X_train_, est.y_train_)
+        for got, want in zip(
+            est.latent_mean_and_variance(queries),
+            fresh.latent_mean_and_variance(queries),
+            strict=True,
+        ):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)
+        checked += 1
+    assert checked > 0
 
 
 def test_an_expert_a_split_leaves_unchanged_is_not_touched(office):
@@ -473,6 +622,42 @@ def test_one_class_expert_is_recounted_at_once():
         np.array([0]), [np.arange(6)], [count], [np.arange(5)], np.array([0]), np.ones(6, bool)
     )
     np.testing.assert_array_equal(due, [True])
+
+
+def test_an_expert_is_refitted_once_its_added_rows_reach_refit_fraction():
+    # An expert settled on 10 rows takes 4 more by EP on their sites alone; 5 rows, half of
+    # 10, reach refit_fraction=0.5: it is refitted.
+    data = make_office_scans(random_state=0)
+    rows = np.random.default_rng(0).choice(data.X.shape[0], 10, replace=False)
+    old = _model().expert.fit(data.X[rows], data.y[rows])
+    assert old.n_classes_ == 2
+    model = _model(refit_fraction=0.5)
+    for n_new, due in [(4, False), (5, True)]:
+        settled = np.r_[np.ones(10, bool), np.zeros(n_new, bool)]
+        got = model._due(
+            np.array([0]), [np.arange(10 + n_new)], [old], [np.arange(10)], np.array([0]), settled
+        )
+        np.testing.assert_array_equal(got, [due])
+
+
+def test_rows_added_by_a_refit_hold_exactly_the_old_sites(monkeypatch):
+    # Where EP on the new sites alone fails, the expert is refitted on all rows with the old
+    # rows' sites held: they stay as they were, and every new row gets a site of its own.
+    from skoccmap.mixture import _append_rows
+
+    data = make_office_scans(random_state=0)
+    rows = np.random.default_rng(0).choice(data.X.shape[0], 80, replace=False)
+    X, y = data.X[rows], data.y[rows]
+    assert 0 < y[:60].mean() < 1 and y[60:].any()
+    old = _model().expert.fit(X[:60], y[:60])
+    zeros = np.zeros(20)
+    sites = (np.r_[old.site_precision_, zeros], np.r_[old.site_nu_, zeros])
+    monkeypatch.setattr(EPGaussianProcessClassifier, "_absorbed", lambda *args, **kw: None)
+    est, _, _ = _append_rows(old, clone(old), X, y, 60, sites)
+    np.testing.assert_array_equal(est.X_train_, X)
+    np.testing.assert_array_equal(est.site_precision_[:60], old.site_precision_)
+    np.testing.assert_array_equal(est.site_nu_[:60], old.site_nu_)
+    assert np.all(est.site_precision_[60:] > 0)
 
 
 def test_updated_index_equals_a_rebuilt_one(office):
@@ -643,6 +828,9 @@ def test_experts_with_their_own_hyperparameters_take_rows_with_them(office):
     # Those that kept their kernel took rows without settling them; the others settled all.
     assert all(counts[k, 1] > 0 for k in kept)
     assert all(counts[k, 1] == 0 for k in touched if k not in kept)
+    # Only a fixed kernel's matrix is kept for later refits: one of the starting
+    # hyperparameters would stand in for the learned kernel when rows are added.
+    assert model.kernel_cache_size > 0 and not model._kernel_cache
 
 
 def test_clusterer_partial_fit_first_seated_points_follow_the_new_room():

@@ -204,6 +204,76 @@ def test_a_map_without_a_lasting_hit_says_so():
     assert model.predict_proba(X[-1:])[0, 1] > 0.5
 
 
+def test_a_map_with_some_lasting_hits_does_not_say_every_hit_is_transient():
+    # Three hits in a cell that forty beams cross (transient), and the forty hits of those
+    # beams 2 m beyond it (lasting).
+    y_beam = np.linspace(0.01, 0.09, 40)
+    beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 2.0), y_beam])
+    ends = np.column_stack([np.full(40, 2.0), y_beam, np.full(40, 2.0), y_beam])
+    X = np.vstack([beams, np.tile([0.05, 0.05, 0.05, 0.05], (3, 1)), ends])
+    y = np.r_[np.zeros(40, int), np.ones(43, int)]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = MixtureGPOccupancyMap(min_hit_frequency=0.2, random_state=0).fit(X, y)
+        model.partial_fit(X + 0.01, y)
+    assert model.transient_hits_.any() and not model.transient_hits_[np.r_[y, y] == 1].all()
+    assert not [w for w in caught if "Every hit was left out" in str(w.message)]
+
+
+def _wall_and_passer_by(passer_first=False):
+    """Forty beams cross the cell [0, 0.1)^2 to a wall of forty hits at x = 2; a passer-by
+    of three hits in that cell (transient) is seen by three beams from below."""
+    y_beam = np.linspace(0.01, 0.09, 40)
+    wall = np.column_stack([np.full(40, 2.0), y_beam, np.full(40, 2.0), y_beam])
+    beams = np.column_stack([np.full(40, -2.0), y_beam, np.full(40, 1.95), y_beam])
+    passer = np.tile([0.05, 0.05, 0.05, 0.05], (3, 1))
+    below = np.tile([0.05, -2.0, 0.05, 0.0], (3, 1))
+    parts = [(passer, 1), (below, 0), (wall, 1), (beams, 0)]
+    if not passer_first:
+        parts = parts[2:] + parts[:2]
+    X = np.vstack([rows for rows, _ in parts])
+    y = np.concatenate([np.full(len(rows), label) for rows, label in parts])
+    return X, y
+
+
+def test_pieces_of_a_transient_hit_follow_the_lasting_hit_nearest_to_it():
+    # The passer-by's hits come first: their index among the hits is not their index among
+    # the lasting hits. The pieces of the beams that saw them follow the wall hit nearest.
+    X, y = _wall_and_passer_by(passer_first=True)
+    model = MixtureGPOccupancyMap(
+        piece_assignment="beam", max_pieces_per_cell=None, random_state=0
+    ).fit(X, y)
+    transient = model.transient_hits_[y == 1]
+    assert transient[:3].all() and not transient[3:].any()
+    moved = np.flatnonzero(model._piece_beam_hit < 3)
+    assert moved.size >= 3
+    hits = model._hits
+    nearest = np.linalg.norm(hits[3:] - hits[0], axis=1).min()
+    np.testing.assert_allclose(
+        np.linalg.norm(hits[model._piece_hit[moved]] - hits[0], axis=1), nearest
+    )
+    assert not transient[model._piece_hit].any()
+
+
+def test_an_update_that_fails_leaves_the_counts_of_the_rows_seen(monkeypatch):
+    # The counts of hits and passes are committed with the rest of an update: a batch whose
+    # update fails after it was counted must not count against later hits.
+    X, y = _wall_and_passer_by()
+    model = MixtureGPOccupancyMap(min_hit_frequency=0.2, random_state=0).fit(X, y)
+    cell = np.array([[0.05, 0.05]])
+    before = model._cell_counts.counted(cell)
+    assert before[0][0] == 3 and before[1][0] >= 40
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(MixtureGPOccupancyMap, "_refit_experts", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        model.partial_fit(X, y)
+    for got, want in zip(model._cell_counts.counted(cell), before, strict=True):
+        np.testing.assert_array_equal(got, want)
+
+
 def test_a_map_without_a_lasting_hit_says_so_at_the_callers_line():
     # The warning names the line that called fit or partial_fit, not the mixture's own.
     y_beam = np.linspace(0.01, 0.09, 40)
