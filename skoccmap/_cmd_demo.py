@@ -47,12 +47,14 @@ def add_arguments(parser):
 def _check_options(args, methods):
     """The options the experiment would refuse in its own words, refused in theirs."""
     from ._cmd_map import check_jobs_and_seed
-    from .experiment import METHODS
+    from .experiment import METHODS, _check_methods
 
-    if not methods or set(methods) - set(METHODS) or len(set(methods)) < len(methods):
+    try:
+        _check_methods(methods)
+    except ValueError:
         raise ValueError(
             f"--methods must name distinct maps among {', '.join(METHODS)}, got {args.methods!r}"
-        )
+        ) from None
     if not (math.isfinite(args.resolution) and args.resolution > 0):
         raise ValueError(f"--resolution must be a positive finite length, got {args.resolution:g}")
     if not (math.isfinite(args.noise_std) and args.noise_std >= 0):
