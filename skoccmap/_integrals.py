@@ -345,6 +345,12 @@ def _point_long_values(w, d, gradient, length=None):
     return m0, None, dist2
 
 
+def _length_kinds(length):
+    """Masks of the rows that are points, short segments (below ``_SHORT``, Gauss-Legendre)
+    and long ones (the closed form), from the rows' scaled lengths."""
+    return length == 0.0, (length > 0.0) & (length < _SHORT), length >= _SHORT
+
+
 def _point_segment(w, d, gradient):
     """Integral kernel of points ``p`` against segments ``a + v d``, from ``w = p - a`` and ``d``.
 
@@ -359,12 +365,12 @@ def _point_segment(w, d, gradient):
     grad = None if gradient is None else np.empty((n, dim if gradient == "aniso" else 1))
     dist2 = np.empty(n)
     length = np.sqrt(_dot(d, d))
-    groups = (
-        (length == 0.0, lambda i: _point_point_values(w[i], gradient)),
-        ((length > 0.0) & (length < _SHORT), lambda i: _point_short_values(w[i], d[i], gradient)),
-        (length >= _SHORT, lambda i: _point_long_values(w[i], d[i], gradient, length[i])),
+    values_of = (
+        lambda i: _point_point_values(w[i], gradient),
+        lambda i: _point_short_values(w[i], d[i], gradient),
+        lambda i: _point_long_values(w[i], d[i], gradient, length[i]),
     )
-    for mask, values in groups:
+    for mask, values in zip(_length_kinds(length), values_of, strict=True):
         if not np.any(mask):
             continue
         i = slice(None) if np.all(mask) else np.flatnonzero(mask)
@@ -972,12 +978,12 @@ def _points_against(P, Ys, cols, gradient, chunk):
     D = Ys[cols, dim:] - A
     length = np.sqrt(_dot(D, D))
     tiles = None if len(P) * len(cols) <= chunk else _point_tiles(P, _TILE)
-    kinds = (
-        (length == 0.0, lambda w, j: _point_point_values(w, gradient)),
-        ((length > 0.0) & (length < _SHORT), lambda w, j: _point_short_values(w, D[j], gradient)),
-        (length >= _SHORT, lambda w, j: _point_long_values(w, D[j], gradient, length[j])),
+    values_of = (
+        lambda w, j: _point_point_values(w, gradient),
+        lambda w, j: _point_short_values(w, D[j], gradient),
+        lambda w, j: _point_long_values(w, D[j], gradient, length[j]),
     )
-    for mask, values in kinds:
+    for mask, values in zip(_length_kinds(length), values_of, strict=True):
         sub = np.flatnonzero(mask)
         if sub.size == 0:
             continue
@@ -1008,12 +1014,7 @@ def _point_block(P, Ys):
     D = Ys[:, dim:] - A
     length = np.sqrt(_dot(D, D))
     K = np.empty((len(P), len(Ys)))
-    kinds = (
-        (length == 0.0, "point"),
-        ((length > 0.0) & (length < _SHORT), "short"),
-        (length >= _SHORT, "long"),
-    )
-    for mask, kind in kinds:
+    for mask, kind in zip(_length_kinds(length), ("point", "short", "long"), strict=True):
         sub = slice(None) if np.all(mask) else np.flatnonzero(mask)
         if not isinstance(sub, slice) and sub.size == 0:
             continue
