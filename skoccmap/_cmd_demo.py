@@ -7,7 +7,6 @@ Figure 2 (clustered data), Figure 4 (maps and uncertainty), Figure 5 (ROC curves
 (with matplotlib) and every map as a ROS map_server PGM + YAML pair.
 """
 
-import math
 import sys
 
 _DEFAULT_OUT = "skoccmap_demo"
@@ -46,7 +45,7 @@ def add_arguments(parser):
 
 def _check_options(args, methods):
     """The options the experiment would refuse in its own words, refused in theirs."""
-    from ._cmd_map import check_jobs_and_seed
+    from ._cmd_map import check_jobs_and_seed, check_length
     from .experiment import METHODS, _check_methods
 
     try:
@@ -55,10 +54,8 @@ def _check_options(args, methods):
         raise ValueError(
             f"--methods must name distinct maps among {', '.join(METHODS)}, got {args.methods!r}"
         ) from None
-    if not (math.isfinite(args.resolution) and args.resolution > 0):
-        raise ValueError(f"--resolution must be a positive finite length, got {args.resolution:g}")
-    if not (math.isfinite(args.noise_std) and args.noise_std >= 0):
-        raise ValueError(f"--noise-std must be a finite length >= 0, got {args.noise_std:g}")
+    check_length("--resolution", args.resolution)
+    check_length("--noise-std", args.noise_std, zero=True)
     check_jobs_and_seed(args.n_jobs, args.seed)
 
 

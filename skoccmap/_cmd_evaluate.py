@@ -16,7 +16,6 @@ Either way the positives are the held-out hits, the models train on every
 (split, test points, mixture), printing the AUC per seed and their mean.
 """
 
-import math
 import sys
 
 import numpy as np
@@ -26,6 +25,7 @@ from ._cmd_map import (
     Stopwatch,
     add_model_arguments,
     check_hits,
+    check_length,
     check_model_arguments,
     load_scans,
     make_mixture,
@@ -113,10 +113,7 @@ def _check_options(args):
     for name, value in least.items():
         if getattr(args, name) is not None and getattr(args, name) < value:
             raise ValueError(f"--{name.replace('_', '-')} must be >= {value}")
-    if not (math.isfinite(args.grid_resolution) and args.grid_resolution > 0):
-        raise ValueError(
-            f"--grid-resolution must be positive and finite, got {args.grid_resolution:g}"
-        )
+    check_length("--grid-resolution", args.grid_resolution)
     option = "--seeds" if args.seeds is not None else "--seed"
     if args.seeds is None:
         args.seeds = [args.seed]

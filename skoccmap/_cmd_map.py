@@ -404,8 +404,7 @@ def run(args):
     try:
         if args.every_nth_scan < 1:
             raise ValueError(f"--every-nth-scan must be >= 1, got {args.every_nth_scan}")
-        if not (math.isfinite(args.resolution) and args.resolution > 0):
-            raise ValueError(f"--resolution must be a positive number, got {args.resolution}")
+        check_length("--resolution", args.resolution)
         _check_online_options(args)
         check_model_arguments(args)
         unknown_variance = _unknown_variance(args.unknown_variance)
@@ -478,11 +477,18 @@ def check_model_arguments(args):
     if args.max_expert_size < 2:
         raise ValueError(f"--max-expert-size must be >= 2, got {args.max_expert_size}")
     check_jobs_and_seed(args.n_jobs, getattr(args, "seed", 0))
-    if args.max_range is not None and not (math.isfinite(args.max_range) and args.max_range > 0):
-        raise ValueError(f"--max-range must be a positive finite length, got {args.max_range:g}")
+    if args.max_range is not None:
+        check_length("--max-range", args.max_range)
     tolerance = _bag_option(args, "level_tolerance")
     if not tolerance >= 0:
         raise ValueError(f"--level-tolerance must be >= 0 radians, got {tolerance}")
+
+
+def check_length(option, value, *, zero=False):
+    """A length option refused unless finite and positive (or at least 0 with ``zero``)."""
+    if not (math.isfinite(value) and (value >= 0 if zero else value > 0)):
+        what = "a finite length >= 0" if zero else "a positive finite length"
+        raise ValueError(f"{option} must be {what}, got {value:g}")
 
 
 def check_jobs_and_seed(n_jobs, seed):

@@ -56,11 +56,14 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
         (["--seeds", "1", "1", "2"], "--seeds must be distinct, got 1 1 2"),
         # It was numpy's "Seed must be between 0 and 2**32 - 1", after the log was read.
         (["--seeds", "0", "4294967296"], "--seeds must be below 2**32, got 4294967296"),
-        (["--grid-resolution", "0"], "--grid-resolution must be positive"),
-        (["--grid-resolution", "nan"], "--grid-resolution must be positive"),
+        (["--grid-resolution", "0"], "--grid-resolution must be a positive finite length"),
+        (["--grid-resolution", "nan"], "--grid-resolution must be a positive finite length"),
         # It was refused only after the log was read and the mixture fitted, in the
         # counting grid's words.
-        (["--grid-resolution", "inf"], "--grid-resolution must be positive and finite, got inf"),
+        (
+            ["--grid-resolution", "inf"],
+            "--grid-resolution must be a positive finite length, got inf",
+        ),
         (["--free-per-beam", "0"], "--free-per-beam must be >= 1"),
     ],
 )

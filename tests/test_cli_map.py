@@ -59,8 +59,8 @@ def test_evaluate_prints_both_models(paper_log, capsys):
     "argv, message",
     [
         (["map", "{log}", "--every-nth-scan", "0"], "--every-nth-scan must be >= 1"),
-        (["map", "{log}", "--resolution", "-1"], "--resolution must be a positive number"),
-        (["map", "{log}", "--resolution", "inf"], "--resolution must be a positive number"),
+        (["map", "{log}", "--resolution", "-1"], "--resolution must be a positive finite length"),
+        (["map", "{log}", "--resolution", "inf"], "--resolution must be a positive finite length"),
         (["map", "{log}", "--unknown-variance", "big"], "--unknown-variance"),
         (["map", "{log}", "--unknown-variance", "0"], "--unknown-variance must be positive"),
         (["map", "{missing}"], "No such file"),
@@ -600,8 +600,8 @@ def test_map_option_defaults_are_the_documented_ones():
     [
         (["--max-expert-size", "1"], "--max-expert-size must be >= 2, got 1"),
         (["--seed", "4294967296"], "--seed must be an integer in [0, 2**32), got 4294967296"),
-        (["--resolution", "0"], "--resolution must be a positive number, got 0.0"),
-        (["--resolution", "nan"], "--resolution must be a positive number"),
+        (["--resolution", "0"], "--resolution must be a positive finite length, got 0"),
+        (["--resolution", "nan"], "--resolution must be a positive finite length"),
         (["--max-range", "0"], "--max-range must be a positive finite length, got 0"),
         (["--max-range", "inf"], "--max-range must be a positive finite length, got inf"),
     ],
