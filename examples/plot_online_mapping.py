@@ -50,8 +50,9 @@ for first in range(0, len(scans), batch):
         snapshots[seen] = grid
 
 # %%
-# The first update is a fit; later ones refit the experts near the new scans only, so an
-# update costs about the same however large the map has grown.
+# The first update is a fit; later ones change the experts near the new scans only (most
+# take their new rows without a refit), so an update costs about the same however large the
+# map has grown.
 #
 # Snapshots of the growing map
 # ----------------------------
