@@ -602,7 +602,8 @@ def load_rosbag(
     Parameters
     ----------
     path : str or path-like
-        The bag: ``.bag`` file (ROS 1) or ROS 2 bag directory.
+        The bag: ``.bag`` file (ROS 1), ROS 2 bag directory or bare ``.db3`` / ``.mcap``
+        file.
     scan_topic : str, default="/scan"
         Topic of ``sensor_msgs/LaserScan`` messages. Beam ``i`` of a scan points at
         ``angle_min + i * angle_increment`` in the scan's ``header.frame_id``.
