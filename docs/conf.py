@@ -24,6 +24,9 @@ extensions = [
 ]
 
 autosummary_generate = True
+# Class pages document the methods defined in the class and module pages their functions
+# (autosummary's own templates list them in tables that link nowhere).
+templates_path = ["_templates"]
 numpydoc_show_class_members = False
 exclude_patterns = ["_build", "auto_examples/*.ipynb"]
 html_theme = "pydata_sphinx_theme"
@@ -86,7 +89,18 @@ def _sklearn_label(app, env, node, contnode):
     return link
 
 
+def _skip_member(app, what, name, obj, skip, options):
+    # scikit-learn adds set_{method}_request to every estimator: its metadata routing,
+    # documented there, not ours. A named tuple's fields are its docstring's Attributes.
+    if name.startswith("set_") and name.endswith("_request"):
+        return True
+    if (getattr(obj, "__doc__", None) or "").startswith("Alias for field number"):
+        return True
+    return None
+
+
 def setup(app):
+    app.connect("autodoc-skip-member", _skip_member)
     # After intersphinx (priority 500): its inventory answers first when it was loaded.
     app.connect("missing-reference", _sklearn_label, priority=900)
 

@@ -244,7 +244,7 @@ def mixture_of_experts(means, variances, weights=None):
     """Mixture of experts: average the experts' probabilities with the gating weights.
 
     ``p = sum_k w_k Phi(mu_k / sqrt(1 + s_k^2))`` with the weights normalised to sum to one at
-    each query ([KK2012]_). The latent summary is the mixture's mean and variance,
+    each query (Kim and Kim 2012). The latent summary is the mixture's mean and variance,
     ``mu = sum_k w_k mu_k`` and ``s^2 = sum_k w_k (s_k^2 + mu_k^2) - mu^2``.
 
     Parameters
@@ -276,8 +276,9 @@ def product_of_experts(means, variances, weights=None):
     """Product of experts: multiply the experts' Gaussian predictions.
 
     ``1/s^2 = sum_k 1/s_k^2``, ``mu = s^2 sum_k mu_k / s_k^2`` over the experts with positive
-    weight ([DN2015]_ eq. 10). The weights only select experts; the product is overconfident
-    when experts share data, and far from all data its variance shrinks with their number.
+    weight (Deisenroth and Ng 2015, eq. 10). The weights only select experts; the product is
+    overconfident when experts share data, and far from all data its variance shrinks with
+    their number.
 
     Parameters
     ----------
@@ -306,10 +307,10 @@ def product_of_experts(means, variances, weights=None):
 def generalized_product_of_experts(means, variances, weights=None):
     """Generalised product of experts with the gating weights as exponents.
 
-    ``1/s^2 = sum_k beta_k / s_k^2``, ``mu = s^2 sum_k beta_k mu_k / s_k^2`` ([CF2014]_,
-    [DN2015]_ eq. 13) with ``beta_k = w_k / sum_j w_j``. Because the betas sum to one, far
-    from all data the merged prediction falls back to the prior rather than shrinking, as
-    [DN2015]_ recommends; with equal weights ``beta_k = 1/M``.
+    ``1/s^2 = sum_k beta_k / s_k^2``, ``mu = s^2 sum_k beta_k mu_k / s_k^2`` (Cao and Fleet
+    2014; Deisenroth and Ng 2015, eq. 13) with ``beta_k = w_k / sum_j w_j``. Because the
+    betas sum to one, far from all data the merged prediction falls back to the prior rather
+    than shrinking, as Deisenroth and Ng recommend; with equal weights ``beta_k = 1/M``.
 
     Parameters
     ----------
@@ -339,10 +340,11 @@ def bayesian_committee_machine(means, variances, prior_variance, weights=None):
     """Bayesian committee machine: product of experts with the prior counted once.
 
     ``1/s^2 = sum_k 1/s_k^2 + (1 - M) / s_**^2``, ``mu = s^2 sum_k mu_k / s_k^2`` over the
-    ``M`` experts with positive weight ([Tresp2000]_, [DN2015]_ eq. 15), where ``s_**^2`` is
-    the prior variance at the query. Written as ``1/s_**^2 + sum_k (1/s_k^2 - 1/s_**^2)``,
-    which also covers experts with their own prior variances (their information gains over
-    their own priors are added to the mean prior precision).
+    ``M`` experts with positive weight (Tresp 2000; Deisenroth and Ng 2015, eq. 15), where
+    ``s_**^2`` is the prior variance at the query. Written as
+    ``1/s_**^2 + sum_k (1/s_k^2 - 1/s_**^2)``, which also covers experts with their own prior
+    variances (their information gains over their own priors are added to the mean prior
+    precision).
 
     Parameters
     ----------
@@ -376,9 +378,9 @@ def robust_bayesian_committee_machine(means, variances, prior_variance, weights=
 
     ``1/s^2 = sum_k beta_k / s_k^2 + (1 - sum_k beta_k) / s_**^2`` and
     ``mu = s^2 sum_k beta_k mu_k / s_k^2`` with ``beta_k = (log s_**^2 - log s_k^2) / 2``,
-    the differential-entropy drop from prior to posterior ([DN2015]_ eq. 19-20). Experts that
-    learned nothing at a query (``s_k = s_**``) get ``beta_k = 0``, so far from all data the
-    merged prediction is the prior.
+    the differential-entropy drop from prior to posterior (Deisenroth and Ng 2015, eq.
+    19-20). Experts that learned nothing at a query (``s_k = s_**``) get ``beta_k = 0``, so
+    far from all data the merged prediction is the prior.
 
     Parameters
     ----------
