@@ -122,6 +122,21 @@ def warn_unless_metres(starts, ends):
         )
 
 
+# Coordinates beyond this overflow in squared sums over many points (float max ~1.8e308).
+MAX_COORDINATE = 1e100
+
+
+def check_magnitude(X, name="X"):
+    """``X``, or a ValueError for coordinates whose squares (squared distances and lengths,
+    the Normal-Wishart statistics) would overflow to inf and the results to NaN."""
+    if X.size and np.max(np.abs(X)) > MAX_COORDINATE:
+        raise ValueError(
+            f"{name} holds coordinates up to {np.max(np.abs(X)):.3g} in absolute value; beyond "
+            f"{MAX_COORDINATE:g} their squares overflow. Rescale or shift the data."
+        )
+    return X
+
+
 def check_segments(X, *, name="X", allow_empty=False):
     """Return ``X`` as a float array of segment rows ``[start, end]``.
 
@@ -141,7 +156,8 @@ def check_segments(X, *, name="X", allow_empty=False):
     Raises
     ------
     ValueError
-        If ``X`` is not 2-D, has an odd number of columns, or holds NaN or inf.
+        If ``X`` is not 2-D, has an odd number of columns, holds NaN or inf, or holds
+        coordinates beyond 1e100 in absolute value (their squares overflow).
     TypeError
         If ``X`` is a sparse matrix.
     """
@@ -164,7 +180,7 @@ def check_segments(X, *, name="X", allow_empty=False):
         raise ValueError(f"{name} has no rows.")
     if not np.all(np.isfinite(X)):
         raise ValueError(f"{name} contains NaN or infinite values; segments must be finite.")
-    return X
+    return check_magnitude(X, name)
 
 
 def segment_dim(X):

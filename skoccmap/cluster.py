@@ -25,7 +25,7 @@ from ._niw import (
     posterior,
     predictive,
 )
-from ._validation import caller_stacklevel, fit_or_unfitted
+from ._validation import caller_stacklevel, check_magnitude, fit_or_unfitted
 
 __all__ = ["DPGMMClusterer"]
 
@@ -460,21 +460,6 @@ def _launch(XS, pos_i, pos_j, prior, n_steps=2):
         right = lp[:, 1] > lp[:, 0]
 
 
-def _checked_magnitude(X):
-    """``X``, or a ValueError for coordinates whose squares (the Normal-Wishart statistics
-    and Mahalanobis distances) would overflow to inf and the model to NaN."""
-    if X.size and np.max(np.abs(X)) > _MAX_COORDINATE:
-        raise ValueError(
-            f"X holds coordinates up to {np.max(np.abs(X)):.3g} in absolute value; beyond "
-            f"{_MAX_COORDINATE:g} their squares overflow. Rescale or shift the data."
-        )
-    return X
-
-
-# Coordinates beyond this overflow in squared sums over many points (float max ~1.8e308).
-_MAX_COORDINATE = 1e100
-
-
 class DPGMMClusterer(ClusterMixin, BaseEstimator):
     """Dirichlet-process Gaussian mixture clustering by collapsed Gibbs sampling.
 
@@ -737,7 +722,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         self : DPGMMClusterer
             Fitted estimator.
         """
-        X = _checked_magnitude(validate_data(self, X, dtype=np.float64, ensure_min_samples=2))
+        X = check_magnitude(validate_data(self, X, dtype=np.float64, ensure_min_samples=2))
         rng = np.random.default_rng(check_random_state(self.random_state).randint(2**31))
         mean, kappa, nu, psi = self._resolve_prior(X)
         self.mean_prior_ = mean
@@ -848,7 +833,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         """
         if not hasattr(self, "_statistics"):
             return self.fit(X)
-        X = _checked_magnitude(validate_data(self, X, dtype=np.float64, reset=False))
+        X = check_magnitude(validate_data(self, X, dtype=np.float64, reset=False))
         Xc = X - self._shift
         rng = self._rng
         # Draws up front: the seating order and one uniform per point.
@@ -920,7 +905,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
 
     def _log_weighted_density(self, X):
         check_is_fitted(self)
-        X = _checked_magnitude(validate_data(self, X, dtype=np.float64, reset=False))
+        X = check_magnitude(validate_data(self, X, dtype=np.float64, reset=False))
         X = X - self._shift
         log_w = np.log(self.weights_)
         out = np.empty((X.shape[0], self.n_clusters_))

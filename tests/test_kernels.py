@@ -341,3 +341,20 @@ def test_row_of_length_scales_is_refused_before_learning(length_scale):
         kernel(X)
     with pytest.raises(ValueError, match=match):
         kernel.diag(X)
+
+
+def test_coordinates_whose_squares_overflow_are_refused():
+    # A point at 1e155 against a segment reaching it gave a NaN entry, and a segment of that
+    # length a diagonal of 0, without a word.
+    point, segment = np.array([[1e155, 0.0, 1e155, 0.0]]), np.array([[0.0, 0.0, 1e155, 0.0]])
+    kernel = IntegralKernel(1.0)
+    for call in (
+        lambda: kernel(point, segment),
+        lambda: kernel(segment),
+        lambda: kernel.diag(segment),
+    ):
+        with pytest.raises(ValueError, match=r"coordinates up to 1e\+155.*Rescale or shift"):
+            call()
+    with pytest.raises(ValueError, match=r"Y holds coordinates up to 1e\+155"):
+        kernel(np.zeros((1, 4)), segment)
+    assert np.isfinite(kernel(point / 1e56, segment / 1e56)).all()

@@ -650,3 +650,16 @@ def test_boolean_lengths_are_refused(call):
     # True was read as 1 m.
     with pytest.raises(ValueError, match="got True"):
         call()
+
+
+def test_segment_helpers_refuse_coordinates_whose_squares_overflow():
+    # segment_lengths gave inf, segment_midpoints inf, and split_segments stopped on
+    # "cannot convert float infinity to integer".
+    far = np.array([[0.0, 0.0, 1e200, 0.0]])
+    for call in (
+        lambda: segment_lengths(far),
+        lambda: segment_midpoints(far * 1.7e108),
+        lambda: split_segments(far, None, end_length=0.1),
+    ):
+        with pytest.raises(ValueError, match="beyond 1e\\+100 their squares overflow"):
+            call()
