@@ -39,6 +39,7 @@ from ._thinning import thin_free_pieces
 from ._transient import CellCounts
 from ._validation import (
     caller_stacklevel,
+    check_magnitude,
     fit_or_unfitted,
     non_finite_explained,
     unfitted_on_error,
@@ -2751,7 +2752,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def _validate_queries(self, X):
         check_is_fitted(self)
         self._check_fitted_with()
-        X = validate_queries(self, X)
+        # Beyond 1e100 squared distances overflow: the spatial index stopped on SciPy's
+        # "floating point overflow", and a long query segment got a prior variance of 0.
+        X = check_magnitude(validate_queries(self, X))
         return _as_segment_rows(X, self.layout)
 
     def _merged(self, X):

@@ -890,6 +890,12 @@ def test_bad_input_raises_clear_errors(paper):
         model.partial_fit(X[:5] * np.nan, paper.y[:5])
     with pytest.raises(ValueError, match="contains infinity. Query points must be finite"):
         model.predict_proba(np.full((1, 4), np.inf))
+    # SciPy's "floating point overflow" from the spatial index (with the default expert,
+    # for a point that far as well), or the combiner's "prior_variance must be positive".
+    for far in ([[0.0, 0.0, 1e160, 0.0]], [[1e160, 0.0, 1e160, 0.0]]):
+        for predict in (model.predict_proba, model.predict_var):
+            with pytest.raises(ValueError, match=r"up to 1e\+160.*Rescale or shift"):
+                predict(np.array(far))
     with pytest.raises(ValueError, match="features"):
         model.predict(np.zeros((3, 6)))
     with pytest.raises(ValueError, match="combiner"):
