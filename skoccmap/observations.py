@@ -739,7 +739,17 @@ def split_segments(X, max_length, *, end_length=None, graded=None):
     rest = lengths - ends[n_end]
     n_rest = np.ones(X.shape[0], dtype=np.intp)
     if np.isfinite(max_length):
-        n_rest = np.maximum(np.ceil(rest / max_length - _LENGTH_ROUNDING), 1).astype(np.intp)
+        n_float = np.maximum(np.ceil(rest / max_length - _LENGTH_ROUNDING), 1)
+        # Past the largest array index the count wrapped to a negative number, and numpy
+        # stopped on "negative dimensions are not allowed".
+        if n_float.sum() > np.iinfo(np.intp).max:
+            raise ValueError(
+                f"Cutting X into pieces of at most max_length={max_length:g} m gives "
+                f"{n_float.sum():.3g} pieces, more than an array can hold (the longest "
+                f"segment is {lengths.max():.3g} m long): pass a larger max_length, or drop "
+                "segments far longer than the rest."
+            )
+        n_rest = n_float.astype(np.intp)
     n_pieces = n_end + n_rest
     source = np.repeat(np.arange(X.shape[0]), n_pieces)
     d = X.shape[1] // 2

@@ -663,3 +663,10 @@ def test_segment_helpers_refuse_coordinates_whose_squares_overflow():
     ):
         with pytest.raises(ValueError, match="beyond 1e\\+100 their squares overflow"):
             call()
+
+
+@pytest.mark.parametrize("length, max_length", [(1e20, 1.0), (1.0, 1e-300)])
+def test_split_segments_refuses_more_pieces_than_an_array_holds(length, max_length):
+    # The count of pieces wrapped to a negative number: "negative dimensions are not allowed".
+    with pytest.raises(ValueError, match=r"more than an array can hold.*larger max_length"):
+        split_segments([[0.0, 0.0, length, 0.0], [0.0, 0.0, 1.0, 0.0]], max_length)
