@@ -818,6 +818,12 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
                 raise ValueError("Gradient can only be evaluated for theta!=None")
             return self.log_marginal_likelihood_value_
         theta = np.asarray(theta, dtype=np.float64)
+        if theta.ndim != 1:
+            # A scalar stopped in scikit-learn's kernels: "too many indices for array".
+            raise ValueError(
+                "theta must be a 1-D array of log-hyperparameters, as kernel_.theta is "
+                f"(shape {self.kernel_.theta.shape}), got shape {theta.shape}."
+            )
         if self.n_classes_ > 2:
             return self._multi_class_log_marginal_likelihood(theta, eval_gradient, clone_kernel)
         if clone_kernel:

@@ -1271,3 +1271,13 @@ def test_multi_class_theta_of_another_length_is_refused():
     for length in (1, 3, 5, 7):
         with pytest.raises(ValueError, match="Shape of theta must be either 2 or 6"):
             clf.log_marginal_likelihood(np.zeros(length))
+
+
+@pytest.mark.parametrize("n_classes", [2, 3])
+def test_theta_that_is_not_1d_is_refused(n_classes):
+    # A scalar stopped in scikit-learn's kernels on "too many indices for array".
+    X, y = _data3(n=30)
+    clf = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), optimizer=None).fit(X, y % n_classes)
+    for theta in (0.0, np.zeros((1, 2))):
+        with pytest.raises(ValueError, match=r"theta must be a 1-D array.*got shape \("):
+            clf.log_marginal_likelihood(theta)
