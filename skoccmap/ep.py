@@ -152,6 +152,18 @@ def probit_site_update(y, tau_cav, nu_cav, mean=0.0):
     >>> bool(tau[0] > 0), bool(nu[0] > 0), float(np.exp(log_Z[0]))
     (True, True, 0.5)
     """
+    tau_cav = np.asarray(tau_cav, dtype=np.float64)
+    if not np.all(tau_cav > 0):  # False for NaN
+        raise ValueError(
+            "tau_cav must hold positive cavity precisions (no NaN); a cavity of precision "
+            "<= 0 has no tilted moments to match (EP leaves such a site as it is)."
+        )
+    return _probit_site_update(y, tau_cav, nu_cav, mean)
+
+
+def _probit_site_update(y, tau_cav, nu_cav, mean=0.0):
+    """:func:`probit_site_update` without its check, for EP's sweeps (which skip the sites
+    whose cavity precision is not positive)."""
     s2 = 1.0 / tau_cav
     mu = nu_cav * s2
     denom = np.sqrt(1.0 + s2)
@@ -485,7 +497,7 @@ def _proposed_sites(y, mean, tau, nu, posterior):
     # the tilted distribution undefined: that site stays as it is.
     ok = tau_cav > 0.0
     tau_prop, nu_prop = tau.copy(), nu.copy()
-    tau_prop[ok], nu_prop[ok], _ = probit_site_update(y[ok], tau_cav[ok], nu_cav[ok], mean[ok])
+    tau_prop[ok], nu_prop[ok], _ = _probit_site_update(y[ok], tau_cav[ok], nu_cav[ok], mean[ok])
     return tau_prop, nu_prop
 
 
@@ -557,7 +569,7 @@ def _sequential_sweep(K, y, mean, tau, nu, posterior, damping):
         if not tau_cav > 0.0:
             continue
         nu_cav = mu[i] / s2 - nu[i]
-        t_new, n_new, _ = probit_site_update(y[i : i + 1], tau_cav, nu_cav, mean[i])
+        t_new, n_new, _ = _probit_site_update(y[i : i + 1], tau_cav, nu_cav, mean[i])
         t_new, n_new = t_new[0], n_new[0]
         # _residual for one site, in scalars (numpy's call overhead, per site, would cost
         # a fifth of a sweep).

@@ -741,3 +741,10 @@ def test_blocked_lower_solve_matches_lapack(n, n_columns):
     # Only the lower triangle is read, as with solve_triangular.
     L[np.triu_indices(n, 1)] = rng.normal(size=n * (n - 1) // 2)
     np.testing.assert_allclose(_solve_lower(L, B.copy()), expected, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("tau_cav", [0.0, -1.0, np.nan])
+def test_site_update_refuses_a_cavity_without_positive_precision(tau_cav):
+    # It returned NaN sites (1 / 0, or the square root of a negative 1 + s2) without a word.
+    with pytest.raises(ValueError, match="tau_cav must hold positive cavity precisions"):
+        probit_site_update(np.array([1.0, -1.0]), np.array([1.0, tau_cav]), np.zeros(2))
