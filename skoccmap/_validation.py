@@ -129,9 +129,12 @@ MAX_COORDINATE = 1e100
 def check_magnitude(X, name="X"):
     """``X``, or a ValueError for coordinates whose squares (squared distances and lengths,
     the Normal-Wishart statistics) would overflow to inf and the results to NaN."""
-    if X.size and np.max(np.abs(X)) > MAX_COORDINATE:
+    # Largest and smallest apart: no array of absolute values the size of X (every kernel
+    # call and every fit checks its segments).
+    largest = max(np.max(X), -np.min(X)) if X.size else 0.0
+    if largest > MAX_COORDINATE:
         raise ValueError(
-            f"{name} holds coordinates up to {np.max(np.abs(X)):.3g} in absolute value; beyond "
+            f"{name} holds coordinates up to {largest:.3g} in absolute value; beyond "
             f"{MAX_COORDINATE:g} their squares overflow. Rescale or shift the data."
         )
     return X
