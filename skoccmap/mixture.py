@@ -1539,7 +1539,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     def _fit(self, X, y_enc, classes):
         """``fit`` on validated rows (in ``layout``) and encoded labels (1 = occupied)."""
-        X = _as_segment_rows(X, self.layout)
+        # Beyond 1e100 squared lengths overflow: the no-return assignment ran into inf and
+        # NaN before the beams' pieces stopped on an OverflowError.
+        X = check_magnitude(_as_segment_rows(X, self.layout))
         _check_hits_are_points(X, y_enc == 1, classes)
         warn_unless_metres(X[:, : X.shape[1] // 2], X[:, X.shape[1] // 2 :])
         self.classes_ = classes
@@ -1795,7 +1797,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             )
         _check_known_labels(y, self.classes_)
         self._check_fitted_with()
-        self._update(_as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y))
+        X = check_magnitude(_as_segment_rows(X, self.layout))
+        self._update(X, np.searchsorted(self.classes_, y))
         return self
 
     def refit_hyperparameters(self):

@@ -885,7 +885,19 @@ def test_bad_input_raises_clear_errors(paper):
         MixtureGPOccupancyMap(random_state=0).fit(one_hit, [1, 0, 0])
     with pytest.raises(ValueError, match="'n_jobs' parameter"):
         MixtureGPOccupancyMap(n_jobs=0).fit(paper.X, paper.y)
+    # A beam reaching 1e160: overflow warnings from the no-return assignment, then an
+    # OverflowError from cutting it into pieces; on the next batch, the same.
+    far_beam = np.r_[paper.X, [[0.0, 0.0, 1e160, 0.0]]]
+    far_y = np.r_[paper.y, 0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"up to 1e\+160.*Rescale or shift"):
+            _mixture().fit(far_beam, far_y)
     model.fit(paper.X, paper.y)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(ValueError, match=r"up to 1e\+160.*Rescale or shift"):
+            model.partial_fit(far_beam[-5:], far_y[-5:])
     with pytest.raises(ValueError, match="contains NaN. Observations must be finite"):
         model.partial_fit(X[:5] * np.nan, paper.y[:5])
     with pytest.raises(ValueError, match="contains infinity. Query points must be finite"):
