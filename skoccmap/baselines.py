@@ -30,6 +30,7 @@ from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._validation import (
+    check_magnitude,
     fit_or_unfitted,
     non_finite_explained,
     validate_queries,
@@ -1008,7 +1009,9 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
             X, y = validate_data(self, X, y, dtype=np.float64)
         self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         class_weight = self._class_weight()
-        starts, ends = _split_rows(X, self.layout)
+        # Beyond 1e100 the features' squared distances overflow: the landmarks' SVD stopped
+        # on "SVD did not converge".
+        starts, ends = _split_rows(check_magnitude(X), self.layout)
         warn_unless_metres(starts, ends)
         self.extent_ = np.column_stack(
             [

@@ -829,6 +829,11 @@ def test_hilbert_map_bad_input():
         HilbertMap(free_spacing=0.0).fit(X, [0, 1, 0, 1])
     with pytest.raises(ValueError, match="max_samples"):
         HilbertMap(max_samples=1).fit(X, [0, 1, 0, 1])
+    # numpy's "SVD did not converge" from the landmarks' kernel.
+    beams = X + np.arange(4)[:, None] + np.array([[0.0, 0.0, 1.0, 0.0]])
+    far = np.r_[beams, [[1e200, 0.0, 1e200, 0.0]]]
+    with pytest.raises(ValueError, match=r"up to 1e\+200.*Rescale or shift"):
+        HilbertMap(random_state=0).fit(far, [0, 1, 0, 1, 1])
     with pytest.raises(NotFittedError):
         HilbertMap().predict(X)
     est = HilbertMap(n_components=4, random_state=0).fit(X + np.arange(4)[:, None], [0, 1, 0, 1])
