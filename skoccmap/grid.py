@@ -668,6 +668,19 @@ def _duration(seconds):
     return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60} min"
 
 
+def _output_of(estimator, method, queries, shape):
+    """``estimator.method(queries)`` as an array, or a ValueError naming the shape expected
+    (an estimator of another kind: numpy's IndexError or broadcasting error otherwise)."""
+    out = np.asarray(getattr(estimator, method)(queries))
+    if out.shape != shape:
+        expected = "(n_queries, 2), column 1 P(occupied)" if len(shape) == 2 else "(n_queries,)"
+        raise ValueError(
+            f"{type(estimator).__name__}.{method} returned an array of shape {out.shape} for "
+            f"{queries.shape[0]} queries; OccupancyGrid expects shape {expected}."
+        )
+    return out
+
+
 def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose):
     """P(occupied) and (if available) variance on all cell centres, ``chunk_size`` at a time."""
     n_cells = int(np.prod(counts))
@@ -687,9 +700,10 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
             if joint is not None:
                 proba[lo:hi], var[lo:hi] = joint(queries)
             else:
-                proba[lo:hi] = estimator.predict_proba(queries)[:, 1]
+                p = _output_of(estimator, "predict_proba", queries, (hi - lo, 2))
+                proba[lo:hi] = p[:, 1]
                 if has_var:
-                    var[lo:hi] = estimator.predict_var(queries)
+                    var[lo:hi] = _output_of(estimator, "predict_var", queries, (hi - lo,))
         if verbose and (hi / n_cells >= next_report or hi == n_cells):
             elapsed = time.perf_counter() - tic
             # From the first chunk on: a grid far larger than meant (an extent set by

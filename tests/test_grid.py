@@ -589,6 +589,34 @@ def test_non_finite_predictions_are_refused(proba):
         OccupancyGrid.from_estimator(_ConstantEstimator(proba), (0, 1, 0, 1), 0.5)
 
 
+class _MisshapenEstimator(_ConstantEstimator):
+    def __init__(self, proba_shape, var_shape):
+        super().__init__(0.5, 1.0)
+        self.shapes = {"predict_proba": proba_shape, "predict_var": var_shape}
+
+    def predict_proba(self, X):
+        return np.full(self.shapes["predict_proba"](len(X)), 0.5)
+
+    def predict_var(self, X):
+        return np.full(self.shapes["predict_var"](len(X)), 1.0)
+
+
+@pytest.mark.parametrize(
+    "proba_shape, var_shape, match",
+    [
+        # numpy's "too many indices for array"
+        (lambda n: (n,), lambda n: (n,), r"predict_proba returned .* shape \(4,\) for 4 queries"),
+        # a broadcasting error
+        (lambda n: (n + 1, 2), lambda n: (n,), r"predict_proba returned .* shape \(5, 2\)"),
+        (lambda n: (n, 2), lambda n: (n, 1), r"predict_var returned .* shape \(4, 1\).*\(n_q"),
+    ],
+)
+def test_predictions_of_the_wrong_shape_are_refused(proba_shape, var_shape, match):
+    estimator = _MisshapenEstimator(proba_shape, var_shape)
+    with pytest.raises(ValueError, match=match):
+        OccupancyGrid.from_estimator(estimator, (0, 1, 0, 1), 0.5)
+
+
 def test_auto_unknown_uses_the_largest_prior_variance_over_the_grid():
     # A prior variance that grows with x: the threshold is 90 % of its largest value on
     # the grid's cell centres, the cell of largest x -- not the value at the first cell.
