@@ -91,7 +91,9 @@ def split_scans(scans, every_nth=10, *, offset=0):
         raise ValueError(f"every_nth must be an integer >= 2, got {every_nth!r}.")
     if not isinstance(offset, numbers.Integral) or not 0 <= offset < every_nth:
         raise ValueError(f"offset must be an integer in [0, every_nth), got {offset!r}.")
-    held_out = np.arange(len(scans)) % every_nth == offset
+    # A slice, not np.arange(n) % every_nth: an every_nth beyond int64 overflows numpy.
+    held_out = np.zeros(len(scans), dtype=bool)
+    held_out[offset::every_nth] = True
     if held_out.all() or not held_out.any():
         raise ValueError(
             f"holding out one scan in {every_nth} from offset {offset} of {len(scans)} scans "

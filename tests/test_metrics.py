@@ -88,6 +88,15 @@ def test_split_scans_of_one_scan_leaves_nothing_to_train_on(paper):
     assert_array_equal(test.poses, paper.scans.poses[[0]])
 
 
+def test_split_scans_every_nth_beyond_int64(paper):
+    # Only scan 0 is held out; numpy's int64 cannot hold such an every_nth.
+    train, test = split_scans(paper.scans, every_nth=10**30)
+    assert (len(train), len(test)) == (25, 1)
+    assert_array_equal(test.poses, paper.scans.poses[[0]])
+    with pytest.raises(ValueError, match="empty"):
+        split_scans(paper.scans, every_nth=10**30, offset=10**29)
+
+
 def test_split_scans_rejects_arrays():
     with pytest.raises(ValueError, match="must be a skoccmap.observations.Scans"):
         split_scans(np.zeros((3, 3)))
