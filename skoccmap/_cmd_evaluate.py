@@ -158,7 +158,13 @@ def _split(scans, args, seed):
         return protocol.train, protocol.test, protocol.points, protocol.labels
     # Offset half a period so held-out scans sit between training scans.
     train, test = split_scans(scans, args.holdout_every, offset=args.holdout_every // 2)
-    points, labels = heldout_points(test, n_free_per_beam=args.free_per_beam, random_state=seed)
+    try:
+        points, labels = heldout_points(
+            test, n_free_per_beam=args.free_per_beam, random_state=seed
+        )
+    except ValueError as exc:
+        message = str(exc).replace("n_free_per_beam=", "--free-per-beam ")
+        raise ValueError(message.replace("n_free_per_beam", "--free-per-beam")) from None
     return train[:: args.train_every], test, points, labels
 
 

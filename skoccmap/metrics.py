@@ -218,6 +218,12 @@ def _free_points_per_beam(n_free_per_beam, beam_range):
         raise ValueError(
             f"n_free_per_beam must be a positive integer or 'half_range', got {n_free_per_beam!r}."
         )
+    total = int(n_free_per_beam) * beam_range.size
+    if total > _MAX_FREE_POINTS:
+        raise ValueError(
+            f"n_free_per_beam={n_free_per_beam} would draw {total:.3g} free points "
+            f"({beam_range.size} beams); use a smaller n_free_per_beam."
+        )
     return int(n_free_per_beam)
 
 

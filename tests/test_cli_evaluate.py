@@ -65,6 +65,11 @@ def test_evaluate_every_nth_is_the_default(paper_log, capsys):
             "--grid-resolution must be a positive finite length, got inf",
         ),
         (["--free-per-beam", "0"], "--free-per-beam must be >= 1"),
+        # It was a MemoryError traceback from numpy.
+        (
+            ["--free-per-beam", "10000000000000"],
+            "--free-per-beam 10000000000000 would draw",
+        ),
     ],
 )
 def test_evaluate_bad_options(paper_log, capsys, options, message):

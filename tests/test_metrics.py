@@ -189,6 +189,12 @@ def test_heldout_points_bad_input(paper, kwargs, match):
         heldout_points(paper.scans, **kwargs)
 
 
+def test_heldout_points_too_many_free_points(paper):
+    # Drawn at once, 10**12 points per beam would be a MemoryError deep in numpy.
+    with pytest.raises(ValueError, match="would draw .* free points .*smaller n_free_per_beam"):
+        heldout_points(paper.scans, n_free_per_beam=10**12)
+
+
 def test_heldout_auc_perfect_inverted_random(paper):
     _, test = split_scans(paper.scans, every_nth=3)
     env = paper.environment
