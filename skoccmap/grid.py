@@ -12,6 +12,8 @@ origin -- the row-major layout of ROS ``OccupancyGrid.data``.
 import sys
 import time
 import warnings
+import zipfile
+import zlib
 from numbers import Integral, Real
 from pathlib import Path
 
@@ -623,11 +625,13 @@ class OccupancyGrid:
         if not path.exists() and path.suffix != ".npz":
             path = path.with_name(path.name + ".npz")
         not_saved = f"{path} is not an OccupancyGrid saved by OccupancyGrid.save (a .npz)"
+        # A truncated or damaged archive fails in zipfile or zlib, when opened or read.
+        damaged = (EOFError, zipfile.BadZipFile, zlib.error)
         try:
             archive = np.load(path, allow_pickle=False)
         except FileNotFoundError:
             raise
-        except (ValueError, OSError):
+        except (ValueError, OSError, *damaged):
             hint = "; a map_server map is read by OccupancyGrid.load_map_server(yaml_path)"
             raise ValueError(f"{not_saved}{hint}.") from None
         if not hasattr(archive, "files"):  # a single .npy array
@@ -636,13 +640,18 @@ class OccupancyGrid:
             missing = [k for k in ("probability", "origin", "resolution") if k not in data]
             if missing:
                 raise ValueError(f"{not_saved}: it holds no {', '.join(missing)}.")
-            return cls(
-                data["probability"],
-                data["origin"],
-                float(data["resolution"]),
-                variance=data["variance"] if "variance" in data else None,
-                unknown=data["unknown"] if "unknown" in data else None,
-            )
+            try:
+                names = ("probability", "origin", "resolution", "variance", "unknown")
+                arrays = {k: data[k] for k in names if k in data}
+            except damaged as exc:
+                raise ValueError(f"{path} is damaged or truncated ({exc}).") from None
+        return cls(
+            arrays["probability"],
+            arrays["origin"],
+            float(arrays["resolution"]),
+            variance=arrays.get("variance"),
+            unknown=arrays.get("unknown"),
+        )
 
     def __repr__(self):
         return (

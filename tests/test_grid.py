@@ -511,6 +511,25 @@ def test_loading_the_wrong_file_says_which_reader_to_use(tmp_path):
         OccupancyGrid.load_map_server(image_path)
 
 
+def test_load_of_a_truncated_or_damaged_npz(tmp_path):
+    # They were zipfile's BadZipFile ("Bad CRC-32", "File is not a zip file") and EOFError.
+    rng = np.random.default_rng(0)
+    OccupancyGrid(rng.uniform(size=(20, 20)), origin=(0.0, 0.0), resolution=0.5).save(
+        tmp_path / "map.npz"
+    )
+    data = (tmp_path / "map.npz").read_bytes()
+    flipped = bytearray(data)
+    flipped[100] ^= 0xFF  # inside the compressed probabilities
+    for name, content in [
+        ("truncated", data[: len(data) // 2]),
+        ("empty", b""),
+        ("flipped", bytes(flipped)),
+    ]:
+        (tmp_path / f"{name}.npz").write_bytes(content)
+        with pytest.raises(ValueError, match=rf"{name}\.npz (is not an OccupancyGrid|is damaged)"):
+            OccupancyGrid.load(tmp_path / f"{name}.npz")
+
+
 def test_an_extent_of_two_points_one_cell_wide_warns():
     # ((xmin, xmax), (ymin, ymax)) is two points, (0, 22) and (0, 18): a strip one cell wide.
     model = OccupancyGridMap(resolution=0.5).fit(
