@@ -74,7 +74,8 @@ def probability_std(proba, latent_variance):
         raise ValueError("latent_variance must be >= 0 (no NaN).")
     a = ndtri(proba)
     # sqrt((1 - rho) / (1 + rho)) with rho = var / (1 + var), finite for var = inf too.
-    with np.errstate(invalid="ignore"):
+    # A variance near the largest float overflows 1 + 2 var to inf, which is its limit.
+    with np.errstate(invalid="ignore", over="ignore"):
         second = ndtr(a) - 2.0 * owens_t(a, 1.0 / np.sqrt(1.0 + 2.0 * var))
         second = np.where(np.isinf(a), proba, second)  # p = 0 or 1: Phi(f) is constant
     std = np.sqrt(np.clip(second - proba**2, 0.0, 0.25))

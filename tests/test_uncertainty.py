@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 from scipy import integrate
@@ -33,6 +35,10 @@ def test_probability_std_limits():
     np.testing.assert_allclose(probability_std(0.5, 1e12), 0.5, atol=1e-5)
     # Infinite variance: Phi(f) is 0 or 1 with probability 1 - p and p.
     np.testing.assert_allclose(probability_std([0.5, 0.7], np.inf), np.sqrt([0.25, 0.21]))
+    # Near the largest float, 1 + 2 var overflows to its limit, with no warning about it.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(probability_std([0.5, 0.7], 1e308), np.sqrt([0.25, 0.21]))
     std = probability_std(np.linspace(0, 1, 11)[:, None], np.logspace(-3, 3, 7)[None, :])
     assert std.shape == (11, 7) and np.all((std >= 0) & (std <= 0.5))
 
