@@ -163,6 +163,13 @@ class OccupancyGrid:
             or not (np.isfinite(resolution) and resolution > 0)
         ):
             raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
+        with np.errstate(over="ignore"):
+            far_corner = origin + resolution * np.array(probability.shape[::-1])
+        if not np.all(np.isfinite(far_corner)):
+            raise ValueError(
+                f"origin {origin.tolist()} and resolution {resolution!r} put the grid's far "
+                "corner beyond the largest float: rescale the coordinates."
+            )
         if variance is not None:
             variance = np.asarray(variance, dtype=np.float64)
             if variance.shape != probability.shape:
@@ -367,6 +374,16 @@ class OccupancyGrid:
         """
         if self.n_dims != 2:
             raise ValueError("nav_msgs/OccupancyGrid is 2-D; this grid is 3-D (use to_points).")
+        if not isinstance(frame_id, str):
+            raise TypeError(f"frame_id must be a string, got {frame_id!r}.")
+        # MapMetaData.resolution is a float32: it must not round to 0 or overflow.
+        with np.errstate(over="ignore"):
+            stored = np.float32(self.resolution)
+        if not 0.0 < stored < np.inf:
+            raise ValueError(
+                f"resolution {self.resolution!r} is not a positive float32, as "
+                "nav_msgs/MapMetaData.resolution must be: rescale the coordinates."
+            )
         if trinary:
             data = self.trinary()
         else:

@@ -384,6 +384,9 @@ def test_3d_grid_points_and_voxels():
         (dict(probability=[0.5, 0.5]), "probability must be a non-empty 2-D"),
         (dict(origin=(0.0,)), "origin"),
         (dict(resolution=0.0), "resolution"),
+        # The extent was inf, with only numpy's overflow warning.
+        (dict(resolution=1e308), "far corner beyond the largest float"),
+        (dict(origin=(1.7e308, 0.0), resolution=1e307), "far corner beyond the largest float"),
         (dict(variance=[[1.0]]), "variance has shape"),
         (dict(variance=[[1.0, -1.0]]), "non-negative"),
         (dict(unknown=[[0, 1]]), "unknown must be a boolean"),
@@ -656,6 +659,21 @@ def test_a_variance_equal_to_the_threshold_is_not_unknown():
         _ConstantEstimator(0.5, var=2.0), (0, 1, 0, 1), 0.5, unknown_variance=2.0
     )
     assert not grid.unknown.any()
+
+
+def test_ros_fields_refuse_what_a_message_cannot_hold():
+    # A frame_id that is no string stopped in rosbags ("'int' object has no attribute
+    # 'encode'"); a resolution beyond float32 stopped in struct.pack, one below it was
+    # written as 0.
+    grid = OccupancyGrid([[0.5, 0.5]], origin=(0.0, 0.0), resolution=0.1)
+    with pytest.raises(TypeError, match="frame_id must be a string, got 3"):
+        grid.to_ros_occupancy_grid(frame_id=3)
+    for resolution in (1e300, 1e-300):
+        far = OccupancyGrid([[0.5, 0.5]], origin=(0.0, 0.0), resolution=resolution)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match="is not a positive float32"):
+                far.to_ros_occupancy_grid()
 
 
 def test_ros_data_rounds_to_the_nearest_percent():
