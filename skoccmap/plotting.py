@@ -322,6 +322,11 @@ class OccupancyMapDisplay:
         axes = list(np.ravel(np.asarray(ax, dtype=object)))
         if len(axes) != n_panels:
             raise ValueError(f"ax must hold {n_panels} Axes for this kind, got {len(axes)}.")
+        from matplotlib.axes import Axes
+
+        strays = [a for a in axes if not isinstance(a, Axes)]
+        if strays:
+            raise TypeError(f"ax must hold matplotlib Axes, got {strays[0]!r}.")
         return axes
 
     def _masked(self, values):

@@ -116,6 +116,10 @@ def test_plot_on_constructed_display_and_errors():
         disp.plot(kind="heat")
     with pytest.raises(ValueError, match="2 Axes"):
         OccupancyMapDisplay.from_grid(grid, ax=ax)
+    # matplotlib's "'str' object has no attribute 'imshow'", after a figure was made.
+    for stray in ("foo", 3, [None]):
+        with pytest.raises(TypeError, match="ax must hold matplotlib Axes, got"):
+            disp.plot(ax=stray)
     with pytest.raises(ValueError, match="OccupancyGrid"):
         OccupancyMapDisplay.from_grid(grid.probability)
     with pytest.raises(ValueError, match="3-D grid; this grid is 2-D"):
