@@ -374,6 +374,13 @@ def test_simulate_scans_bad_input(kwargs, match):
         simulate_scans(env, args.pop("poses"), args.pop("angles"), args.pop("max_range"), **args)
 
 
+def test_simulate_scans_refuses_what_is_no_environment():
+    # It was "'NoneType' object has no attribute 'n_dims'".
+    for environment in (None, np.zeros((3, 4))):
+        with pytest.raises(TypeError, match="environment must be an Environment2D, a Room3D"):
+            simulate_scans(environment, [[1.0, 1.0, 0.0]], [0.0], 5.0)
+
+
 @pytest.mark.parametrize(
     "make, match",
     [

@@ -500,6 +500,11 @@ def simulate_scans(
     poses = np.asarray(poses, dtype=np.float64)
     directions = beam_directions(poses, angles)  # validates poses and angles
     n_scans, n_beams, n_dims = directions.shape
+    if not (hasattr(environment, "n_dims") and callable(getattr(environment, "cast", None))):
+        raise TypeError(
+            "environment must be an Environment2D, a Room3D or an object with n_dims and "
+            f"cast(origins, directions, max_range), got {environment!r}."
+        )
     if n_dims != environment.n_dims:
         raise ValueError(f"poses are {n_dims}-D but the environment is {environment.n_dims}-D.")
     origins = np.repeat(poses[:, :n_dims], n_beams, axis=0)
