@@ -239,6 +239,12 @@ def test_robotlaser_max_range_is_the_smallest_stated(tmp_path):
             _robotlaser([1.0, 2.0], [0, 0, 0], start=-0.5, resolution=0.1, max_range=0.0),
             "angular resolution and maximum range positive",
         ),
+        # An overflow warning, then "angles contains NaN or infinite values" for the whole
+        # log, naming no line (so errors="skip" could not skip it).
+        (
+            _robotlaser([1.0, 2.0], [0, 0, 0], start=1e308, resolution=1e308, max_range=8.0),
+            "the beam angles overflow",
+        ),
     ],
 )
 def test_malformed_line_raises_with_line_number(tiny_log, bad_line, reason):

@@ -154,7 +154,11 @@ def _parse_robotlaser(tokens, lineno):
         raise _MalformedLine(
             "start angle must be finite, angular resolution and maximum range positive"
         )
-    angles = start + resolution * np.arange(n)
+    with np.errstate(over="ignore", invalid="ignore"):
+        angles = start + resolution * np.arange(n)
+    if not np.all(np.isfinite(angles)):
+        # Caught here, the line is named (and errors="skip" can skip it).
+        raise _MalformedLine("the beam angles overflow (start angle or angular resolution)")
     return _Reading(lineno, "ROBOTLASER1", pose, ranges, angles, max_range, timestamp)
 
 
