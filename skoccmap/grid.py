@@ -590,20 +590,33 @@ class OccupancyGrid:
         mode = meta.get("mode", "trinary")
         if mode not in ("trinary", "scale"):
             raise ValueError(f"{yaml_path}: mode {mode!r} is not supported (trinary or scale).")
+        if not isinstance(meta["origin"], list) or len(meta["origin"]) not in (2, 3):
+            raise ValueError(
+                f"{yaml_path}: origin must be a list [x, y, yaw], got {meta['origin']!r}."
+            )
         if len(meta["origin"]) > 2 and float(meta["origin"][2]) != 0.0:
             raise ValueError(
                 f"{yaml_path}: the origin's yaw is {meta['origin'][2]}; only axis-aligned "
                 "maps (yaw 0) are supported."
             )
+        negate = str(meta.get("negate", 0))
+        if negate not in ("0", "1"):
+            raise ValueError(f"{yaml_path}: negate must be 0 or 1, got {negate!r}.")
+        occupied_thresh = _yaml_number(meta, "occupied_thresh", yaml_path, ROS_OCCUPIED_THRESH)
+        free_thresh = _yaml_number(meta, "free_thresh", yaml_path, ROS_FREE_THRESH)
+        if not 0.0 <= free_thresh <= occupied_thresh <= 1.0:
+            raise ValueError(
+                f"{yaml_path}: need 0 <= free_thresh <= occupied_thresh <= 1, got free_thresh="
+                f"{free_thresh:g} and occupied_thresh={occupied_thresh:g}."
+            )
+        resolution = _yaml_number(meta, "resolution", yaml_path)
         pixels = _read_pgm(yaml_path.parent / meta["image"])[::-1]
-        occ = pixels / 255.0 if int(meta.get("negate", 0)) else (255.0 - pixels) / 255.0
-        occupied_thresh = float(meta.get("occupied_thresh", ROS_OCCUPIED_THRESH))
-        free_thresh = float(meta.get("free_thresh", ROS_FREE_THRESH))
+        occ = pixels / 255.0 if negate == "1" else (255.0 - pixels) / 255.0
         unknown = ~((occ > occupied_thresh) | (occ < free_thresh))
         if mode == "scale":
             unknown = np.zeros_like(unknown)
         origin = [float(v) for v in meta["origin"][:2]]
-        return cls(occ, origin, float(meta["resolution"]), unknown=unknown)
+        return cls(occ, origin, resolution, unknown=unknown)
 
     def save(self, path):
         """Save to a compressed ``.npz`` file (no pickles); read back with :meth:`load`.
@@ -804,10 +817,24 @@ def _read_simple_yaml(path):
             raise ValueError(f"{path}: cannot read line {raw!r}.")
         value = value.strip().strip("'\"")
         if value.startswith("["):
-            meta[key.strip()] = [float(v) for v in value.strip("[]").split(",")]
+            try:
+                meta[key.strip()] = [float(v) for v in value.strip("[]").split(",")]
+            except ValueError:
+                raise ValueError(
+                    f"{path}: cannot read {key.strip()!r} as a list of numbers: {value!r}."
+                ) from None
         else:
             meta[key.strip()] = value
     return meta
+
+
+def _yaml_number(meta, key, path, default=None):
+    """``meta[key]`` (or ``default``) as a float, or a ValueError naming the key and file."""
+    value = meta.get(key, default)
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: {key} must be a number, got {value!r}.") from None
 
 
 def _read_pgm(path):

@@ -312,6 +312,33 @@ def test_hand_made_map_server_files(tmp_path):
             OccupancyGrid.load_map_server(bad)
 
 
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        # float() of a list: "float() argument must be ... not 'list'"
+        ("resolution: [1, 2]", r"resolution must be a number, got \[1.0, 2.0\]"),
+        ("resolution: fine", "resolution must be a number, got 'fine'"),
+        # int("1.0") failed unnamed; 2 was read as negated
+        ("negate: 1.0", "negate must be 0 or 1, got '1.0'"),
+        ("negate: 2", "negate must be 0 or 1, got '2'"),
+        # read, with free cells above the occupied threshold
+        ("occupied_thresh: 0.1", "need 0 <= free_thresh <= occupied_thresh <= 1"),
+        ("free_thresh: high", "free_thresh must be a number"),
+        # "could not convert string to float: 'c'", and ": ''"
+        ("origin: abc", "origin must be a list"),
+        ("origin: [a, b]", "cannot read 'origin' as a list of numbers"),
+    ],
+)
+def test_malformed_map_server_yaml_names_the_key(tmp_path, line, message):
+    (tmp_path / "bits.pgm").write_bytes(b"P5\n2 1\n1\n" + bytes([0, 1]))
+    good = {"image": "bits.pgm", "resolution": "1", "origin": "[0, 0, 0]"}
+    key = line.split(":")[0]
+    text = "".join(f"{k}: {v}\n" for k, v in good.items() if k != key) + line + "\n"
+    (tmp_path / "m.yaml").write_text(text)
+    with pytest.raises(ValueError, match=rf"m\.yaml: {message}"):
+        OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+
+
 def test_free_thresh_025_would_lose_unknown_cells():
     # Why the YAML says 0.196: the unknown pixel 205 reads as p = 0.196 < 0.25 -> free.
     assert (255 - 205) / 255 < 0.25
