@@ -71,6 +71,8 @@ def test_split_scans(paper):
         ({"every_nth": 1}, "every_nth must be an integer >= 2"),
         ({"every_nth": 2.5}, "every_nth must be an integer >= 2"),
         ({"every_nth": 3, "offset": 3}, r"offset must be an integer in \[0, every_nth\)"),
+        # Read as offset 1.
+        ({"every_nth": 3, "offset": True}, r"offset must be an integer .*got True"),
         ({"every_nth": 100, "offset": 50}, "empty"),
     ],
 )
