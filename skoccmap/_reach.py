@@ -84,13 +84,12 @@ def _cells_within(mids, half, cells, cut):
     return near["i"][inside], near["j"][inside], d[inside]
 
 
-def threads_pay(n_pairs, n_experts, per_expert=_THREADED_PAIRS_PER_EXPERT):
+def threads_pay(n_pairs, n_experts):
     """Whether work on ``n_pairs`` (query, expert) pairs of ``n_experts`` experts, one task
     per expert, should run in threads: starting them costs milliseconds, and a task on a
     few queries is mostly numpy's per-call overhead, which holds the GIL (scattered
-    queries ran slower in two threads than in one). ``per_expert`` is the fewest pairs per
-    expert on average."""
-    return n_pairs >= max(_THREADED_PAIRS, per_expert * n_experts)
+    queries ran slower in two threads than in one)."""
+    return n_pairs >= max(_THREADED_PAIRS, _THREADED_PAIRS_PER_EXPERT * n_experts)
 
 
 def kernel_reach(kernel, dim, tolerance, extent):

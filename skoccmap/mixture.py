@@ -182,14 +182,6 @@ _EXPERT_TOL = 1e-4
 # dense scans the nearest ones fill up (see _nearest_with_room).
 _NEAREST_HITS = 32
 
-# The experts predict a chunk's queries in threads from this many (query, expert) pairs
-# per expert on average: an expert's kernel rows and solves for fewer queries are numpy
-# calls short enough that two threads mostly wait for the GIL. Measured on ACES (every scan,
-# 1145 experts; scattered queries, n_jobs 2 against 1, us per query): 90 pairs per expert
-# 94-112 against 83-99, 135 pairs 83-93 against 85-102, 180 pairs 76-101 against 85-115,
-# 270 pairs 65-68 against 85-86.
-_PREDICT_PAIRS_PER_EXPERT = 128
-
 # Cells (metres) in which ``min_hit_frequency`` counts hits and passes: the counting grid of
 # the Hilbert-maps protocol.
 _HIT_CELL_SIZE = 0.1
@@ -2821,7 +2813,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # Threads, not processes: shipping all experts to workers per chunk costs more than
         # the kernels, which spend their time in numpy calls that release the GIL.
         consulted = np.flatnonzero(np.diff(bounds))
-        if threads_pay(query.size, consulted.size, _PREDICT_PAIRS_PER_EXPERT):
+        if threads_pay(query.size, consulted.size):
             Parallel(n_jobs=self.n_jobs, require="sharedmem")(
                 delayed(predict_expert)(k) for k in consulted
             )
