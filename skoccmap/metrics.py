@@ -89,9 +89,11 @@ def split_scans(scans, every_nth=10, *, offset=0):
     scans = _check_scans(scans)
     if not isinstance(every_nth, numbers.Integral) or every_nth < 2:
         raise ValueError(f"every_nth must be an integer >= 2, got {every_nth!r}.")
-    if not isinstance(offset, numbers.Integral) or isinstance(offset, bool):
-        raise ValueError(f"offset must be an integer in [0, every_nth), got {offset!r}.")
-    if not 0 <= offset < every_nth:
+    if (
+        not isinstance(offset, numbers.Integral)
+        or isinstance(offset, bool)
+        or not 0 <= offset < every_nth
+    ):
         raise ValueError(f"offset must be an integer in [0, every_nth), got {offset!r}.")
     # A slice, not np.arange(n) % every_nth: an every_nth beyond int64 overflows numpy.
     held_out = np.zeros(len(scans), dtype=bool)
