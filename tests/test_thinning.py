@@ -53,6 +53,7 @@ def office():
     return make_office_scans(random_state=0)
 
 
+@pytest.mark.slow  # over 30 s: fits of the office at two settings
 def test_map_keeps_fewer_pieces_and_online_keeps_as_many_as_fit(office):
     X, y = office.X, office.y
     plain = MixtureGPOccupancyMap(max_pieces_per_cell=None, random_state=0).fit(X, y)

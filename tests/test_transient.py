@@ -124,6 +124,7 @@ def office_with_a_passer_by():
     return np.vstack([X, rows]), np.r_[y, [1, 0] * 3], spot
 
 
+@pytest.mark.slow  # over 30 s: fits of the office at two settings
 def test_hits_the_beams_contradict_are_left_out(office_with_a_passer_by):
     X, y, spot = office_with_a_passer_by
     query = np.r_[spot, spot][None, :]
