@@ -83,7 +83,14 @@ _SHARED_WINDOW_ROWS = 400
 
 
 def _as_segment_rows(X, layout):
-    """Segment rows ``[start, end]`` of ``X`` read with the given layout."""
+    """Segment rows ``[start, end]`` of ``X`` read with the given layout.
+
+    Coordinates beyond 1e100 are refused (``check_magnitude``): in fit they ran the
+    no-return assignment into inf and NaN before the beams' pieces stopped on an
+    OverflowError, in prediction the spatial index stopped on SciPy's "floating point
+    overflow" and a long query segment got a prior variance of 0.
+    """
+    X = check_magnitude(X)
     if layout == "points":
         return np.hstack([X, X])
     if X.shape[1] % 2:
@@ -1539,9 +1546,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     def _fit(self, X, y_enc, classes):
         """``fit`` on validated rows (in ``layout``) and encoded labels (1 = occupied)."""
-        # Beyond 1e100 squared lengths overflow: the no-return assignment ran into inf and
-        # NaN before the beams' pieces stopped on an OverflowError.
-        X = check_magnitude(_as_segment_rows(X, self.layout))
+        X = _as_segment_rows(X, self.layout)
         _check_hits_are_points(X, y_enc == 1, classes)
         warn_unless_metres(X[:, : X.shape[1] // 2], X[:, X.shape[1] // 2 :])
         self.classes_ = classes
@@ -1797,8 +1802,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             )
         _check_known_labels(y, self.classes_)
         self._check_fitted_with()
-        X = check_magnitude(_as_segment_rows(X, self.layout))
-        self._update(X, np.searchsorted(self.classes_, y))
+        self._update(_as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y))
         return self
 
     def refit_hyperparameters(self):
@@ -2755,10 +2759,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def _validate_queries(self, X):
         check_is_fitted(self)
         self._check_fitted_with()
-        # Beyond 1e100 squared distances overflow: the spatial index stopped on SciPy's
-        # "floating point overflow", and a long query segment got a prior variance of 0.
-        X = check_magnitude(validate_queries(self, X))
-        return _as_segment_rows(X, self.layout)
+        return _as_segment_rows(validate_queries(self, X), self.layout)
 
     def _merged(self, X):
         """Merged prediction (proba, mean, variance), query chunk by query chunk.
