@@ -36,12 +36,11 @@ _AUTO_UNKNOWN = 0.9
 _MAX_CELLS = 50_000_000
 
 
-def _check_thresholds(free_threshold, occupied_threshold):
-    if not 0.0 <= free_threshold <= occupied_threshold <= 1.0:
-        raise ValueError(
-            "need 0 <= free_threshold <= occupied_threshold <= 1, got "
-            f"free_threshold={free_threshold}, occupied_threshold={occupied_threshold}."
-        )
+def _check_thresholds(free, occupied, names=("free_threshold", "occupied_threshold"), where=""):
+    """Refuse thresholds out of order or outside [0, 1], naming them ``names``."""
+    if not 0.0 <= free <= occupied <= 1.0:
+        f, o = names
+        raise ValueError(f"{where}need 0 <= {f} <= {o} <= 1, got {f}={free}, {o}={occupied}.")
 
 
 def _grid_from_extent(extent, resolution):
@@ -604,11 +603,9 @@ class OccupancyGrid:
             raise ValueError(f"{yaml_path}: negate must be 0 or 1, got {negate!r}.")
         occupied_thresh = _yaml_number(meta, "occupied_thresh", yaml_path, ROS_OCCUPIED_THRESH)
         free_thresh = _yaml_number(meta, "free_thresh", yaml_path, ROS_FREE_THRESH)
-        if not 0.0 <= free_thresh <= occupied_thresh <= 1.0:
-            raise ValueError(
-                f"{yaml_path}: need 0 <= free_thresh <= occupied_thresh <= 1, got free_thresh="
-                f"{free_thresh:g} and occupied_thresh={occupied_thresh:g}."
-            )
+        _check_thresholds(
+            free_thresh, occupied_thresh, ("free_thresh", "occupied_thresh"), f"{yaml_path}: "
+        )
         resolution = _yaml_number(meta, "resolution", yaml_path)
         pixels = _read_pgm(yaml_path.parent / meta["image"])[::-1]
         occ = pixels / 255.0 if negate == "1" else (255.0 - pixels) / 255.0
