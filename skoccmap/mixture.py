@@ -1922,61 +1922,20 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         occupied = y_enc == 1
         new_hits = X[occupied, :d]
         n_old_hits, n_old_pieces = self._hits.shape[0], self._pieces.shape[0]
-        n_old_experts, n_old_clusters = self.n_experts_, self.n_clusters_
+        n_old_experts = self.n_experts_
         all_hits = np.vstack([self._hits, new_hits])
 
-        # 1. Clusters of the new hits; clusterer clusters not seen before.
+        # 1. Cluster and expert of each new hit.
         raw = self._new_hit_clusters(new_hits) if new_hits.shape[0] else np.empty(0, int)
         kinds, anchor = self._new_anchors(X, occupied, all_hits, n_old_hits, rng)
-        pos = np.searchsorted(self.cluster_ids_, raw).clip(0, self.cluster_ids_.size - 1)
-        known = self.cluster_ids_[pos] == raw
-        hit_cluster = np.where(known, self.cluster_merge_[pos], -1)
-        cluster_ids, cluster_merge = self.cluster_ids_, self.cluster_merge_
-        expert_cluster = list(self.expert_cluster_)
-        hit_expert = np.full(raw.size, -1, dtype=np.intp)
-        unseen = np.unique(raw[~known])
-        if unseen.size:
-            old_cluster = self.expert_cluster_[self._hit_expert]
-            counts = np.bincount(old_cluster, minlength=n_old_clusters)
-            centroids = (
-                np.column_stack(
-                    [
-                        np.bincount(
-                            old_cluster, weights=self._hits[:, j], minlength=n_old_clusters
-                        )
-                        for j in range(d)
-                    ]
-                )
-                / np.maximum(counts, 1)[:, None]
-            )
-            rows_per_hit = np.bincount(anchor, minlength=all_hits.shape[0])
-            merge = []
-            for u in unseen:
-                mine = np.flatnonzero(raw == u)
-                if rows_per_hit[n_old_hits + mine].sum() >= self.min_expert_size:
-                    c = n_old_clusters + sum(m >= n_old_clusters for m in merge)
-                    hit_expert[mine] = len(expert_cluster)
-                    expert_cluster.append(c)
-                else:
-                    dist = np.linalg.norm(centroids - new_hits[mine].mean(axis=0), axis=1)
-                    c = int(np.argmin(np.where(counts > 0, dist, np.inf)))
-                merge.append(c)
-                hit_cluster[mine] = c
-            cluster_ids = np.concatenate([self.cluster_ids_, unseen])
-            cluster_merge = np.concatenate([self.cluster_merge_, merge])
-            order = np.argsort(cluster_ids, kind="stable")
-            cluster_ids, cluster_merge = cluster_ids[order], cluster_merge[order]
+        rows_per_hit = np.bincount(anchor[anchor >= n_old_hits] - n_old_hits, minlength=raw.size)
+        hit_expert, expert_cluster, cluster_ids, cluster_merge = self._new_hit_experts(
+            new_hits, raw, rows_per_hit
+        )
         n_clusters = int(cluster_merge.max()) + 1 if cluster_merge.size else 1
-
-        # 2. Expert of each new hit: its cluster's, or the piece whose gate weighs it most.
-        for c in np.unique(hit_cluster[hit_expert < 0]):
-            mine = np.flatnonzero((hit_cluster == c) & (hit_expert < 0))
-            gate = self._piece_gates[c]
-            pick = 0 if gate is None else np.argmax(gate.predict_proba(new_hits[mine]), axis=1)
-            hit_expert[mine] = self._first_expert[c] + pick
         all_hit_expert = np.concatenate([self._hit_expert, hit_expert])
 
-        # 3. Pieces of the new rows, appended to the training state. Old pieces keep
+        # 2. Pieces of the new rows, appended to the training state. Old pieces keep
         # their hit even where a new hit lies nearer.
         pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
         transient, cell_counts = self._transient_hits(X, occupied, self._cell_counts)
@@ -2003,25 +1962,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         row_hit = np.concatenate([self._row_hit, anchor])
         touched = set(np.unique(all_hit_expert[new_piece_hit]).tolist())
 
-        # 4. Experts grown past max_expert_size: bisect their hits (weighted by pieces).
+        # 3. Experts grown past max_expert_size: bisected.
+        rows = self._split_grown(
+            touched, expert_cluster, all_hits, all_hit_expert, piece_expert, piece_hit
+        )
         n_experts = len(expert_cluster)
-        rows = _groups(piece_expert, n_experts)
-        if self.max_expert_size is not None:
-            for k in sorted(touched):
-                if rows[k].size <= self.max_expert_size:
-                    continue
-                hits = np.flatnonzero(all_hit_expert == k)
-                weight = np.bincount(piece_hit[rows[k]], minlength=all_hits.shape[0])[hits]
-                parts = _bisect(all_hits[hits], self.max_expert_size, weight)
-                for part in parts[1:]:
-                    all_hit_expert[hits[part]] = len(expert_cluster)
-                    touched.add(len(expert_cluster))
-                    expert_cluster.append(expert_cluster[k])
-                if len(parts) > 1:
-                    piece_expert[rows[k]] = all_hit_expert[piece_hit[rows[k]]]
-            if len(expert_cluster) > n_experts:
-                n_experts = len(expert_cluster)
-                rows = _groups(piece_expert, n_experts)
         # A split can leave an expert exactly its old rows (the new ones all split off):
         # it is unchanged, not touched.
         old_groups = _groups(self._piece_expert, n_old_experts)
@@ -2029,7 +1974,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             k for k in touched if k >= n_old_experts or not np.array_equal(rows[k], old_groups[k])
         }
 
-        # 5. Experts numbered cluster by cluster (a cluster's experts are contiguous, in
+        # 4. Experts numbered cluster by cluster (a cluster's experts are contiguous, in
         # the order of its gate's columns); untouched clusters keep their order.
         expert_cluster = np.asarray(expert_cluster, dtype=np.intp)
         order = np.lexsort((np.arange(n_experts), expert_cluster))
@@ -2056,7 +2001,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             if old_experts[k] is None and first_piece < n_old_pieces:
                 origin[k] = renumber[self._piece_expert[first_piece]]
 
-        # 6. Gates of the touched clusters.
+        # 5. Gates of the touched clusters.
         piece_gates = _piece_gates(
             expert_cluster,
             n_clusters,
@@ -2066,7 +2011,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             gates=self._piece_gates,
         )
 
-        # 7. Refit the touched experts that are due, and add the new rows to the others
+        # 6. Refit the touched experts that are due, and add the new rows to the others
         # (in parallel, warm-started); or refit every expert with re-learned
         # hyperparameters once the data have grown enough (after the commit).
         relearn = self._relearns_at(all_pieces.shape[0])
@@ -2114,6 +2059,86 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             f"partial_fit: {touched.size} of {n_experts} expert(s) updated "
             f"({time.perf_counter() - start:.1f} s)",
         )
+
+    def _new_hit_experts(self, new_hits, raw, rows_per_hit):
+        """Cluster and expert of each new hit of :meth:`_update`, from its clusterer
+        label ``raw`` and the number of rows it anchors ``rows_per_hit``.
+
+        A label the clusterer gave before keeps its cluster. An unseen one becomes a new
+        cluster with an expert of its own when its hits anchor ``min_expert_size`` rows,
+        and otherwise joins the old cluster whose hits' centroid is nearest. A hit of a
+        cluster split into several experts joins the one whose piece gate weighs it most.
+
+        Returns the new hits' experts (new experts numbered after the old ones), the
+        cluster of every expert (a list), and the updated ``cluster_ids_`` and
+        ``cluster_merge_``.
+        """
+        n_old_clusters = self.n_clusters_
+        pos = np.searchsorted(self.cluster_ids_, raw).clip(0, self.cluster_ids_.size - 1)
+        known = self.cluster_ids_[pos] == raw
+        hit_cluster = np.where(known, self.cluster_merge_[pos], -1)
+        cluster_ids, cluster_merge = self.cluster_ids_, self.cluster_merge_
+        expert_cluster = list(self.expert_cluster_)
+        hit_expert = np.full(raw.size, -1, dtype=np.intp)
+        unseen = np.unique(raw[~known])
+        if unseen.size:
+            old_cluster = self.expert_cluster_[self._hit_expert]
+            counts = np.bincount(old_cluster, minlength=n_old_clusters)
+            sums = [
+                np.bincount(old_cluster, weights=coordinate, minlength=n_old_clusters)
+                for coordinate in self._hits.T
+            ]
+            centroids = np.column_stack(sums) / np.maximum(counts, 1)[:, None]
+            merge = []
+            for u in unseen:
+                mine = np.flatnonzero(raw == u)
+                if rows_per_hit[mine].sum() >= self.min_expert_size:
+                    c = n_old_clusters + sum(m >= n_old_clusters for m in merge)
+                    hit_expert[mine] = len(expert_cluster)
+                    expert_cluster.append(c)
+                else:
+                    dist = np.linalg.norm(centroids - new_hits[mine].mean(axis=0), axis=1)
+                    c = int(np.argmin(np.where(counts > 0, dist, np.inf)))
+                merge.append(c)
+                hit_cluster[mine] = c
+            cluster_ids = np.concatenate([self.cluster_ids_, unseen])
+            cluster_merge = np.concatenate([self.cluster_merge_, merge])
+            order = np.argsort(cluster_ids, kind="stable")
+            cluster_ids, cluster_merge = cluster_ids[order], cluster_merge[order]
+        for c in np.unique(hit_cluster[hit_expert < 0]):
+            mine = np.flatnonzero((hit_cluster == c) & (hit_expert < 0))
+            gate = self._piece_gates[c]
+            pick = 0 if gate is None else np.argmax(gate.predict_proba(new_hits[mine]), axis=1)
+            hit_expert[mine] = self._first_expert[c] + pick
+        return hit_expert, expert_cluster, cluster_ids, cluster_merge
+
+    def _split_grown(self, touched, expert_cluster, hits, hit_expert, piece_expert, piece_hit):
+        """Bisect the hits of each ``touched`` expert grown past ``max_expert_size``
+        (weighted by the pieces they anchor), as :func:`_split_hits` does in ``fit``.
+
+        Updates in place: the parts after the first become new experts, appended to
+        ``expert_cluster`` (in their expert's cluster) and added to ``touched``, and
+        ``hit_expert`` and ``piece_expert`` follow them. Returns the pieces of each expert.
+        """
+        rows = _groups(piece_expert, len(expert_cluster))
+        if self.max_expert_size is None:
+            return rows
+        n_experts = len(expert_cluster)
+        for k in sorted(touched):
+            if rows[k].size <= self.max_expert_size:
+                continue
+            mine = np.flatnonzero(hit_expert == k)
+            weight = np.bincount(piece_hit[rows[k]], minlength=hits.shape[0])[mine]
+            parts = _bisect(hits[mine], self.max_expert_size, weight)
+            for part in parts[1:]:
+                hit_expert[mine[part]] = len(expert_cluster)
+                touched.add(len(expert_cluster))
+                expert_cluster.append(expert_cluster[k])
+            if len(parts) > 1:
+                piece_expert[rows[k]] = hit_expert[piece_hit[rows[k]]]
+        if len(expert_cluster) > n_experts:
+            rows = _groups(piece_expert, len(expert_cluster))
+        return rows
 
     def _due(self, touched, rows, old_experts, old_rows, origin, settled):
         """Which ``touched`` experts :meth:`partial_fit` refits (see ``refit_fraction``).
