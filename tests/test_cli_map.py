@@ -149,7 +149,8 @@ def test_map_names_its_files_after_the_whole_log_name(paper_log, tmp_path, capsy
     # Cut at the first dot, the maps of lab.2024-06-01.log and lab.2024-06-02.log shared a
     # name and the second overwrote the first without a word.
     log, _ = paper_log
-    options = ["--resolution", "1.0", "--out", str(tmp_path), "--quiet"]
+    options = ["--resolution", "1.0", "--every-nth-scan", "4", "--n-jobs", "1"]
+    options += ["--out", str(tmp_path), "--quiet"]
     for day in ("01", "02"):
         dated = tmp_path / f"lab.2024-06-{day}.log"
         dated.write_bytes(log.read_bytes())
@@ -301,7 +302,8 @@ def test_map_warns_of_a_max_range_above_the_logs_sentinel(tmp_path, capsys):
     lines = [f"FLASER 4 1.5 40.0 2.0 40.0 {i} 0 0 {i} 0 0 {i} host {i}\n" for i in range(6)]
     log = tmp_path / "sentinel.log"
     log.write_text("".join(lines))
-    argv = ["map", str(log), "--max-range", "100", "--out", str(tmp_path / "out"), "--quiet"]
+    argv = ["map", str(log), "--max-range", "100", "--resolution", "1.0", "--n-jobs", "1"]
+    argv += ["--out", str(tmp_path / "out"), "--quiet"]
     assert main(argv) == 0
     err = capsys.readouterr().err
     assert "12 readings equal 40 m" in err
@@ -313,7 +315,8 @@ def test_map_announces_its_grid_before_the_fit(paper_log, tmp_path, capsys, monk
     from skoccmap import _cmd_map
 
     log, _ = paper_log
-    argv = ["map", str(log), "--resolution", "1.0", "--out", str(tmp_path), "--quiet"]
+    argv = ["map", str(log), "--resolution", "1.0", "--every-nth-scan", "4", "--n-jobs", "1"]
+    argv += ["--out", str(tmp_path), "--quiet"]
     assert main(argv) == 0
     captured = capsys.readouterr()
     grid = OccupancyGrid.load(tmp_path / "paper.npz")
