@@ -1802,7 +1802,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             )
         _check_known_labels(y, self.classes_)
         self._check_fitted_with()
-        self._update(_as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y))
+        X, y_enc = _as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y)
+        # The checks of the first call: a later batch with its labels reversed (beams as
+        # hits) or in millimetres would otherwise join the map without a word.
+        _check_hits_are_points(X, y_enc == 1, self.classes_)
+        warn_unless_metres(X[:, : X.shape[1] // 2], X[:, X.shape[1] // 2 :])
+        self._update(X, y_enc)
         return self
 
     def refit_hyperparameters(self):

@@ -319,6 +319,25 @@ def test_bad_batch_is_refused_without_change(office, make_bad):
     assert model.cluster_labels_.size > n_rows
 
 
+def test_a_later_batch_is_checked_as_the_first(office):
+    # Reversed labels (beams as hits, hits as free points) and millimetres: fit refuses the
+    # one and warns of the other, and so must every later batch.
+    data, queries = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    before = model.predict_proba(queries)
+    n_rows = model.cluster_labels_.size
+    X, y = _batch(data, 10, 12)
+    with pytest.raises(ValueError, match="labels look reversed"):
+        model.partial_fit(X, 1 - y)
+    with warnings.catch_warnings():
+        # As an error, the warning stops the update before it is made.
+        warnings.simplefilter("error", UserWarning)
+        with pytest.raises(UserWarning, match="millimetres"):
+            model.partial_fit(1000.0 * X, y)
+    assert model.cluster_labels_.size == n_rows
+    np.testing.assert_array_equal(model.predict_proba(queries), before)
+
+
 def test_n_jobs_gives_the_same_map(office):
     data, queries = office
     maps = []
