@@ -509,6 +509,19 @@ def test_scans_without_beam_directions_are_refused(tmp_path, angle_min, incremen
         load_rosbag(bag.write(tmp_path / "b"))
 
 
+@pytest.mark.parametrize("max_range", [None, 4.0])
+def test_a_scan_whose_range_min_exceeds_its_range_max_is_refused(tmp_path, max_range):
+    # range_min 3 > range_max 1: the returns at 1.5 and 2.5 m lie above range_max (no
+    # return) and the one at 0.5 m below range_min (dropped): the scan would be read as
+    # free space through the walls it hit.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0], range_min=0.1, range_max=5.0)
+    bag.scan(0.7, [1.5, 2.5, 0.5], range_min=3.0, range_max=1.0)
+    with pytest.raises(ValueError, match=r"at 0.700000000 s has range_min 3 above range_max 1"):
+        load_rosbag(bag.write(tmp_path / "b"), max_range=max_range)
+
+
 @pytest.mark.parametrize("xyz, yaw", [((np.nan, 0.0, 0.0), 0.0), ((0.0, 0.0, 0.0), np.nan)])
 def test_transform_samples_that_place_nothing_are_left_out(tmp_path, xyz, yaw):
     # One bad sample on the laser's own chain, one on a frame no scan uses: the scan between

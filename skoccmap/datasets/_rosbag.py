@@ -332,14 +332,25 @@ def _read_scans(reader, path, topic):
                 f"angle_min {start} and angle_increment {step}: its beams have no directions."
             )
         angles = start + step * np.arange(ranges.size)
+        range_min, range_max = float(msg.range_min), float(msg.range_max)
+        # Both limits in use (see _usable_ranges) and crossed: every reading is dropped
+        # (below range_min) or read as a beam without a return (above range_max), so the
+        # scan's returns would become free space up to the maximum range, without a word.
+        if 0 < range_max < range_min < np.inf:
+            raise ValueError(
+                f"{path}: a LaserScan on {topic!r} at {_stamp_ns(msg.header) * 1e-9:.9f} s has "
+                f"range_min {range_min:g} above range_max {range_max:g}: no reading lies "
+                "between them, and each would be dropped or read as a beam without a return. "
+                "The driver's range limits are wrong (swapped?)."
+            )
         scans.append(
             _LaserMessage(
                 _stamp_ns(msg.header),
                 _frame(msg.header.frame_id),
                 ranges,
                 angles,
-                float(msg.range_min),
-                float(msg.range_max),
+                range_min,
+                range_max,
             )
         )
     if not scans:
@@ -652,7 +663,8 @@ def load_rosbag(
     ------
     ValueError
         If the scan topic, the pose topic, the transform topics or a frame is missing (the
-        message names what the bag has), or no scan has a pose.
+        message names what the bag has), no scan has a pose, or a scan has no beam
+        directions or a ``range_min`` above its ``range_max``.
     ImportError
         If ``rosbags`` is not installed.
 
