@@ -206,6 +206,30 @@ def test_robotlaser_max_range_is_the_smallest_stated(tmp_path):
     np.testing.assert_array_equal(scans.ranges[0], [1.0, np.inf, np.inf])
 
 
+def test_robotlaser_lines_stating_an_infinite_max_range_need_max_range(tmp_path):
+    # No finite range stated: the longest reading (a return at 3 m) must not be taken for
+    # the sensor's range and read as a beam without a return.
+    path = tmp_path / "inf.log"
+    scan = dict(start=-0.5, resolution=0.25, max_range=np.inf)
+    path.write_text(
+        _robotlaser([1.0, 3.0, 2.0], [0.0, 0.0, 0.0], timestamp=1.0, **scan)
+        + _robotlaser([1.0, 2.0, 2.5], [1.0, 0.0, 0.0], timestamp=2.0, **scan)
+    )
+    with pytest.raises(ValueError, match=r"state an infinite maximum range \(line 1 the first"):
+        load_carmen(path)
+    scans = load_carmen(path, max_range=2.5)
+    assert scans.max_range == 2.5
+    np.testing.assert_array_equal(scans.ranges, [[1.0, np.inf, 2.0], [1.0, 2.0, np.inf]])
+    # With a line stating a finite range, that range is the log's.
+    path.write_text(
+        _robotlaser([1.0, 3.0, 2.0], [0.0, 0.0, 0.0], timestamp=1.0, **scan)
+        + _robotlaser(
+            [1.0, 2.0, 2.5], [1.0, 0.0, 0.0], timestamp=2.0, **(scan | dict(max_range=5.0))
+        )
+    )
+    np.testing.assert_array_equal(load_carmen(path).ranges, [[1.0, 3.0, 2.0], [1.0, 2.0, 2.5]])
+
+
 @pytest.mark.parametrize(
     "bad_line, reason",
     [

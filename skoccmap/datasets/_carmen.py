@@ -285,7 +285,8 @@ def load_carmen(path, *, max_range=None, message=None, errors="raise"):
     max_range : float or None, default=None
         Readings at or above ``max_range`` are beams without a return (free space up to
         ``max_range``). ``None`` infers it: ``ROBOTLASER1`` lines state the sensor's maximum
-        range (the smallest stated value is used); for ``FLASER`` lines it is the largest
+        range (the smallest finite stated value is used; lines that all state ``inf`` need
+        ``max_range``); for ``FLASER`` lines it is the largest
         finite reading in the log, because CARMEN writes the maximum range for beams that
         return nothing (an infinite reading is a beam without a return too). Pass it
         explicitly for a log in which no beam reaches the maximum range, otherwise its
@@ -367,6 +368,15 @@ def _to_scans(readings, max_range, path):
             "select one laser with message='FLASER' or message='ROBOTLASER1'."
         )
     stated = [r.max_range for r in readings if np.isfinite(r.max_range)]
+    robot = [r for r in readings if r.message == "ROBOTLASER1"]
+    if max_range is None and robot and not stated:
+        # The FLASER rule (the longest reading is the sentinel) would read a real return
+        # as a beam without one, without a word.
+        raise ValueError(
+            f"{path}: the ROBOTLASER1 lines state an infinite maximum range (line "
+            f"{robot[0].lineno} the first), which does not tell which readings are beams "
+            "without a return; pass max_range= with the sensor's range."
+        )
     ranges = np.vstack([r.ranges for r in readings])
     if max_range is None:
         max_range = min(stated) if stated else _infer_flaser_max_range(readings, path)
