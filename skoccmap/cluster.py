@@ -799,7 +799,10 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         collapsed Gibbs sampling over the new points only (each given all others) let the
         first-seated points follow the clusters opened after them. Old points keep their
         clusters, and old cluster labels keep their numbers; new clusters are numbered
-        from ``n_clusters_`` on. The prior stays the one resolved by the first fit.
+        from ``n_clusters_`` on. The prior stays the one resolved by the first fit. The
+        clusters' statistics are sums about the first fit's mean: points so far from it
+        that their rounding would swamp a cluster's scale (for a first fit spread over
+        metres, thousands of kilometres away) are refused with a ValueError.
 
         Parameters
         ----------
@@ -836,21 +839,40 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         X = check_magnitude(validate_data(self, X, dtype=np.float64, reset=False))
         Xc = X - self._shift
         rng = self._rng
-        # Draws up front: the seating order and one uniform per point.
-        order = rng.permutation(X.shape[0])
-        uniforms = rng.random(X.shape[0])
-        state = _CollapsedGibbs(
-            Xc, np.zeros(X.shape[0], dtype=np.intp), self._prior, self.alpha, self._statistics
-        )
-        for i, u in zip(order, uniforms, strict=True):
-            state.seat(i, u)
-        if X.shape[0] > 1:
-            for _ in range(self.burn_in):
-                state.gibbs_sweep(rng)
-        K = state.K
-        n, s, S = state.n[:K].copy(), state.s[:K].copy(), state.S[:K].copy()
+        before = rng.bit_generator.state
+        try:
+            # Draws up front: the seating order and one uniform per point.
+            order = rng.permutation(X.shape[0])
+            uniforms = rng.random(X.shape[0])
+            state = _CollapsedGibbs(
+                Xc, np.zeros(X.shape[0], dtype=np.intp), self._prior, self.alpha, self._statistics
+            )
+            for i, u in zip(order, uniforms, strict=True):
+                state.seat(i, u)
+            if X.shape[0] > 1:
+                for _ in range(self.burn_in):
+                    state.gibbs_sweep(rng)
+            K = state.K
+            n, s, S = state.n[:K].copy(), state.s[:K].copy(), state.S[:K].copy()
+            if not _precise(n, s, S, self._prior):
+                raise np.linalg.LinAlgError("scale matrices within their rounding")
+            self._set_statistics(n, s, S, self._prior)
+        except np.linalg.LinAlgError:
+            # The statistics are sums of x and x x^T about the first fit's mean: far enough
+            # from it, the rounding of those sums outgrows the prior's scale (set by the
+            # spread of the first fit's points), and a cluster's scale matrix is no longer
+            # positive definite or is rounding noise (a variance of 1e16 for points 0.3
+            # apart). The clusterer stays as it was, its generator included.
+            rng.bit_generator.state = before
+            distance = float(np.max(np.linalg.norm(Xc, axis=1)))
+            spread = float(np.sqrt(np.trace(self._prior.psi) / X.shape[1]))
+            raise ValueError(
+                f"X holds points {distance:.3g} from the mean of the points the clusterer "
+                f"was fitted on, whose spread sets its prior scale ({spread:.3g}): that far, "
+                "the clusters' statistics lose their precision. Are these points in the "
+                "coordinate frame of the first fit? Fit again on all points."
+            ) from None
         self.labels_ = state.labels.copy()
-        self._set_statistics(n, s, S, self._prior)
         return self
 
     def _set_final_state(self, Xc, labels, prior):
@@ -867,13 +889,14 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
     def _set_statistics(self, n, s, S, prior):
         """Cluster attributes and the predictive from the clusters' sufficient statistics."""
         K = len(n)
-        self._statistics = (n, s, S)
         _, nu, mean, psi = posterior(n, s, S, prior)
+        # First, as it may fail (a scale matrix not positive definite): then nothing is set.
+        self._predictive, _ = predictive(n, s, S, prior)
+        self._statistics = (n, s, S)
         self.n_clusters_ = K
         self.means_ = mean + self._shift
         self.covariances_ = psi / nu[:, None, None]
         self.weights_ = n / n.sum()
-        self._predictive, _ = predictive(n, s, S, prior)
 
     def predict_proba(self, X):
         """Posterior-predictive responsibilities of the clusters for new points.
@@ -913,6 +936,27 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
             rows = slice(start, start + _CHUNK)
             out[rows] = log_student_t(X[rows], self._predictive) + log_w
         return out
+
+
+# A cluster's scale matrix is refused when the rounding of its raw-moment formula could
+# reach this fraction of its smallest eigenvalue.
+_SCALE_ROUNDING = 0.1
+
+
+def _precise(n, s, S, prior):
+    """Whether every cluster's posterior scale matrix ``Psi_n`` stands above the rounding
+    of ``Psi0 + S + kappa0 m0 m0^T - kappa_n m_n m_n^T``, whose terms grow with the square
+    of the points' distance from the origin of the statistics."""
+    kappa, _, mean, psi = posterior(n, s, S, prior)
+    size = (
+        np.trace(S, axis1=1, axis2=2)
+        + kappa * np.sum(mean**2, axis=1)
+        + np.trace(prior.psi)
+        + prior.kappa * np.sum(prior.mean**2)
+    )
+    rounding = 8 * np.finfo(float).eps * size
+    smallest = np.linalg.eigvalsh(psi)[:, 0]
+    return bool(np.all(rounding <= _SCALE_ROUNDING * smallest))
 
 
 def _kmeans(X, n_clusters, rng):

@@ -3,6 +3,7 @@
 Small simulated data and fixed expert hyperparameters keep every fit to about a second.
 """
 
+import pickle
 import re
 import warnings
 
@@ -728,6 +729,34 @@ def test_clusterer_partial_fit_is_reproducible():
     np.testing.assert_array_equal(*runs)
     with pytest.raises(ValueError):
         DPGMMClusterer(random_state=0).fit(a).partial_fit(b[:, :1])
+
+
+def test_clusterer_partial_fit_refuses_points_too_far_for_its_statistics():
+    # Points 1e9 from the first fit's, whose spread is 0.3: the sums of squares about the
+    # first fit's mean lose the precision the prior's scale needs (before: a new cluster
+    # with a variance of 1e16 here, numpy's "Matrix is not positive definite" for others).
+    # Refused, with the clusterer as it was, its generator included.
+    a, b = _rooms()
+    model = DPGMMClusterer(random_state=3).fit(a)
+    twin = pickle.loads(pickle.dumps(model))
+    with pytest.raises(ValueError, match=r"points 1e\+09 from the mean .* Fit again"):
+        model.partial_fit(b + [1e9, 0.0])
+    assert model.n_clusters_ == twin.n_clusters_
+    np.testing.assert_array_equal(model.means_, twin.means_)
+    np.testing.assert_array_equal(model.partial_fit(b).labels_, twin.partial_fit(b).labels_)
+
+
+def test_a_batch_too_far_for_the_clusterer_leaves_the_map_as_it_was(office):
+    data, queries = office
+    model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
+    before = model.predict_proba(queries)
+    n_rows, n_clusters = model.cluster_labels_.size, model.clusterer_.n_clusters_
+    X, y = _batch(data, 10, 12)
+    with pytest.raises(ValueError, match="Fit again on all points"):
+        model.partial_fit(X + 1e10, y)
+    assert model.cluster_labels_.size == n_rows
+    assert model.clusterer_.n_clusters_ == n_clusters
+    np.testing.assert_array_equal(model.predict_proba(queries), before)
 
 
 # -- skoccmap map --online -----------------------------------------------------------------
