@@ -4,6 +4,8 @@ matplotlib is imported only when something is drawn; install it with
 ``pip install "skoccmap[plot]"``.
 """
 
+from numbers import Real
+
 import numpy as np
 
 from .grid import OccupancyGrid
@@ -105,11 +107,17 @@ class OccupancyMapDisplay:
             raise ValueError(f"z selects a slice of a 3-D grid; this grid is 2-D (z={z!r}).")
         if grid.n_dims == 3:
             zmin = grid.origin[2]
+            if z is not None and (not isinstance(z, Real) or isinstance(z, bool)):
+                raise TypeError(f"z must be a height in metres (a number), got {z!r}.")
             if z is not None and not np.isfinite(z):
                 raise ValueError(f"z must be a finite height, got {z!r}.")
-            k = grid.shape[0] // 2 if z is None else int((z - zmin) // grid.resolution)
+            # The layer as a float first: a height far off the grid gives an infinite one,
+            # which int() refuses with an OverflowError.
+            with np.errstate(over="ignore", invalid="ignore"):
+                k = grid.shape[0] // 2 if z is None else (float(z) - zmin) // grid.resolution
             if not 0 <= k < grid.shape[0]:
                 raise ValueError(f"z={z} is outside the grid's height range {grid.extent[4:]}.")
+            k = int(k)
             probability = probability[k]
             variance = None if variance is None else variance[k]
             unknown = None if unknown is None else unknown[k]

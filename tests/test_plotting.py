@@ -158,6 +158,14 @@ def test_3d_grid_draws_a_slice():
         OccupancyMapDisplay.from_grid(grid, z=7.0)
     with pytest.raises(ValueError, match="finite height"):
         OccupancyMapDisplay.from_grid(grid, z=np.nan)
+    # Heights whose layer number overflows (an OverflowError from int() before).
+    for z in (1e308, -1e308, np.float64(1e308)):
+        with pytest.raises(ValueError, match="outside"):
+            OccupancyMapDisplay.from_grid(grid, z=z)
+    # Not a number (numpy's ufunc TypeError, or int() of an array, before).
+    for z in ("1.5", np.array([1.5])):
+        with pytest.raises(TypeError, match="z must be a height"):
+            OccupancyMapDisplay.from_grid(grid, z=z)
 
 
 def test_clear_error_without_matplotlib(monkeypatch):
