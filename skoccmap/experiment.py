@@ -660,7 +660,16 @@ def points_along_beams(X, y, spacing=0.2):
     d = segment_dim(X)
     start, end = X[y == 0, :d], X[y == 0, d:]
     length = np.linalg.norm(end - start, axis=1)
-    n_per_beam = np.floor(length / spacing + 1e-9).astype(np.int64) + 1
+    n_float = np.floor(length / spacing + 1e-9) + 1
+    # Past the largest array index the count wrapped to a negative number, and numpy
+    # stopped on "negative dimensions are not allowed" (as split_segments refuses).
+    if n_float.sum() > np.iinfo(np.intp).max:
+        raise ValueError(
+            f"Points every spacing={spacing:g} m along the beams are {n_float.sum():.3g} "
+            f"points, more than an array can hold (the longest beam is {length.max():.3g} m "
+            "long): pass a larger spacing."
+        )
+    n_per_beam = n_float.astype(np.int64)
     beam = np.repeat(np.arange(start.shape[0]), n_per_beam)
     # Position of each point within its beam: 0, 1, 2, ... restarted at every beam.
     step = np.arange(beam.size) - np.repeat(np.cumsum(n_per_beam) - n_per_beam, n_per_beam)

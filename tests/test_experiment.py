@@ -131,6 +131,9 @@ def test_points_along_beams_zero_length_free_row_and_3d():
         ([[0.0, 0.0, 1.0, 1.0]], [0], np.nan, "spacing"),
         ([[0.0, 0.0, 1.0, 1.0]], [0], np.inf, "spacing"),
         (np.empty((0, 4)), [], 0.2, "no rows"),
+        # More points than an array holds ("negative dimensions are not allowed" before).
+        ([[0.0, 0.0, 1.0, 1.0]], [0], 1e-300, "more than an array can hold"),
+        ([[0.0, 0.0, 1e20, 0.0], [0.0, 0.0, 1e20, 0.0]], [0, 0], 1e1, "larger spacing"),
     ],
 )
 def test_points_along_beams_bad_input(X, y, spacing, match):
