@@ -62,7 +62,7 @@ def _check_options(args, methods):
 def run(args):
     from pathlib import Path
 
-    from ._cmd_map import _output_folder, remove_empty
+    from ._cmd_map import _option_names, _output_folder, remove_empty
     from .experiment import format_tables, run_paper_experiment, save_figures, save_maps
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -82,7 +82,8 @@ def run(args):
         )
     except (ValueError, OSError) as exc:
         remove_empty(created)
-        print(f"skoccmap demo: error: {exc}", file=sys.stderr)
+        message = _option_names(str(exc), ["noise_std"])
+        print(f"skoccmap demo: error: {message}", file=sys.stderr)
         return 2
     print()
     print(format_tables(result))

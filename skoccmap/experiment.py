@@ -233,6 +233,14 @@ def run_paper_experiment(
     if not isinstance(random_state, Integral):
         raise ValueError(f"random_state must be an int, got {random_state!r}.")
     data = make_paper_scans(noise_std=noise_std, random_state=random_state)
+    n_hits = int(np.count_nonzero(data.y == 1))
+    if n_hits < 2:
+        # Before the fits, whose own refusal names an estimator's y the caller never saw.
+        raise ValueError(
+            f"the scans simulated with noise_std={noise_std:g} m hold {n_hits} hit(s): the "
+            f"noise pushes the readings past the {data.scans.max_range:g} m range or to 0 "
+            "(no measurement), and the maps need at least 2 hits. Use a smaller noise_std."
+        )
     environment = data.environment
     truth = environment.ground_truth_grid(resolution, scans=data.scans)
     # Before any fit: a grid whose observed cells are all occupied (or all free) has no AUC.

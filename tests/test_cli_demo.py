@@ -124,6 +124,8 @@ def test_demo_without_matplotlib(tmp_path, monkeypatch):
         (["--seed", str(2**32)], "--seed"),
         # At 5 m every observed cell touches a wall: no AUC, refused before the fits.
         (["--methods", "moe", "--resolution", "5"], "the AUC is undefined"),
+        # Noise that leaves no hit, in the option's name.
+        (["--methods", "moe", "--noise-std", "1000"], "--noise-std 1000 m hold 0 hit"),
     ],
 )
 def test_demo_bad_arguments(argv, match, tmp_path):

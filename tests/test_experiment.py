@@ -290,6 +290,9 @@ def test_experts_are_fitted_on_their_clusters_whole_observations(result):
         ({"resolution": "0.5"}, "resolution"),
         ({"single_hyperparameters": "fixed"}, "single_hyperparameters"),
         ({"random_state": None}, "random_state"),
+        # No hit left by the noise: said in the experiment's terms, not the mixture's y.
+        ({"methods": ["moe"], "noise_std": 1e3}, r"noise_std=1000 m hold 0 hit"),
+        ({"methods": ["single"], "noise_std": 1e3}, r"Use a smaller noise_std"),
     ],
 )
 def test_run_paper_experiment_bad_input(kwargs, match):
