@@ -45,6 +45,8 @@ METHODS = {
     "single": "single GP",
 }
 _SINGLE_HYPERPARAMETERS = ("learn", "from_mixture")
+# save_figures: at 1000 dpi the figures are already 5,000-17,000 pixels a side.
+_MAX_DPI = 1000
 
 
 def _signal_and_integral_kernel():
@@ -407,6 +409,17 @@ def _new_figure(figsize):
     return Figure(figsize=figsize, layout="constrained")
 
 
+def _axes_or_new(ax, figsize):
+    """``ax`` if it is a matplotlib Axes, a new figure's when None; else a TypeError."""
+    from matplotlib.axes import Axes
+
+    if ax is None:
+        return _new_figure(figsize).add_subplot()
+    if not isinstance(ax, Axes):
+        raise TypeError(f"ax must be a matplotlib Axes or None, got {ax!r}.")
+    return ax
+
+
 def _environment_axes(ax, environment):
     from matplotlib.collections import LineCollection
 
@@ -448,8 +461,7 @@ def plot_clusters(result, ax=None):
     model = result.mixture
     if model is None:
         raise ValueError("plot_clusters needs a result with a mixture ('moe' or 'bcm').")
-    if ax is None:
-        ax = _new_figure((8, 6.8)).add_subplot()
+    ax = _axes_or_new(ax, (8, 6.8))
     data = result.data
     _environment_axes(ax, data.environment)
     colors = colormaps["tab10" if model.n_experts_ <= 10 else "tab20"]
@@ -492,11 +504,15 @@ def plot_maps(result, fig=None):
     >>> len(fig.axes) >= 2
     True
     """
+    from matplotlib.figure import FigureBase
+
     from .plotting import OccupancyMapDisplay
 
     n_rows = len(result.methods)
     if fig is None:
         fig = _new_figure((11, 4.2 * n_rows))
+    elif not isinstance(fig, FigureBase):
+        raise TypeError(f"fig must be a matplotlib Figure or None, got {fig!r}.")
     axes = fig.subplots(n_rows, 2, squeeze=False)
     for row, res in zip(axes, result.methods.values(), strict=True):
         OccupancyMapDisplay.from_grid(res.grid, kind="both", ax=row)
@@ -526,8 +542,7 @@ def plot_roc(result, ax=None):
     >>> len(ax.get_lines())
     2
     """
-    if ax is None:
-        ax = _new_figure((5.5, 5)).add_subplot()
+    ax = _axes_or_new(ax, (5.5, 5))
     for res in result.methods.values():
         ax.plot(res.fpr, res.tpr, label=f"{res.label} (AUC {res.auc:.3f})")
     ax.plot([0, 1], [0, 1], ":", color="gray")
@@ -548,8 +563,8 @@ def save_figures(result, out, *, dpi=110):
         Output of :func:`run_paper_experiment`.
     out : str or path-like
         Folder, created if missing.
-    dpi : int, default=110
-        Resolution of the images.
+    dpi : float, default=110
+        Resolution of the images, in (0, 1000].
 
     Returns
     -------
@@ -559,6 +574,8 @@ def save_figures(result, out, *, dpi=110):
     ------
     ImportError
         When matplotlib is not installed (``pip install "skoccmap[plot]"``).
+    ValueError
+        For a ``dpi`` that is no number in (0, 1000], before ``out`` is made.
 
     Examples
     --------
@@ -575,6 +592,10 @@ def save_figures(result, out, *, dpi=110):
         raise ImportError(
             'Figures need matplotlib: pip install "skoccmap[plot]" (or pip install matplotlib).'
         ) from exc
+    if not isinstance(dpi, Real) or isinstance(dpi, bool) or not 0 < dpi <= _MAX_DPI:
+        # Checked before the folder is made: matplotlib's own refusal comes after it, and
+        # a dpi of 1e6 is a C++ bad_alloc.
+        raise ValueError(f"dpi must be a number in (0, {_MAX_DPI}], got {dpi!r}.")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     figures = []

@@ -458,6 +458,22 @@ def test_plot_clusters_needs_a_mixture(result, tmp_path):
     assert [p.name for p in paths] == ["figure4_maps.png", "figure5_roc.png"]
 
 
+def test_figure_functions_refuse_what_is_no_axes_figure_or_dpi(result, tmp_path):
+    pytest.importorskip("matplotlib")
+    # Before: AttributeErrors from inside the drawing ('str' object has no attribute ...).
+    for plot in (plot_clusters, plot_roc):
+        with pytest.raises(TypeError, match="ax must be a matplotlib Axes or None, got 'x'"):
+            plot(result, ax="x")
+    with pytest.raises(TypeError, match="fig must be a matplotlib Figure or None, got 'x'"):
+        plot_maps(result, fig="x")
+    # Before: matplotlib's TypeError ("x") and a C++ bad_alloc (1e6), after the folder was made.
+    out = tmp_path / "figures"
+    for dpi in ("x", 0, -5, 1e6, float("nan"), True):
+        with pytest.raises(ValueError, match=r"dpi must be a number in \(0, 1000\]"):
+            save_figures(result, out, dpi=dpi)
+    assert not out.exists()
+
+
 def test_save_figures_without_matplotlib(result, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)
     with pytest.raises(ImportError, match=r"skoccmap\[plot\]"):
