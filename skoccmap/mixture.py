@@ -1733,7 +1733,11 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         are kept, so memory grows linearly with the data; :meth:`refit_hyperparameters`
         re-learns the shared hyperparameters from all of them, and so does an update
         that grows the rows by ``hyperparameter_growth`` since they were last learned
-        (it then refits every expert instead of step 3's).
+        (it then refits every expert instead of step 3's). Parameters changed by
+        ``set_params`` between calls apply to the later batches, except ``expert`` (taken
+        up at the next re-learn, which refits every expert with it), ``clusterer`` (the
+        fitted ``clusterer_`` serves until the next :meth:`fit`) and ``layout`` or a
+        ``"gpc"`` gate (refused: they shape what :meth:`fit` builds).
 
         Parameters
         ----------
