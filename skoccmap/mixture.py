@@ -1735,9 +1735,10 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         that grows the rows by ``hyperparameter_growth`` since they were last learned
         (it then refits every expert instead of step 3's). Parameters changed by
         ``set_params`` between calls apply to the later batches, except ``expert`` (taken
-        up at the next re-learn, which refits every expert with it), ``clusterer`` (the
-        fitted ``clusterer_`` serves until the next :meth:`fit`) and ``layout`` or a
-        ``"gpc"`` gate (refused: they shape what :meth:`fit` builds).
+        up by the next re-learn of shared hyperparameters, which refits every expert with
+        it, or else the next :meth:`fit`), ``clusterer`` (the fitted ``clusterer_`` serves
+        until the next :meth:`fit`) and ``layout`` or a ``"gpc"`` gate (refused: they
+        shape what :meth:`fit` builds).
 
         Parameters
         ----------
