@@ -631,8 +631,8 @@ def _replay(args, train, unknown_variance):
             grid = _grid(args, model, seen, unknown_variance, False)
             stem = snapshots / f"batch_{b:05d}"
             grid.save(_named(stem, ".npz"))
-            _save_png(grid, _named(stem, ".png"))
-            print(f"wrote snapshot {stem}.npz")
+            png = _save_png(grid, _named(stem, ".png"))
+            print(f"wrote snapshot {stem}.npz" + ("" if png is None else f" and {png}"))
     if not hasattr(model, "n_experts_"):
         raise ValueError("the scans hold fewer than 2 hits or no beam: nothing to map")
     return model

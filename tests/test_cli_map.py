@@ -534,6 +534,27 @@ def test_online_defaults_batches_and_snapshots(tmp_path, capsys):
     np.testing.assert_allclose(snapshot.probability, final.probability)
 
 
+def test_online_snapshot_lines_name_every_file_written(tmp_path, capsys):
+    # The line named the .npz alone while the .png was written beside it.
+    log = _corridor_log(tmp_path / "corridor.log", n_scans=6)
+    snaps = tmp_path / "snaps"
+    argv = ["map", str(log), "--max-range", "8", "--n-jobs", "1", "--quiet", "--online",
+            "--batch-scans", "3", "--snapshot-every", "1", "--snapshots", str(snaps),
+            "--out", str(tmp_path)]  # fmt: skip
+    assert main(argv) == 0
+    lines = [
+        line for line in capsys.readouterr().out.splitlines() if line.startswith("wrote snapshot")
+    ]
+    files = sorted(snaps.iterdir())
+    assert [p.name for p in files] == [
+        "batch_00001.npz", "batch_00001.png", "batch_00002.npz", "batch_00002.png"
+    ]  # fmt: skip
+    assert len(lines) == 2
+    for line, stem in zip(lines, ("batch_00001", "batch_00002"), strict=True):
+        for path in files:
+            assert (str(path) in line) == (path.stem == stem), (line, path)
+
+
 def test_online_waits_for_two_hits_holding_the_batches_before(tmp_path, capsys):
     # The first scan has a single hit (it cannot be clustered): it waits for the second
     # and enters the model with it.
