@@ -26,7 +26,8 @@ def probability_std(proba, latent_variance):
     Parameters
     ----------
     proba : array-like
-        Occupancy probability ``Phi(mu / sqrt(1 + var))``, in ``[0, 1]``.
+        Occupancy probability ``Phi(mu / sqrt(1 + var))``, in ``[0, 1]``: of a map's
+        ``predict_proba(X)``, the occupied column ``[:, 1]``.
     latent_variance : array-like
         Latent variance ``var >= 0``, broadcastable against ``proba``.
 
@@ -61,6 +62,14 @@ def probability_std(proba, latent_variance):
     """
     proba = np.asarray(proba, dtype=np.float64)
     var = np.asarray(latent_variance, dtype=np.float64)
+    if proba.ndim == 2 and proba.shape[1] == 2 and var.shape == proba.shape[:1]:
+        # predict_proba's two columns against predict_var's one value per row: with two
+        # rows they broadcast, row against column, to a wrong (2, 2) answer.
+        raise ValueError(
+            f"proba of shape {proba.shape} with latent_variance of shape {var.shape} looks "
+            "like predict_proba(X) with predict_var(X): pass the occupied column, "
+            "predict_proba(X)[:, 1]."
+        )
     try:
         np.broadcast_shapes(proba.shape, var.shape)
     except ValueError:

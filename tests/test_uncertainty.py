@@ -61,3 +61,20 @@ def test_probability_std_rejects_bad_input(proba, var, match):
 def test_probability_std_of_mismatched_shapes_is_a_clear_error():
     with pytest.raises(ValueError, match=r"must broadcast together, got shapes \(2,\) and \(3,\)"):
         probability_std([0.5, 0.5], [1.0, 1.0, 1.0])
+
+
+@pytest.mark.parametrize("n_rows", [2, 5])
+def test_probability_std_refuses_both_columns_of_predict_proba(n_rows):
+    # With two rows predict_proba's (2, 2) broadcast against predict_var's (2,) and gave
+    # a (2, 2) result, row 0's probabilities with row 1's variance among them; with more
+    # rows the error did not say which column to pass.
+    p_occupied = np.linspace(0.2, 0.9, n_rows)
+    both_columns = np.column_stack([1 - p_occupied, p_occupied])
+    variance = np.linspace(0.5, 3.0, n_rows)
+    with pytest.raises(ValueError, match=r"predict_proba\(X\)\[:, 1\]"):
+        probability_std(both_columns, variance)
+    std = probability_std(both_columns[:, 1], variance)
+    assert std.shape == (n_rows,)
+    # Each row's std is that of its own probability and variance.
+    for p, v, s in zip(p_occupied, variance, std, strict=True):
+        np.testing.assert_allclose(s, probability_std(p, v))
