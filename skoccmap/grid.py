@@ -664,12 +664,13 @@ class OccupancyGrid:
         if not hasattr(archive, "files"):  # a single .npy array
             raise ValueError(f"{not_saved}: it holds one array.")
         with archive as data:
-            missing = [k for k in ("probability", "origin", "resolution") if k not in data]
+            # Names from the archive's list: on numpy < 1.24 ``k in data`` reads the array.
+            missing = [k for k in ("probability", "origin", "resolution") if k not in data.files]
             if missing:
                 raise ValueError(f"{not_saved}: it holds no {', '.join(missing)}.")
             try:
                 names = ("probability", "origin", "resolution", "variance", "unknown")
-                arrays = {k: data[k] for k in names if k in data}
+                arrays = {k: data[k] for k in names if k in data.files}
             except damaged as exc:
                 raise ValueError(f"{path} is damaged or truncated ({exc}).") from None
         return cls(
