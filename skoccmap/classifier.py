@@ -305,7 +305,7 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
         votes, without probability estimates. Ignored for two classes.
     n_jobs : int, default=None
         Number of jobs fitting and predicting the binary problems of a multi-class fit in
-        parallel. None means 1 unless in a :obj:`joblib.parallel_backend` context; -1 means
+        parallel. None means 1 unless in a :obj:`joblib.parallel_config` context; -1 means
         all processors. Ignored for two classes.
 
     Attributes

@@ -416,18 +416,19 @@ def test_version(capsys):
     assert capsys.readouterr().out.strip() == f"skoccmap {skoccmap.__version__}"
 
 
-def test_module_run_exits_with_the_commands_status(tmp_path):
-    # python -m skoccmap.cli: a refused run must not exit 0.
+@pytest.mark.parametrize("module", ["skoccmap", "skoccmap.cli"])
+def test_module_run_exits_with_the_commands_status(tmp_path, module):
+    # python -m skoccmap (or skoccmap.cli): a refused run must not exit 0.
     import subprocess
     import sys
 
     import skoccmap
 
     env = {**os.environ, "PYTHONPATH": str(Path(skoccmap.__file__).parents[1])}
-    argv = [sys.executable, "-m", "skoccmap.cli", "map", str(tmp_path / "missing.log")]
+    argv = [sys.executable, "-m", module, "map", str(tmp_path / "missing.log")]
     done = subprocess.run(argv, cwd=tmp_path, env=env, capture_output=True, text=True)
     assert done.returncode == 2
-    assert "No such file" in done.stderr
+    assert "skoccmap map: error:" in done.stderr and "No such file" in done.stderr
 
 
 # A corridor the tests can map in about a second: the laser drives along +x from (0.1 t, 0),
