@@ -29,6 +29,7 @@ __all__ = [
     "METHODS",
     "cluster_counts",
     "format_tables",
+    "make_models",
     "plot_clusters",
     "plot_maps",
     "plot_roc",

@@ -561,7 +561,35 @@ class Scans:
         return points[returned]
 
     def to_observations(self, free_margin=0.05, *, return_scan_index=False):
-        """Labelled segment rows of these scans; see :func:`scans_to_observations`."""
+        """Labelled segment rows of these scans (:func:`skoccmap.scans_to_observations`
+        with their poses, ranges, beam angles and maximum range).
+
+        Parameters
+        ----------
+        free_margin : float, default=0.05
+            Gap in metres between the end of a return beam and its hit.
+        return_scan_index : bool, default=False
+            Whether to return the scan index of every row.
+
+        Returns
+        -------
+        X : ndarray of shape (n_observations, 2 * D)
+            Segment rows ``[start, end]``.
+        y : ndarray of shape (n_observations,)
+            1 for hits (occupied), 0 for beams (free).
+        kind : ndarray of shape (n_observations,)
+            :data:`HIT`, :data:`RETURN` or :data:`NO_RETURN` per row.
+        scan_index : ndarray of shape (n_observations,)
+            Index of the scan each row comes from; only if ``return_scan_index``.
+
+        Examples
+        --------
+        >>> from skoccmap.datasets import make_paper_scans
+        >>> scans = make_paper_scans(random_state=0).scans
+        >>> X, y, kind = scans[:2].to_observations()
+        >>> X.shape[1], sorted(set(y.tolist()))
+        (4, [0, 1])
+        """
         return scans_to_observations(
             self.poses,
             self.ranges,
