@@ -276,6 +276,26 @@ def test_extreme_finite_inputs_stay_finite(method):
         np.testing.assert_allclose(tiny.mean, [1.0])
 
 
+@pytest.mark.parametrize("method", sorted(COMBINERS))
+def test_subnormal_variances_give_a_positive_merged_variance(method):
+    # Two sure experts that agree, at the smallest subnormal variance: half of it rounds to
+    # zero, yet the merged variance is documented strictly positive (its floor, 1e-12, is far
+    # below any variance a GP reports).
+    tiny = np.nextafter(0.0, 1.0)
+    merged = combine([[0.3, 0.3]], [[tiny, tiny]], method=method, prior_variance=[tiny])
+    assert np.all(merged.variance > 0) and np.all(np.isfinite(merged.variance))
+    assert np.all(np.isfinite(merged.mean)) and np.all(np.isfinite(merged.proba))
+
+
+def test_bcm_of_one_expert_with_a_subnormal_prior_is_that_expert():
+    # With M = 1 the committee divides the prior out M - 1 = 0 times: the expert itself,
+    # also when its variance and prior are subnormal (their reciprocals overflow).
+    mu = np.array([[1.0], [-0.5]])
+    merged = bayesian_committee_machine(mu, [[1e-320], [3e-321]], [1e-320, 4e-321])
+    np.testing.assert_allclose(merged.mean, mu[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(merged.proba, stats.norm.cdf(mu[:, 0]), rtol=1e-9)
+
+
 @pytest.mark.parametrize("method", ["moe", "poe", "gpoe", "bcm", "rbcm"])
 def test_variances_at_the_largest_float_give_an_uninformed_finite_answer(method):
     # Experts that know nothing (variance and prior at the largest float): probability 1/2,
