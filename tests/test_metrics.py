@@ -542,6 +542,26 @@ def test_expected_calibration_error_matches_calibration_curve():
     assert_allclose(expected_calibration_error(y, p, n_bins=8), expected)
 
 
+def test_expected_calibration_error_against_binning_written_out():
+    # Bin k holds k / n <= p < (k + 1) / n, and p = 1 the last bin; the error is the
+    # sample-weighted mean over bins of |mean p - frequency of 1|. Labels drawn independently
+    # of p, so that bins err in both directions (a map biased one way everywhere scores the
+    # same whatever the binning); probabilities on the edges k / 8 (exact in binary), and 1.
+    rng = np.random.default_rng(3)
+    p = np.r_[rng.uniform(size=300), np.arange(9) / 8, np.ones(5)]
+    y = rng.integers(0, 2, size=p.size)
+    n_bins = 8
+    total = 0.0
+    for k in range(n_bins):
+        upper = p < (k + 1) / n_bins if k < n_bins - 1 else p <= 1.0
+        held = (p >= k / n_bins) & upper
+        if held.any():
+            total += held.sum() * abs(p[held].mean() - y[held].mean())
+    assert_allclose(expected_calibration_error(y, p, n_bins=n_bins), total / p.size)
+    # p = 1 shares the last bin: with p = 0.95 of a one it offsets a zero at p = 1.
+    assert_allclose(expected_calibration_error([1, 0], [0.95, 1.0]), abs(1.95 / 2 - 0.5))
+
+
 def test_expected_calibration_error_many_bins():
     # Bins finer than the probabilities' spacing hold one sample each: |p - y| per sample.
     # The bins are counted where samples fall, not allocated (10**12 of them).
