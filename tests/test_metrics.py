@@ -147,6 +147,19 @@ def test_zero_readings_give_no_heldout_point():
     assert np.all(np.isclose(angles, 0.5) | np.isclose(angles, 1.0))
 
 
+def test_a_hit_exactly_at_the_free_margin_gives_no_free_point():
+    # The free stretch of a beam ends free_margin short of its hit: a hit at exactly that
+    # range leaves a stretch of length zero, and no free point (one would sit on the sensor).
+    # 0.25 and 0.5 are exact in binary, so the stretches are exactly 0 and 0.25 m.
+    scans = Scans([[1.0, 2.0, 0.0]], [[0.25, 0.5]], [0.0, 0.5 * np.pi], max_range=8.0)
+    points, labels = heldout_points(scans, n_free_per_beam=5, free_margin=0.25, random_state=0)
+    assert_allclose(points[labels == 1], [[1.25, 2.0], [1.0, 2.5]], atol=1e-15)
+    free = points[labels == 0]
+    assert len(free) == 5
+    assert_allclose(free[:, 0], 1.0, atol=1e-15)  # all on the second beam, northwards
+    assert np.all((free[:, 1] >= 2.0) & (free[:, 1] <= 2.25))
+
+
 def test_heldout_points_draw_major_order():
     # n free points per beam are n rounds over the usable beams (scan and beam order), each
     # at a uniform fraction of its beam's free length: for a given seed, more points per
@@ -837,6 +850,20 @@ def test_map_quality_skips_bands_next_to_space_nearer_another_wall(reverse):
     q = map_quality(grid.occupied, env, extent=extent)
     assert q["n_wall_samples"] == q["n_wall_bands"] == 80
     assert_allclose(q["wall_thickness"], 0.3)
+
+
+@pytest.mark.parametrize("gap, measured", [(0.38, 0), (0.42, 80)])
+def test_a_band_step_a_little_nearer_another_wall_is_nearer(gap, measured):
+    # Two 0.1 m walls 4 m long, at y = 0.05 and 0.05 + gap, with the true map. Each wall's
+    # check runs to the step one beyond its wall (steps of 0.1 m from its centre line): for
+    # the lower wall y = 0.25, for the upper one y = gap - 0.15. At either, the own wall's
+    # surface is 0.15 m away and the other's gap - 0.25: 2 cm nearer at gap = 0.38, so every
+    # sample is skipped; 2 cm farther at gap = 0.42, so all 80 are measured.
+    walls = np.array([[0.0, 0.05, 4.0, 0.05], [0.0, 0.05 + gap, 4.0, 0.05 + gap]])
+    env = Environment2D(walls, wall_thickness=0.1)
+    extent = (-1, 5, -2.5, 3.0)
+    q = map_quality(env.ground_truth_grid(0.1, extent).occupied, env, extent=extent)
+    assert q["n_wall_samples"] == q["n_wall_bands"] == measured
 
 
 def test_map_quality_samples_a_wall_shorter_than_a_step():
