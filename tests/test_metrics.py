@@ -793,6 +793,24 @@ def test_map_quality_thresholds_are_strict(paper):
     assert map_quality(np.full(n, past), env, resolution=0.2)["free_found"] == 1.0
 
 
+def test_phantoms_count_only_cells_farther_than_the_clearance():
+    # A 0.3 m wall along y = 0, longer than the grid: a cell centre's clearance is |y| - 0.15.
+    # Rows of cells at y = -1.0, -0.9, ..., 1.0, 20 cells each: the rows at |y| = 0.5 lie
+    # exactly 0.35 m from the wall (also in floating point), not farther; the ten rows at
+    # |y| >= 0.6 are the phantom set. A map occupied on the rows at 0.35 m has no phantom.
+    env = Environment2D([[-10.0, 0.0, 10.0, 0.0]], wall_thickness=0.3)
+    extent = (-1, 1, -1.05, 1.05)
+    grid = env.ground_truth_grid(0.1, extent)
+    assert grid.shape == (21, 20)
+    y = grid.points[:, 1]
+    on_clearance = np.isclose(np.abs(y), 0.5)
+    assert on_clearance.sum() == 40
+    proba = np.where(on_clearance | (np.abs(y) < 0.25), 1.0, 0.0)
+    q = map_quality(proba, env, extent=extent)
+    assert q["n_far_free_cells"] == 10 * 20
+    assert (q["phantom_rate"], q["free_found"]) == (0.0, 1.0)
+
+
 def test_map_quality_thick_wall_seen_from_one_side():
     # A 0.3 m wall along y = 0.05 (surfaces on cell edges), scanned from below only. The true
     # grid marks the wall's three rows of cells and the row touching each surface occupied:
