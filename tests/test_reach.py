@@ -497,6 +497,33 @@ def test_block_codes_are_ordered_distinct_and_minus_one_out_of_range(dim):
     assert code[inside][0] >= 0 and np.all(np.diff(code[inside]) > 0)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_query_segments_crossing_data_on_a_grid_coarser_than_the_reach(dim):
+    # Data segments 30 m long set a grid of cells far coarser than a reach of 1 mm (the
+    # samples along a segment lie a cell apart). A query segment 2 mm long crossing a data
+    # segment anywhere along it has that segment's data within reach (distance 0), so its
+    # expert is a candidate and within reach, between samples too.
+    rng = np.random.default_rng(dim)
+    n = 10
+    start = rng.uniform(0, 20, size=(n, dim))
+    direction = rng.normal(size=(n, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    segments = np.hstack([start, start + 30.0 * direction])
+    index = ExpertReach(segments, np.arange(n), n, reach=1e-3)
+    assert index.cell > 100 * index.reach
+    row = np.repeat(np.arange(n), 1001)
+    t = np.tile(np.linspace(0.0, 1.0, 1001), n)[:, None]
+    on = start[row] + 30.0 * t * direction[row]
+    # Across the data segment: a random direction less its component along the segment.
+    across = rng.normal(size=(len(row), dim))
+    across -= np.einsum("ij,ij->i", across, direction[row])[:, None] * direction[row]
+    across *= 1e-3 / np.linalg.norm(across, axis=1, keepdims=True)
+    queries = np.hstack([on - across, on + across])
+    query, cand = index.candidates(queries)
+    assert np.all(_holds(query, cand, len(queries), n)[np.arange(len(queries)), row])
+    assert np.all(index.within_reach(queries, np.arange(len(queries)), row))
+
+
 def test_unique_rows_whose_codes_would_overflow_int64():
     # Three columns of spans near 2**28 (84 bits together): numpy's row-wise unique.
     rng = np.random.RandomState(1)
