@@ -304,10 +304,11 @@ def test_the_grid_follows_the_reach_where_the_reach_is_long_enough():
     assert index.scale == 1.5 and index.cell == pytest.approx(1.5 / 8)
 
 
+@pytest.mark.parametrize("width", [0.4, 1.0])
 @pytest.mark.parametrize("all_cells", [True, False], ids=["all-cells", "per-expert"])
 @pytest.mark.parametrize("dim", [2, 3])
 def test_coverage_is_the_gaussian_weighted_count_of_the_midpoint_cells(
-    dim, all_cells, monkeypatch
+    dim, all_cells, width, monkeypatch
 ):
     # Few queries search all cells at once, many each expert's cells: the same coverage.
     monkeypatch.setattr(_reach, "_COVERAGE_ALL_CELLS", 10**9 if all_cells else 0)
@@ -318,13 +319,14 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_midpoint_cells(
     points, ends = _point_and_segment_queries(rng, 200, 30, dim)
     queries = np.hstack([points, ends])
     query, cand = index.candidates(queries)
-    width = 0.4
     shuffle = rng.permutation(query.size)
     got = np.empty(query.size)
     got[shuffle] = index.coverage(queries, query[shuffle], cand[shuffle], width)
     # Centres of the cells holding the midpoints of each expert's segments, their
     # distance to the query's midpoint less half its length, weighted up to three widths
-    # (within the reach here).
+    # (1.2 at width 0.4) or, where that is farther (3 at width 1.0), up to the reach (2)
+    # less half a cell's diagonal.
+    cut = min(3 * width, 2.0 - 0.5 * index.cell * np.sqrt(dim))
     mids, half = 0.5 * (points + ends), 0.5 * np.linalg.norm(ends - points, axis=1)
     segment_mids = 0.5 * (segments[:, :dim] + segments[:, dim:])
     expected, terms = np.empty(query.size), np.empty(query.size)
@@ -334,7 +336,7 @@ def test_coverage_is_the_gaussian_weighted_count_of_the_midpoint_cells(
         )
         centres = index.origin + (cells + 0.5) * index.cell
         d = np.linalg.norm(centres - mids[i], axis=1)
-        d = np.maximum(d[d <= 3 * width + half[i]] - half[i], 0.0)
+        d = np.maximum(d[d <= cut + half[i]] - half[i], 0.0)
         expected[j] = np.sum(np.exp(-0.5 * (d / width) ** 2))
         terms[j] = d.size
     # Each weight is rounded to a whole _COVER_UNIT (so that sums are exact): within half
