@@ -379,6 +379,9 @@ def test_pairs_refuse_bad_input():
     ok = dict(n_queries=2, method="poe")
     with pytest.raises(ValueError, match="at least one expert"):
         combine_pairs([0, 0], [1.0, 2.0], [1.0, 1.0], **ok)
+    # A query whose only pair has zero weight has no expert either.
+    with pytest.raises(ValueError, match="at least one expert"):
+        combine_pairs([0, 1], [1.0, 2.0], [1.0, 1.0], [1.0, 0.0], **ok)
     with pytest.raises(ValueError, match=r"\[0, n_queries=2\)"):
         combine_pairs([0, 2], [1.0, 2.0], [1.0, 1.0], **ok)
     with pytest.raises(ValueError, match=r"\[0, n_queries=2\)"):
