@@ -826,6 +826,13 @@ def test_map_quality_thick_wall_seen_from_one_side():
     assert_allclose(everywhere["wall_thickness"], 0.5)
     assert_allclose(seen["wall_thickness"], 0.4)
     assert seen["n_wall_bands"] == seen["n_wall_samples"] == 40  # 4 m in 0.1 m steps
+    # Given for the observed cells only, the map has no value inside the wall, which every
+    # band crosses: each sample is skipped, none measured as if the inside were free.
+    observed = env.ground_truth_grid(0.1, extent, scans=scans).observed
+    only_seen = map_quality(truth[observed], env, extent=extent, scans=scans)
+    assert only_seen["n_wall_samples"] == only_seen["n_wall_bands"] == 0
+    assert np.isnan(only_seen["wall_thickness"])
+    assert only_seen["walls_found"] == seen["walls_found"] == 1.0
 
 
 def test_walls_found_counts_cells_touching_a_wall_along_a_side():
