@@ -802,7 +802,8 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         from ``n_clusters_`` on. The prior stays the one resolved by the first fit. The
         clusters' statistics are sums about the first fit's mean: points so far from it
         that their rounding would swamp a cluster's scale (for a first fit spread over
-        metres, thousands of kilometres away) are refused with a ValueError.
+        metres, thousands of kilometres away in a direction the points spread in) are
+        refused with a ValueError.
 
         Parameters
         ----------
@@ -861,8 +862,8 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
             # The statistics are sums of x and x x^T about the first fit's mean: far enough
             # from it, the rounding of those sums outgrows the prior's scale (set by the
             # spread of the first fit's points), and a cluster's scale matrix is no longer
-            # positive definite or is rounding noise (a variance of 1e16 for points 0.3
-            # apart). The clusterer stays as it was, its generator included.
+            # positive definite, or no longer known to its smallest eigenvalue (see
+            # _precise). The clusterer stays as it was, its generator included.
             rng.bit_generator.state = before
             distance = float(np.max(np.linalg.norm(Xc, axis=1)))
             spread = float(np.sqrt(np.trace(self._prior.psi) / X.shape[1]))
@@ -946,17 +947,26 @@ _SCALE_ROUNDING = 0.1
 def _precise(n, s, S, prior):
     """Whether every cluster's posterior scale matrix ``Psi_n`` stands above the rounding
     of ``Psi0 + S + kappa0 m0 m0^T - kappa_n m_n m_n^T``, whose terms grow with the square
-    of the points' distance from the origin of the statistics."""
+    of the points' distance from the origin of the statistics.
+
+    Each term is positive semi-definite, so the rounding of entry (i, j) is at most a few
+    eps times ``sqrt(size_i size_j)``, ``size`` the terms' diagonals summed. With every
+    coordinate divided by ``sqrt(size_i)`` the rounding is at most ``8 eps D`` in norm, and
+    ``Psi_n`` is known to ``_SCALE_ROUNDING`` of its smallest eigenvalue when that
+    eigenvalue is at least ten times it. Per coordinate, so that a coordinate the points
+    share exactly (the height of a level 2-D laser's rows) is not held to the others' size.
+    """
     kappa, _, mean, psi = posterior(n, s, S, prior)
     size = (
-        np.trace(S, axis1=1, axis2=2)
-        + kappa * np.sum(mean**2, axis=1)
-        + np.trace(prior.psi)
-        + prior.kappa * np.sum(prior.mean**2)
+        np.diagonal(S, axis1=1, axis2=2)
+        + kappa[:, None] * mean**2
+        + np.diag(prior.psi)
+        + prior.kappa * prior.mean**2
     )
-    rounding = 8 * np.finfo(float).eps * size
-    smallest = np.linalg.eigvalsh(psi)[:, 0]
-    return bool(np.all(rounding <= _SCALE_ROUNDING * smallest))
+    scale = 1.0 / np.sqrt(size)
+    scaled = psi * scale[:, :, None] * scale[:, None, :]
+    rounding = 8 * np.finfo(float).eps * psi.shape[1]
+    return bool(np.all(rounding <= _SCALE_ROUNDING * np.linalg.eigvalsh(scaled)[:, 0]))
 
 
 def _kmeans(X, n_clusters, rng):

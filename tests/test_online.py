@@ -732,18 +732,36 @@ def test_clusterer_partial_fit_is_reproducible():
 
 
 def test_clusterer_partial_fit_refuses_points_too_far_for_its_statistics():
-    # Points 1e9 from the first fit's, whose spread is 0.3: the sums of squares about the
-    # first fit's mean lose the precision the prior's scale needs (before: a new cluster
-    # with a variance of 1e16 here, numpy's "Matrix is not positive definite" for others).
-    # Refused, with the clusterer as it was, its generator included.
+    # Points 1e8 from the first fit's along the diagonal, whose spread is 0.3: the sums of
+    # squares about the first fit's mean lose the precision the prior's scale needs (before:
+    # numpy's "Matrix is not positive definite"). Refused, with the clusterer as it was, its
+    # generator included.
     a, b = _rooms()
     model = DPGMMClusterer(random_state=3).fit(a)
     twin = pickle.loads(pickle.dumps(model))
-    with pytest.raises(ValueError, match=r"points 1e\+09 from the mean .* Fit again"):
-        model.partial_fit(b + [1e9, 0.0])
+    with pytest.raises(ValueError, match=r"points 1e\+08 from the mean .* Fit again"):
+        model.partial_fit(b + 1e8 * np.sqrt([0.5, 0.5]))
     assert model.n_clusters_ == twin.n_clusters_
     np.testing.assert_array_equal(model.means_, twin.means_)
     np.testing.assert_array_equal(model.partial_fit(b).labels_, twin.partial_fit(b).labels_)
+
+
+@pytest.mark.parametrize("distance", [500.0, 5000.0])
+def test_clusterer_partial_fit_takes_a_far_batch_of_a_level_laser(distance):
+    # 3-D points of a level planar laser share one height, which the statistics hold
+    # exactly however far the robot goes: a batch kilometres away along x is a new room,
+    # not refused (a precision check on the largest coordinate refused it at 500 m, its
+    # prior scale along z being a millionth of the others').
+    rng = np.random.default_rng(0)
+    a = np.column_stack([rng.uniform(0, 10, (200, 2)), np.full(200, 0.3)])
+    model = DPGMMClusterer(random_state=0).fit(a)
+    n_clusters = model.n_clusters_
+    model.partial_fit(a + [distance, 0.0, 0.0])
+    assert model.n_clusters_ > n_clusters
+    new = model.means_[n_clusters:]
+    np.testing.assert_allclose(new[:, 2], 0.3, rtol=1e-12)
+    # Posterior means, shrunk towards the first fit's mean by a point's weight in 200.
+    assert np.all(new[:, 0] > 0.9 * distance)
 
 
 def test_a_batch_too_far_for_the_clusterer_leaves_the_map_as_it_was(office):
