@@ -4,4 +4,7 @@ import sys
 
 from .cli import main
 
-sys.exit(main())
+# Guarded as in cli.py: importing the module (documentation tools, package walkers) must
+# not run the command and exit the interpreter.
+if __name__ == "__main__":
+    sys.exit(main())
