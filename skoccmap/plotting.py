@@ -26,6 +26,15 @@ def _import_pyplot():
     return plt
 
 
+def _is_real_scalar(value):
+    """A real number: a Python or numpy scalar or a 0-d array, not a bool."""
+    if isinstance(value, bool | np.bool_):
+        return False
+    if isinstance(value, Real):
+        return True
+    return isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf"
+
+
 class OccupancyMapDisplay:
     """Occupancy probability and uncertainty panels of a 2-D map.
 
@@ -107,7 +116,7 @@ class OccupancyMapDisplay:
             raise ValueError(f"z selects a slice of a 3-D grid; this grid is 2-D (z={z!r}).")
         if grid.n_dims == 3:
             zmin = grid.origin[2]
-            if z is not None and (not isinstance(z, Real) or isinstance(z, bool)):
+            if z is not None and not _is_real_scalar(z):
                 raise TypeError(f"z must be a height in metres (a number), got {z!r}.")
             if z is not None and not np.isfinite(z):
                 raise ValueError(f"z must be a finite height, got {z!r}.")

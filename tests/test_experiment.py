@@ -468,8 +468,11 @@ def test_figure_functions_refuse_what_is_no_axes_figure_or_dpi(result, tmp_path)
         plot_maps(result, fig="x")
     # Before: matplotlib's TypeError ("x") and a C++ bad_alloc (1e6), after the folder was made.
     out = tmp_path / "figures"
-    for dpi in ("x", 0, -5, 1e6, float("nan"), True):
-        with pytest.raises(ValueError, match=r"dpi must be a number in \(0, 1000\]"):
+    for dpi in ("x", True, None):
+        with pytest.raises(TypeError, match="dpi must be a number"):
+            save_figures(result, out, dpi=dpi)
+    for dpi in (0, -5, 1201, 1e6, float("nan")):
+        with pytest.raises(ValueError, match=r"dpi must be in \(0, 1200\]"):
             save_figures(result, out, dpi=dpi)
     assert not out.exists()
 

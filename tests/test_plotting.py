@@ -163,9 +163,12 @@ def test_3d_grid_draws_a_slice():
         with pytest.raises(ValueError, match="outside"):
             OccupancyMapDisplay.from_grid(grid, z=z)
     # Not a number (numpy's ufunc TypeError, or int() of an array, before).
-    for z in ("1.5", np.array([1.5])):
+    for z in ("1.5", np.array([1.5]), True, np.array("1.5")):
         with pytest.raises(TypeError, match="z must be a height"):
             OccupancyMapDisplay.from_grid(grid, z=z)
+    # A 0-d array is a number.
+    a = OccupancyMapDisplay.from_grid(grid, z=np.array(1.5)).probability
+    np.testing.assert_array_equal(a, OccupancyMapDisplay.from_grid(grid, z=1.5).probability)
 
 
 def test_clear_error_without_matplotlib(monkeypatch):
