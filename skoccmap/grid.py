@@ -37,7 +37,11 @@ _MAX_CELLS = 50_000_000
 
 
 def _check_thresholds(free, occupied, names=("free_threshold", "occupied_threshold"), where=""):
-    """Refuse thresholds out of order or outside [0, 1], naming them ``names``."""
+    """Refuse thresholds that are no numbers, out of order or outside [0, 1], naming them
+    ``names``."""
+    for name, value in zip(names, (free, occupied), strict=True):
+        if not isinstance(value, Real) or isinstance(value, bool):
+            raise TypeError(f"{where}{name} must be a number, got {value!r}.")
     if not 0.0 <= free <= occupied <= 1.0:
         f, o = names
         raise ValueError(f"{where}need 0 <= {f} <= {o} <= 1, got {f}={free}, {o}={occupied}.")

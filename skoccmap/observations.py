@@ -74,8 +74,9 @@ _POSE_COLUMNS = {3: 2, 7: 3}
 
 
 def _number(value):
-    """``float(value)``, with TypeError for a bool (which would read as a length of 0 or 1)."""
-    if isinstance(value, (bool, np.bool_)):
+    """``float(value)``, with TypeError for a bool (which would read as a length of 0 or 1)
+    and for text ("8" is no length, though ``float`` reads it)."""
+    if isinstance(value, (bool, np.bool_, str, bytes)):
         raise TypeError(value)
     return float(value)
 

@@ -315,8 +315,9 @@ def test_bad_arguments_and_empty_logs(tiny_log, tmp_path):
     for bad in (-1.0, 0.0, np.inf, np.nan):
         with pytest.raises(ValueError, match="max_range must be a positive finite number"):
             load_carmen(tmp_path / "missing.log", max_range=bad)
-    # Not a length: True is not read as 1 m, nor a string compared with the ranges.
-    for bad in (True, "far"):
+    # Not a length: True is not read as 1 m, nor a string compared with the ranges or read
+    # as a number.
+    for bad in (True, "far", "8"):
         with pytest.raises(ValueError, match="max_range must be a positive number"):
             load_carmen(tmp_path / "missing.log", max_range=bad)
     empty = tmp_path / "empty.log"

@@ -787,6 +787,16 @@ def test_trinary_with_equal_thresholds():
     np.testing.assert_array_equal(grid.trinary(0.5, 0.5), [[0, -1, 100]])
 
 
+def test_trinary_thresholds_that_are_no_numbers_are_named():
+    # Before: numpy's comparison TypeError for a string, and True read as 1.
+    grid = OccupancyGrid([[0.4, 0.5, 0.6]], (0.0, 0.0), 1.0)
+    with pytest.raises(TypeError, match="free_threshold must be a number, got '0.1'"):
+        grid.trinary("0.1", 0.65)
+    with pytest.raises(TypeError, match="occupied_threshold must be a number, got True"):
+        grid.trinary(0.1, True)
+    np.testing.assert_array_equal(grid.trinary(np.float32(0.45), 0.55), [[0, -1, 100]])
+
+
 def test_auto_unknown_samples_the_prior_over_the_whole_grid():
     # 64 x 32 = 2048 cells, more than the sample: the prior 1 + y peaks in the top row
     # (y = 31.5, 0.9 * 32.5 = 29.25), which the first 1024 cells (y < 16) do not reach.

@@ -787,6 +787,17 @@ def test_a_grid_at_a_negative_stamp_is_refused_and_leaves_no_bag(tmp_path):
         assert not path.exists()
 
 
+def test_a_stamp_that_is_no_number_is_named(tmp_path):
+    # Before: numpy's "ufunc 'isfinite' not supported" for a string.
+    grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=1.0)
+    for stamp in ("1", True, [1.0]):
+        with pytest.raises(TypeError, match="stamp must be a time in seconds"):
+            grid.to_ros_message(stamp=stamp)
+        with pytest.raises(TypeError, match="stamp must be a time in seconds"):
+            grid.write_rosbag(tmp_path / "b", stamp=stamp)
+        assert not (tmp_path / "b").exists()
+
+
 def test_a_write_whose_close_fails_leaves_no_bag(tmp_path, monkeypatch):
     from rosbags.rosbag2 import Writer
 

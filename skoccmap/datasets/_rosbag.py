@@ -15,6 +15,7 @@ import shutil
 import warnings
 from collections import deque
 from dataclasses import dataclass
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -1092,6 +1093,8 @@ def _stamp_to_ns(stamp, ros_version):
     import time
 
     stamp = time.time() if stamp is None else stamp
+    if not isinstance(stamp, Real) or isinstance(stamp, bool):
+        raise TypeError(f"stamp must be a time in seconds (a number) or None, got {stamp!r}.")
     if not np.isfinite(stamp):
         raise ValueError(f"stamp must be a finite time in seconds, got {stamp!r}.")
     _check_stamps(np.array([float(stamp)]), ros_version, "stamp")
