@@ -5,6 +5,7 @@ import functools
 import os
 import sys
 import warnings
+from numbers import Real
 
 import joblib
 import numpy as np
@@ -120,6 +121,12 @@ def warn_unless_metres(starts, ends):
             UserWarning,
             stacklevel=caller_stacklevel(),
         )
+
+
+def is_number(value):
+    """Whether ``value`` is a real number (Python or numpy scalar), not a bool: ``True``
+    would read as 1, and text is no number however ``float`` reads it."""
+    return isinstance(value, Real) and not isinstance(value, bool)
 
 
 # Coordinates beyond this overflow in squared sums over many points (float max ~1.8e308).

@@ -22,6 +22,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import roc_auc_score, roc_curve
 from sklearn.utils import Bunch
 
+from ._validation import is_number
 from .metrics import _check_both_classes
 from .observations import HIT, NO_RETURN, RETURN
 
@@ -596,7 +597,7 @@ def save_figures(result, out, *, dpi=110):
         ) from exc
     # Checked before the folder is made: matplotlib's own refusal comes after it, and a
     # dpi of 1e6 is a C++ bad_alloc.
-    if not isinstance(dpi, Real) or isinstance(dpi, bool):
+    if not is_number(dpi):
         raise TypeError(f"dpi must be a number, got {dpi!r}.")
     if not 0 < dpi <= _MAX_DPI:
         raise ValueError(f"dpi must be in (0, {_MAX_DPI}], got {dpi!r}.")

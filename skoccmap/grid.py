@@ -14,12 +14,12 @@ import time
 import warnings
 import zipfile
 import zlib
-from numbers import Integral, Real
+from numbers import Integral
 from pathlib import Path
 
 import numpy as np
 
-from ._validation import caller_stacklevel, queries_of_our_own
+from ._validation import caller_stacklevel, is_number, queries_of_our_own
 
 __all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
 
@@ -40,7 +40,7 @@ def _check_thresholds(free, occupied, names=("free_threshold", "occupied_thresho
     """Refuse thresholds that are no numbers, out of order or outside [0, 1], naming them
     ``names``."""
     for name, value in zip(names, (free, occupied), strict=True):
-        if not isinstance(value, Real) or isinstance(value, bool):
+        if not is_number(value):
             raise TypeError(f"{where}{name} must be a number, got {value!r}.")
     if not 0.0 <= free <= occupied <= 1.0:
         f, o = names
@@ -160,11 +160,7 @@ class OccupancyGrid:
             raise ValueError(
                 f"origin must be {probability.ndim} finite coordinates, got {origin.tolist()}."
             )
-        if (
-            not isinstance(resolution, Real)
-            or isinstance(resolution, bool)
-            or not (np.isfinite(resolution) and resolution > 0)
-        ):
+        if not (is_number(resolution) and np.isfinite(resolution) and resolution > 0):
             raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
         with np.errstate(over="ignore"):
             far_corner = origin + resolution * np.array(probability.shape[::-1])
@@ -284,12 +280,7 @@ class OccupancyGrid:
         >>> grid.shape, grid.probability.round(2).tolist()
         ((2, 3), [[0.5, 0.5, 0.5], [0.4, 0.5, 0.7]])
         """
-        if not (
-            isinstance(resolution, Real)
-            and not isinstance(resolution, bool)
-            and np.isfinite(resolution)
-            and resolution > 0
-        ):
+        if not (is_number(resolution) and np.isfinite(resolution) and resolution > 0):
             raise ValueError(f"resolution must be a positive number, got {resolution!r}.")
         integral = isinstance(chunk_size, Integral) and not isinstance(chunk_size, bool)
         if not (integral and chunk_size >= 1):
@@ -299,11 +290,7 @@ class OccupancyGrid:
         if not (
             unknown_variance is None
             or (isinstance(unknown_variance, str) and unknown_variance == "auto")
-            or (
-                isinstance(unknown_variance, Real)
-                and not isinstance(unknown_variance, bool)
-                and unknown_variance > 0  # False for NaN
-            )
+            or (is_number(unknown_variance) and unknown_variance > 0)  # False for NaN
         ):
             raise ValueError(
                 "unknown_variance must be 'auto', None or a positive number (a variance), "

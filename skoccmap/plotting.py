@@ -4,10 +4,9 @@ matplotlib is imported only when something is drawn; install it with
 ``pip install "skoccmap[plot]"``.
 """
 
-from numbers import Real
-
 import numpy as np
 
+from ._validation import is_number
 from .grid import OccupancyGrid
 from .uncertainty import probability_std
 
@@ -27,10 +26,8 @@ def _import_pyplot():
 
 
 def _is_real_scalar(value):
-    """A real number: a Python or numpy scalar or a 0-d array, not a bool."""
-    if isinstance(value, bool | np.bool_):
-        return False
-    if isinstance(value, Real):
+    """A real number (:func:`is_number`) or a 0-d array of one."""
+    if is_number(value):
         return True
     return isinstance(value, np.ndarray) and value.ndim == 0 and value.dtype.kind in "iuf"
 

@@ -15,12 +15,11 @@ import shutil
 import warnings
 from collections import deque
 from dataclasses import dataclass
-from numbers import Real
 from pathlib import Path
 
 import numpy as np
 
-from .._validation import caller_stacklevel
+from .._validation import caller_stacklevel, is_number
 
 __all__ = ["load_rosbag", "write_rosbag"]
 
@@ -1093,7 +1092,7 @@ def _stamp_to_ns(stamp, ros_version):
     import time
 
     stamp = time.time() if stamp is None else stamp
-    if not isinstance(stamp, Real) or isinstance(stamp, bool):
+    if not is_number(stamp):
         raise TypeError(f"stamp must be a time in seconds (a number) or None, got {stamp!r}.")
     if not np.isfinite(stamp):
         raise ValueError(f"stamp must be a finite time in seconds, got {stamp!r}.")
