@@ -103,6 +103,14 @@ def _as_segment_rows(X, layout):
     return X
 
 
+def _check_training_rows(X, y_enc, classes):
+    """The checks every batch of training rows passes, in ``fit`` and each ``partial_fit``:
+    labels the right way round, and coordinates in metres (a warning)."""
+    _check_hits_are_points(X, y_enc == 1, classes)
+    d = X.shape[1] // 2
+    warn_unless_metres(X[:, :d], X[:, d:])
+
+
 def _check_hits_are_points(X, occupied, classes):
     """Refuse labels the wrong way round, and warn where the hits are not points.
 
@@ -1547,8 +1555,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def _fit(self, X, y_enc, classes):
         """``fit`` on validated rows (in ``layout``) and encoded labels (1 = occupied)."""
         X = _as_segment_rows(X, self.layout)
-        _check_hits_are_points(X, y_enc == 1, classes)
-        warn_unless_metres(X[:, : X.shape[1] // 2], X[:, X.shape[1] // 2 :])
+        _check_training_rows(X, y_enc, classes)
         self.classes_ = classes
         rng = check_random_state(self.random_state)
         start = time.perf_counter()
@@ -1810,8 +1817,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         X, y_enc = _as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y)
         # The checks of the first call: a later batch with its labels reversed (beams as
         # hits) or in millimetres would otherwise join the map without a word.
-        _check_hits_are_points(X, y_enc == 1, self.classes_)
-        warn_unless_metres(X[:, : X.shape[1] // 2], X[:, X.shape[1] // 2 :])
+        _check_training_rows(X, y_enc, self.classes_)
         self._update(X, y_enc)
         return self
 
