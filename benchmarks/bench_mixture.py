@@ -34,8 +34,9 @@ import numpy as np  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
 from skoccmap import OccupancyGrid  # noqa: E402
+from skoccmap._experts import _default_expert  # noqa: E402
 from skoccmap.datasets import make_paper_scans  # noqa: E402
-from skoccmap.mixture import MixtureGPOccupancyMap, _default_expert  # noqa: E402
+from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
 
 PAPER_N = 701  # observations of make_paper_scans() with its defaults

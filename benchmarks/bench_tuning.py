@@ -86,10 +86,11 @@ from bench_quality import (  # noqa: E402
 from sklearn.gaussian_process.kernels import ConstantKernel  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
+from skoccmap._experts import _default_expert  # noqa: E402
 from skoccmap.datasets import load_carmen  # noqa: E402
 from skoccmap.kernels import IntegralKernel  # noqa: E402
 from skoccmap.metrics import blocks_protocol, map_quality  # noqa: E402
-from skoccmap.mixture import MixtureGPOccupancyMap, _default_expert  # noqa: E402
+from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
 from skoccmap.observations import as_segments  # noqa: E402
 
 HERE = Path(__file__).resolve().parent

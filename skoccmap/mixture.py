@@ -6,28 +6,57 @@ the experts, whose latent predictions are merged by a rule of :mod:`skoccmap.com
 """
 
 import copy
-import re
 import sys
-import threading
 import time
 import warnings
 from functools import partial
 from numbers import Integral, Real
 
 import numpy as np
-from joblib import effective_n_jobs
-from scipy.spatial import cKDTree
-from scipy.special import ndtri
 from sklearn import get_config
 from sklearn.base import BaseEstimator, ClassifierMixin, _fit_context, clone
-from sklearn.gaussian_process.kernels import ConstantKernel, Product
 from sklearn.utils import check_random_state, gen_batches
 from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.multiclass import check_classification_targets
 from sklearn.utils.parallel import Parallel, delayed
 from sklearn.utils.validation import check_is_fitted, validate_data
 
+from ._beams import (
+    _NO_RETURN_REFERENCES,
+    _assign_no_return,
+    _beam_pieces,
+    _hit_tree,
+    _midpoints,
+    _observation_kinds,
+    _similarity_length_scale,
+)
+from ._experts import (
+    _append_rows,
+    _appended,
+    _ConstantExpert,
+    _default_expert,
+    _default_kernel,
+    _fit_expert,
+    _integral_parts,
+    _is_binary_ep,
+    _learns_kernel,
+    _prior_variance,
+    _takes_kernel_matrix,
+    _warn_once_each,
+)
 from ._integrals import _POINT_CHUNK, point_row_pairs
+from ._partition import (
+    _best,
+    _bisect,
+    _groups,
+    _merge_small,
+    _nearest_with_room,
+    _piece_gates,
+    _PieceGate,  # noqa: F401 (models pickled before the gates moved name it here)
+    _query_max,
+    _query_workers,
+    _split_hits,
+)
 from ._reach import ExpertReach, _extent, kernel_reach, threads_pay
 from ._shared_kernel import (
     learn_shared_kernel,
@@ -46,32 +75,11 @@ from ._validation import (
     validate_queries,
     warn_unless_metres,
 )
-from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .combine import COMBINERS, combine_pairs
-from .kernels import IntegralKernel
-from .observations import HIT, NO_RETURN, RETURN, split_segments
+from .observations import HIT, NO_RETURN, RETURN
 
 __all__ = ["MixtureGPOccupancyMap"]
 
-# Covariance ridge of the Gaussians that gate the pieces of a split cluster, relative to
-# the mean variance of the piece: keeps pieces along a wall (rank-deficient) invertible.
-_GATING_RIDGE = 1e-3
-# A hit carrying more rows (its beams' pieces) than this many times max_expert_size, and
-# than _MAX_HIT_ROWS (a kernel matrix of 0.8 GB), is an error: its expert, which holds at
-# least that hit, could not be split to size (a return beam of 100 km cut into 1 m pieces
-# asked for 75 GiB). A hit of the Intel log carries up to about 400 rows.
-_HIT_ROWS_FACTOR = 10
-_MAX_HIT_ROWS = 10_000
-# No-return beams are compared with at most this many return beams, drawn uniformly per
-# block: the exact argmax over all of them costs about 6% of all (no-return, return)
-# pairs in quadrature (on dense simulated scans), quadratic in the number of observations.
-_NO_RETURN_REFERENCES = 1000
-# (no-return, return) pairs bounded at once, and pairs per no-return beam integrated
-# first (the rest in rounds of doubling size).
-_NO_RETURN_PAIRS = 1 << 18
-_NO_RETURN_FIRST = 4
-# ... and the pairs with the largest loose bound whose exact bound is computed first.
-_NO_RETURN_SCREEN = 16
 # Training points of the gpc gating classifier (a GP over cluster labels is cubic in them).
 _GATING_GPC_MAX_SAMPLES = 300
 # Pieces (experts or windows) whose summed evidence learns the shared hyperparameters, at a
@@ -80,6 +88,21 @@ _GATING_GPC_MAX_SAMPLES = 300
 # share_hyperparameters); rows per window when experts are not size-bounded.
 _SHARED_PIECES = 128
 _SHARED_WINDOW_ROWS = 400
+# gating="coverage" counts an expert's cells within the distance at which the kernel falls
+# to this fraction of its peak: half a length scale for the squared exponential.
+_COVERAGE_TOLERANCE = float(np.exp(-1.0 / 8.0))
+# gating_threshold="auto", by gate (see the parameter's docstring for the measurements):
+# relative to the best-covered expert's share for the coverage gate, absolute otherwise.
+_AUTO_GATING_THRESHOLD = {"coverage": 0.35, "clusterer": 1e-3, "gpc": 1e-3}
+# Hits a free piece may join under piece_assignment="nearest_hit", nearest first: with
+# dense scans the nearest ones fill up (see _nearest_with_room).
+_NEAREST_HITS = 32
+# Cells (metres) in which ``min_hit_frequency`` counts hits and passes: the counting grid of
+# the Hilbert-maps protocol.
+_HIT_CELL_SIZE = 0.1
+# ... and a cell hit more often than this is lasting structure whatever its frequency: a
+# passer-by leaves a few hits per cell, a wall seen from many poses collects more.
+_MAX_TRANSIENT_HITS = 3
 
 
 def _as_segment_rows(X, layout):
@@ -166,43 +189,9 @@ def _check_known_labels(y, classes):
         )
 
 
-def _midpoints(X):
-    d = X.shape[1] // 2
-    return 0.5 * (X[:, :d] + X[:, d:])
-
-
 def _log(verbose, message):
     if verbose:
         print(f"[MixtureGPOccupancyMap] {message}", file=sys.stdout, flush=True)
-
-
-# ---------------------------------------------------------------------------------------
-# Assignment of observations to clusters
-# ---------------------------------------------------------------------------------------
-
-
-# gating="coverage" counts an expert's cells within the distance at which the kernel falls
-# to this fraction of its peak: half a length scale for the squared exponential.
-_COVERAGE_TOLERANCE = float(np.exp(-1.0 / 8.0))
-
-# gating_threshold="auto", by gate (see the parameter's docstring for the measurements):
-# relative to the best-covered expert's share for the coverage gate, absolute otherwise.
-_AUTO_GATING_THRESHOLD = {"coverage": 0.35, "clusterer": 1e-3, "gpc": 1e-3}
-
-# EP's stopping tolerance in the default expert (site changes in units of their marginal;
-# EPGaussianProcessClassifier's own default is 1e-6): see the ``expert`` parameter.
-_EXPERT_TOL = 1e-4
-
-# Hits a free piece may join under piece_assignment="nearest_hit", nearest first: with
-# dense scans the nearest ones fill up (see _nearest_with_room).
-_NEAREST_HITS = 32
-
-# Cells (metres) in which ``min_hit_frequency`` counts hits and passes: the counting grid of
-# the Hilbert-maps protocol.
-_HIT_CELL_SIZE = 0.1
-# ... and a cell hit more often than this is lasting structure whatever its frequency: a
-# passer-by leaves a few hits per cell, a wall seen from many poses collects more.
-_MAX_TRANSIENT_HITS = 3
 
 
 def _warn_if_every_hit_transient(transient_hit, bound):
@@ -215,662 +204,6 @@ def _warn_if_every_hit_transient(transient_hit, bound):
             UserWarning,
             stacklevel=caller_stacklevel(),
         )
-
-
-def _hit_tree(points):
-    """k-d tree over hit points, for nearest-hit queries.
-
-    Without compact nodes: on hits that share a coordinate exactly (the walls of a
-    simulated world along the axes) compact nodes made nearest-hit queries within 2 m
-    about 4x slower (545 against 126 us per query on B2's 3M observations, timed ad hoc),
-    while on the Intel log both take 2-3 us.
-    """
-    return cKDTree(points, compact_nodes=False)
-
-
-def _observation_kinds(X, occupied, return_radius, workers=1):
-    """HIT / RETURN / NO_RETURN code per row and the hit nearest to every return beam's end.
-
-    A beam is a return beam when a hit lies within ``return_radius`` of its end (the
-    observation model stops return beams a small margin short of their hit). A hit's
-    nearest hit is itself; a no-return beam's is -1.
-    """
-    d = X.shape[1] // 2
-    kinds = np.full(X.shape[0], NO_RETURN, dtype=np.intp)
-    kinds[occupied] = HIT
-    nearest_hit = np.full(X.shape[0], -1, dtype=np.intp)
-    beams = np.flatnonzero(~occupied)
-    hit_rows = np.flatnonzero(occupied)
-    nearest_hit[hit_rows] = hit_rows
-    if beams.size and hit_rows.size:
-        # Bounded: the nearest hit to the end of a no-return beam can lie far off, and
-        # looking for it dominated fits of millions of rows.
-        dist, idx = _hit_tree(X[hit_rows, :d]).query(
-            X[beams, d:], distance_upper_bound=return_radius, workers=workers
-        )
-        ret = dist <= return_radius
-        kinds[beams[ret]] = RETURN
-        nearest_hit[beams[ret]] = hit_rows[idx[ret]]
-    return kinds, nearest_hit
-
-
-def _similarity_length_scale(kernel, dim):
-    """Length scale(s) of the first ``length_scale`` parameter of a kernel.
-
-    One value or one per coordinate (``dim``); one per segment column (``2 * dim``, e.g.
-    an RBF over segment rows) gives the larger of the start and end values. 1.0 when the
-    kernel has no such parameter.
-    """
-    for key, value in kernel.get_params(deep=True).items():
-        if not key.endswith("length_scale"):
-            continue
-        value = np.asarray(value, dtype=float)
-        if value.size in (1, dim):
-            return value
-        if value.size == 2 * dim:
-            return np.maximum(value[:dim], value[dim:])
-    return np.asarray(1.0)
-
-
-def _assign_no_return(
-    X_nr, X_ret, ret_labels, length_scale, max_references=None, random_state=None, n_jobs=None
-):
-    """Label of the most similar return beam under the integral kernel, per no-return beam.
-
-    The paper's rule, exact over the return beams compared with (up to near-ties within the
-    quadrature's error, about 1e-8). The argmax is found by bounds: per no-return beam the
-    few return beams with the largest upper bound
-    (:func:`~skoccmap._integrals.pair_upper_bound`) are evaluated first, then, largest
-    bound first, only those whose bound beats the best value so far. A beam beyond the
-    kernel's reach of every return beam takes the label of the nearest one.
-
-    With more than ``max_references`` return beams, each block of no-return beams is
-    compared with its own uniform sample of (at most) that many: the cost stays linear in
-    the number of no-return beams, and they spread over all return beams instead of
-    piling onto the few of one sample. The samples are drawn up front and the blocks run
-    in ``n_jobs`` threads, so the labels do not depend on ``n_jobs``.
-    """
-    rng = check_random_state(random_state)
-    dim = X_nr.shape[1] // 2
-    scale = np.tile(np.broadcast_to(length_scale, (dim,)), 2)
-    A, B_all = X_nr / scale, X_ret / scale
-    n_ret = B_all.shape[0]
-    n_ref = n_ret if max_references is None else min(n_ret, max_references)
-    blocks = list(gen_batches(A.shape[0], max(1, _NO_RETURN_PAIRS // n_ref)))
-    if n_ref == n_ret:
-        samples = [np.arange(n_ret)] * len(blocks)
-    else:
-        # Drawn with replacement (duplicates dropped): without, every block would
-        # permute all return beams, a cost quadratic in the data overall.
-        samples = [np.unique(rng.randint(n_ret, size=n_ref)) for _ in blocks]
-    labels = np.empty(A.shape[0], dtype=np.intp)
-
-    def assign(block, refs):
-        labels[block] = ret_labels[refs[_most_similar(A[block], B_all[refs])]]
-
-    # Threads: the work is in numpy calls over a block's pairs, which release the GIL.
-    Parallel(n_jobs=n_jobs, require="sharedmem")(
-        delayed(assign)(block, refs) for block, refs in zip(blocks, samples, strict=True)
-    )
-    return labels
-
-
-def _most_similar(A, B):
-    """Index into ``B`` of the most similar segment to each row of ``A``.
-
-    Rows in scaled coordinates; found by bounds (see :func:`_assign_no_return`); the
-    nearest segment where none is within the kernel's reach. The exact bounds
-    (:func:`~skoccmap._integrals.pair_upper_bound`, which need the segments' distance) are
-    computed only for the pairs a looser, cheaper bound cannot rule out
-    (:func:`~skoccmap._integrals.loose_upper_bound`): the ``_NO_RETURN_SCREEN`` with the
-    largest loose bound, whose ``_NO_RETURN_FIRST`` largest exact bounds are integrated
-    first, then every pair whose loose bound beats the best similarity found. The pairs
-    whose exact bound beats it are then integrated in rounds, largest bound first, each
-    round raising the best and ruling out more of the rest.
-    """
-    from ._integrals import (
-        _CUTOFF,
-        crossing_upper_bound,
-        loose_upper_bound,
-        pair_integrals,
-        pair_upper_bound,
-    )
-
-    n_a, n_b = A.shape[0], B.shape[0]
-    rows = np.arange(n_a)
-    # Slack for the rounding of the bounds and the quadrature's error against them: the
-    # quadrature of long segments crossing at small angles comes out a few 1e-9 above the
-    # integral, where the crossing bound is tight.
-    slack = 1.0 + 1e-7
-    loose = loose_upper_bound(A, B) * slack
-    bound = np.full((n_a, n_b), -1.0)  # -1: not computed (bounds are >= 0)
-    dist2 = np.full((n_a, n_b), np.inf)
-    sim = np.full((n_a, n_b), -np.inf)
-
-    def exact(ii, jj):
-        bound[ii, jj], dist2[ii, jj] = pair_upper_bound(A[ii], B[jj])
-
-    def integrate(ii, jj):
-        sim[ii, jj] = pair_integrals(A[ii], B[jj])[0]
-
-    n_screen, n_first = min(_NO_RETURN_SCREEN, n_b), min(_NO_RETURN_FIRST, n_b)
-    top = np.argpartition(-loose, n_screen - 1, axis=1)[:, :n_screen]
-    exact(np.repeat(rows, n_screen), top.ravel())
-    first = np.argpartition(-bound, n_first - 1, axis=1)[:, :n_first]
-    integrate(np.repeat(rows, n_first), first.ravel())
-    best = sim.max(axis=1)
-    # The crossing bound, which needs no distances, rules out most crossing beams.
-    ii, jj = np.nonzero((loose > best[:, None]) & (bound < 0.0))
-    crossing = crossing_upper_bound(A[ii], B[jj]) * slack > best[ii]
-    exact(ii[crossing], jj[crossing])
-    # The rest of the candidates, each row's in decreasing order of their bounds.
-    ii, jj = np.nonzero((bound * slack > best[:, None]) & (dist2 < _CUTOFF**2) & np.isneginf(sim))
-    order = np.lexsort((-bound[ii, jj], ii))
-    ii, jj = ii[order], jj[order]
-    rank = np.arange(ii.size) - np.searchsorted(ii, ii)
-    done, step = 0, n_first
-    while True:
-        # A row is finished at its first candidate that the best rules out.
-        open_ = (rank >= done) & (bound[ii, jj] * slack > best[ii])
-        if not np.any(open_):
-            break
-        now = open_ & (rank < done + step)
-        integrate(ii[now], jj[now])
-        np.maximum.at(best, ii[now], sim[ii[now], jj[now]])
-        done, step = done + step, 2 * step
-    choice = np.argmax(sim, axis=1)
-    out_of_reach = np.flatnonzero(sim[rows, choice] <= 0.0)
-    if out_of_reach.size:
-        far_rows = A[out_of_reach]
-        _, far = pair_upper_bound(
-            np.repeat(far_rows, n_b, axis=0), np.tile(B, (far_rows.shape[0], 1))
-        )
-        choice[out_of_reach] = np.argmin(far.reshape(far_rows.shape[0], n_b), axis=1)
-    return choice
-
-
-def _beam_pieces(X, kinds, max_length, end_length):
-    """Training rows cut into pieces, and the row each piece comes from.
-
-    Return beams: pieces no longer than ``max_length``, halving in length towards their
-    hit down to ``end_length``. No-return beams: pieces doubling in length away from the
-    sensor, the first ``max_length`` long -- their evidence stays local near the robot,
-    while a beam that leaves the map for the sensor's maximum range (82 m on the Intel log)
-    costs a few rows rather than one per metre. ``max_length=None`` keeps no-return beams
-    whole. Hits and free points stay as they are.
-    """
-    d = X.shape[1] // 2
-    no_return = np.flatnonzero(kinds == NO_RETURN)
-    rest = np.flatnonzero(kinds != NO_RETURN)
-    near, near_source = split_segments(
-        X[rest], max_length, end_length=end_length, graded=kinds[rest] == RETURN
-    )
-    near_source = rest[near_source]
-    if no_return.size == 0:
-        return near, near_source
-    # From the far end, pieces double towards the sensor: split the reversed segments.
-    far, far_source = split_segments(
-        np.hstack([X[no_return, d:], X[no_return, :d]]), None, end_length=max_length
-    )
-    far_source = no_return[far_source]
-    # Both parts are in row order and no row is in both: merge them by row, in place.
-    at_near = np.arange(near_source.size) + np.searchsorted(far_source, near_source)
-    at_far = np.arange(far_source.size) + np.searchsorted(near_source, far_source)
-    pieces = np.empty((at_near.size + at_far.size, 2 * d))
-    source = np.empty(pieces.shape[0], dtype=near_source.dtype)
-    pieces[at_near], source[at_near] = near, near_source
-    pieces[at_far, :d], pieces[at_far, d:], source[at_far] = far[:, d:], far[:, :d], far_source
-    return pieces, source
-
-
-# ---------------------------------------------------------------------------------------
-# Merging small clusters, splitting big ones
-# ---------------------------------------------------------------------------------------
-
-
-def _merge_small(labels, hit_points, hit_labels, min_size):
-    """Merge clusters with fewer than ``min_size`` observations into their nearest one.
-
-    Returns the merged index of every cluster. A cluster of a few hits can learn nothing,
-    and the broad predictive density of a near-empty DP cluster would win the gate far
-    from all hits; nearest is by hit centroid, smallest first.
-    """
-    n_clusters = hit_labels.max() + 1
-    counts = np.bincount(labels, minlength=n_clusters).astype(float)
-    hit_counts = np.bincount(hit_labels, minlength=n_clusters).astype(float)
-    centroids = np.zeros((n_clusters, hit_points.shape[1]))
-    np.add.at(centroids, hit_labels, hit_points)
-    centroids /= hit_counts[:, None]
-    merged = np.arange(n_clusters)
-    alive = np.ones(n_clusters, dtype=bool)
-    while alive.sum() > 1:
-        live = np.flatnonzero(alive)
-        small = live[np.argmin(counts[live])]
-        if counts[small] >= min_size:
-            break
-        others = live[live != small]
-        target = others[np.argmin(np.linalg.norm(centroids[others] - centroids[small], axis=1))]
-        total = hit_counts[target] + hit_counts[small]
-        centroids[target] = (
-            hit_counts[target] * centroids[target] + hit_counts[small] * centroids[small]
-        ) / total
-        hit_counts[target] = total
-        counts[target] += counts[small]
-        alive[small] = False
-        merged[merged == small] = target
-    # Renumber the surviving clusters 0..K-1 in order.
-    return np.unique(merged, return_inverse=True)[1]
-
-
-def _groups(labels, n_groups):
-    """Row indices of each label 0 .. n_groups - 1, in order (one sort, not one pass each)."""
-    order = np.argsort(labels, kind="stable")
-    return np.split(order, np.searchsorted(labels[order], np.arange(1, n_groups)))
-
-
-def _query_max(query, weights):
-    """Each pair's largest weight among its query's pairs (pairs sorted by query)."""
-    if query.size == 0:
-        return np.zeros(0)
-    starts = np.flatnonzero(np.r_[True, query[1:] != query[:-1]])
-    largest = np.maximum.reduceat(weights, starts)
-    return np.repeat(largest, np.diff(np.r_[starts, query.size]))
-
-
-def _best(query, weights):
-    """Pairs holding their query's largest weight (pairs sorted by query)."""
-    return weights == _query_max(query, weights)
-
-
-def _bisect(points, max_size, weights=None):
-    """Split point indices recursively at the (weighted) median along the principal axis.
-
-    Returns a list of index arrays, each of total weight at most ``max_size`` (or a single
-    point heavier than that). Deterministic and balanced, so expert sizes stay bounded
-    however large the map grows.
-    """
-    weights = np.ones(points.shape[0]) if weights is None else np.asarray(weights, float)
-    pieces, stack = [], [np.arange(points.shape[0])]
-    while stack:
-        idx = stack.pop()
-        if idx.size == 1 or weights[idx].sum() <= max_size:
-            pieces.append(idx)
-            continue
-        p = points[idx]
-        centred = p - p.mean(axis=0)
-        # Principal axis = top right-singular vector of the centred points.
-        axis = np.linalg.svd(centred, full_matrices=False)[2][0]
-        order = np.argsort(centred @ axis, kind="stable")
-        cum = np.cumsum(weights[idx[order]])
-        half = int(np.clip(np.searchsorted(cum, 0.5 * cum[-1]) + 1, 1, idx.size - 1))
-        stack.append(idx[order[half:]])
-        stack.append(idx[order[:half]])
-    return pieces
-
-
-def _nearest_with_room(tree, points, radius, cap, rounds, workers=1):
-    """Index of each point's nearest hit (of ``tree``) that still has room, or -1.
-
-    In round j every point still without a hit asks its j-th nearest hit within
-    ``radius``, and a hit takes the nearest of its askers up to ``cap`` points in all; a
-    point whose ``rounds`` nearest hits within the radius are all full gets -1.
-
-    The neighbours are looked up for blocks of rounds that double in length (1, 2-3,
-    4-7, ...; at most 8 rounds at a time) and only for the points still asking: a point
-    that asks in every round costs about two queries of ``rounds`` neighbours, not one
-    per round, and memory stays linear in the points. ``workers`` is passed to
-    :meth:`scipy.spatial.cKDTree.query`; the result does not depend on it.
-    """
-    n_hits = tree.n
-    rounds = min(rounds, n_hits)
-    chosen = np.full(len(points), -1, dtype=np.intp)
-    load = np.zeros(n_hits, dtype=np.float64)
-    asking = np.arange(len(points))
-    first = 1
-    while first <= rounds and asking.size:
-        last = min(2 * first - 1, first + 7, rounds)
-        dist, hit = tree.query(
-            points[asking],
-            k=list(range(first, last + 1)),
-            distance_upper_bound=radius,
-            workers=workers,
-        )
-        for col in range(last - first + 1):
-            # A point with no j-th hit within the radius has none further either.
-            inside = np.isfinite(dist[:, col])
-            asking, dist, hit = asking[inside], dist[inside], hit[inside]
-            if asking.size == 0:
-                break
-            order = np.lexsort((dist[:, col], hit[:, col]))
-            target = hit[order, col]
-            rank = np.arange(target.size) - np.searchsorted(target, target, side="left")
-            take = rank < cap - load[target]
-            chosen[asking[order[take]]] = target[take]
-            load += np.bincount(target[take], minlength=n_hits)
-            # Still asking, in point order (as the next round's lookups are).
-            left = np.sort(order[~take])
-            asking, dist, hit = asking[left], dist[left], hit[left]
-        first = last + 1
-    return chosen
-
-
-def _query_workers(n_jobs):
-    """Threads for a k-d tree query under ``n_jobs`` (joblib's meaning, None = 1)."""
-    return max(int(effective_n_jobs(n_jobs)), 1)
-
-
-def _split_hits(hits, hit_cluster, n_clusters, piece_hit, max_size):
-    """Expert of each hit, and cluster of each expert: clusters split to ``max_size``.
-
-    A cluster whose hits carry more than ``max_size`` pieces (``piece_hit``: the hit each
-    piece follows) is bisected (:func:`_bisect`), each hit weighted by its pieces, and
-    every piece then joins the expert of its hit: cutting the pieces themselves would part
-    walls from the free space in front of them and leave one-class experts.
-    """
-    pieces_per_hit = np.bincount(piece_hit, minlength=hits.shape[0])
-    if max_size is not None and pieces_per_hit.size:
-        worst = int(np.argmax(pieces_per_hit))
-        limit = max(_HIT_ROWS_FACTOR * max_size, _MAX_HIT_ROWS)
-        if pieces_per_hit[worst] > limit:
-            raise ValueError(
-                f"the hit at {np.round(hits[worst], 3).tolist()} carries "
-                f"{pieces_per_hit[worst]} rows (its beams' pieces), and an expert holds at "
-                f"least one hit with its rows: more than {limit} (the larger of "
-                f"{_HIT_ROWS_FACTOR} x max_expert_size={max_size} and {_MAX_HIT_ROWS}). Its "
-                "beams are far longer than the map around them: check that the ranges are in "
-                "metres, or cut beams into longer pieces (max_beam_length)."
-            )
-    hit_expert = np.empty(hits.shape[0], dtype=np.intp)
-    expert_cluster = []
-    for c, mine in enumerate(_groups(hit_cluster, n_clusters)):
-        first = len(expert_cluster)
-        if max_size is None or pieces_per_hit[mine].sum() <= max_size:
-            parts = [np.arange(mine.size)]
-        else:
-            parts = _bisect(hits[mine], max_size, pieces_per_hit[mine])
-        for j, part in enumerate(parts):
-            hit_expert[mine[part]] = first + j
-            expert_cluster.append(c)
-    return hit_expert, np.asarray(expert_cluster, dtype=np.intp)
-
-
-def _piece_gates(expert_cluster, n_clusters, pieces, piece_expert, clusters=None, gates=None):
-    """Gate of the experts of each cluster (None for a cluster of one expert).
-
-    Each gate is fitted to the midpoints of its experts' ``pieces``. Only ``clusters`` (all
-    by default) are (re)made; the others keep their entry of ``gates``.
-    """
-    gates = (
-        [None] * n_clusters if gates is None else list(gates) + [None] * (n_clusters - len(gates))
-    )
-    groups = None
-    for c in range(n_clusters) if clusters is None else clusters:
-        ks = np.flatnonzero(expert_cluster == c)
-        if ks.size < 2:
-            gates[c] = None
-            continue
-        if groups is None:
-            groups = _groups(piece_expert, expert_cluster.size)
-        gates[c] = _PieceGate([_midpoints(pieces[groups[k]]) for k in ks])
-    return gates
-
-
-class _PieceGate:
-    """Gaussian responsibilities of the pieces of one split cluster (a fixed GMM).
-
-    An expert without pieces (its hits all left out as transient) weighs nothing; if no
-    expert of the cluster has pieces, they share it equally.
-    """
-
-    def __init__(self, pieces_points):
-        self.means_, self.chols_, self.log_weights_ = [], [], []
-        n_total = sum(len(p) for p in pieces_points)
-        for pts in pieces_points:
-            dim = pts.shape[1]
-            if len(pts) == 0:
-                self.means_.append(np.zeros(dim))
-                self.chols_.append(np.eye(dim))
-                self.log_weights_.append(-np.inf if n_total else 0.0)
-                continue
-            mean = pts.mean(axis=0)
-            cov = np.atleast_2d(np.cov(pts, rowvar=False)) if len(pts) > 1 else np.eye(dim)
-            ridge = _GATING_RIDGE * max(np.trace(cov) / dim, 1e-12) + 1e-12
-            chol = np.linalg.cholesky(cov + ridge * np.eye(dim))
-            self.means_.append(mean)
-            self.chols_.append(chol)
-            self.log_weights_.append(np.log(len(pts) / n_total))
-
-    def predict_proba(self, points):
-        log_p = np.empty((points.shape[0], len(self.means_)))
-        for j, (mean, chol, logw) in enumerate(
-            zip(self.means_, self.chols_, self.log_weights_, strict=True)
-        ):
-            z = np.linalg.solve(chol, (points - mean).T)
-            log_p[:, j] = logw - 0.5 * np.sum(z * z, axis=0) - np.sum(np.log(np.diag(chol)))
-        log_p -= log_p.max(axis=1, keepdims=True)
-        p = np.exp(log_p)
-        return p / p.sum(axis=1, keepdims=True)
-
-
-# ---------------------------------------------------------------------------------------
-# Experts
-# ---------------------------------------------------------------------------------------
-
-
-class _ConstantExpert:
-    """Expert of a cluster that saw one class only, when the expert is not an
-    :class:`~skoccmap.EPGaussianProcessClassifier` (which is fitted on that class).
-
-    Its latent variance is the prior variance (it learned nothing about the shape of the
-    map) and its latent mean is chosen so that ``Phi(mu / sqrt(1 + var))`` equals the
-    Laplace-smoothed frequency of the positive class, ``(n_pos + 1) / (n + 2)``.
-    """
-
-    def __init__(self, kernel, n_positive, n_samples):
-        self.kernel_ = kernel
-        self.proba_ = (n_positive + 1.0) / (n_samples + 2.0)
-
-    def prior_variance(self, X):
-        if self.kernel_ is None:
-            return np.ones(X.shape[0])
-        return np.asarray(self.kernel_.diag(X), dtype=np.float64)
-
-    def latent_mean_and_variance(self, X):
-        var = self.prior_variance(X)
-        return ndtri(self.proba_) * np.sqrt(1.0 + var), var
-
-
-def _takes_kernel_matrix(expert):
-    """Whether ``expert`` can be fitted on a kernel matrix computed outside it.
-
-    Only a classifier whose kernel is fixed (no optimiser) uses ``kernel(X, X)`` as it is,
-    and only :class:`~skoccmap.EPGaussianProcessClassifier` takes the matrix.
-    """
-    if not hasattr(expert, "_fit_warm_start") or not hasattr(expert, "get_params"):
-        return False
-    params = expert.get_params()
-    return params.get("kernel") is not None and params.get("optimizer", 0) is None
-
-
-def _training_kernel(kernel, X, previous=None):
-    """``kernel(X, X)``, reusing the entries of a previous fit's matrix where it can.
-
-    ``previous`` is ``(lower, position)``: the lower triangle of an earlier fit's matrix
-    (:func:`~skoccmap.classifier._lower_triangle`) and, per row of ``X``, its row in that
-    fit (-1 for a new row). Only the new rows' blocks are evaluated; the integral kernel
-    over segments is most of an expert's refit, and an update adds a few rows to an expert
-    of hundreds.
-    """
-    if previous is None:
-        return kernel(X)
-    lower, position = previous
-    old, new = np.flatnonzero(position >= 0), np.flatnonzero(position < 0)
-    K = np.empty((X.shape[0], X.shape[0]))
-    kept = np.ix_(position[old], position[old])
-    K[np.ix_(old, old)] = _from_lower_triangle(lower, symmetric=True)[kept]
-    if new.size:
-        # The new-new block by the symmetric evaluation, so that K stays exactly symmetric.
-        K[np.ix_(new, new)] = kernel(X[new])
-        if old.size:
-            cross = kernel(X[new], X[old])
-            K[np.ix_(new, old)] = cross
-            K[np.ix_(old, new)] = cross.T
-    return K
-
-
-def _fit_expert(expert, X, y, sites=None, previous=None, keep_kernel=False, hold=None):
-    """Fit one expert. One-class data: an EP expert runs EP on them (the GP posterior of
-    one class); another expert becomes a :class:`_ConstantExpert`.
-
-    ``sites``, a pair ``(site_precision, site_nu)`` per row, warm-starts an expert that
-    can take them (:class:`~skoccmap.EPGaussianProcessClassifier`); others ignore them.
-    ``hold``, a mask of rows, holds their sites fixed: EP runs on the others alone.
-    With ``keep_kernel``, an expert with a fixed kernel is fitted on ``kernel(X, X)``
-    computed here (from ``previous``, see :func:`_training_kernel`), which is returned,
-    packed, for the next refit.
-
-    Returns the expert, the warnings its fit raised, as ``(category, message)`` pairs
-    (warnings raised in worker processes would otherwise never reach the caller), and the
-    packed kernel matrix or None. Only the main thread of a process records warnings
-    (``catch_warnings`` is process-wide state, not safe in threads); expert fits in threads
-    warn as usual.
-    """
-    n_positive = int(np.sum(y == 1))
-    fit = expert.fit
-    if n_positive in (0, y.size):
-        # An expert left without rows (a part of a split cluster whose hits are all
-        # transient) is the prior.
-        if type(expert) is not EPGaussianProcessClassifier or y.size == 0:
-            kernel = expert.get_params().get("kernel") if hasattr(expert, "get_params") else None
-            return _ConstantExpert(kernel, n_positive, y.size), [], None
-        # EP on one class: the GP posterior of walls seen alone (or free space alone), with
-        # the kernel given. A constant at the prior variance would say nothing under the
-        # robust BCM, which weighs experts by what they learned.
-        expert.set_params(optimizer=None)
-        fit = partial(expert._fit_one_class, classes=np.array([0, 1], dtype=y.dtype))
-        sites, keep_kernel, hold = None, False, None
-    K = None
-    if keep_kernel and _takes_kernel_matrix(expert):
-        K = _training_kernel(expert.get_params()["kernel"], X, previous)
-    if (sites is not None or K is not None) and hasattr(expert, "_fit_warm_start"):
-        tau, nu = (None, None) if sites is None else sites
-
-        def fit(X, y):
-            return expert._fit_warm_start(X, y, tau, nu, kernel_matrix=K, hold=hold)
-
-    lower = None if K is None else _lower_triangle(K)
-    if threading.current_thread() is not threading.main_thread():
-        return fit(X, y), [], lower
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        expert = fit(X, y)
-    return expert, [(w.category, str(w.message)) for w in caught], lower
-
-
-def _append_rows(old, expert, X, y, n_old, sites=None, previous=None, keep_kernel=False):
-    """``old``, fitted on ``X[:n_old]``, with the rows ``X[n_old:]`` appended.
-
-    EP runs on the new rows' sites alone, the others held, on ``old``'s factor
-    (:meth:`~skoccmap.EPGaussianProcessClassifier._absorbed`): about the cost of predicting
-    the new rows. Where that fails, ``expert`` is fitted as by :func:`_fit_expert`, holding
-    the old rows' ``sites``. Returns what :func:`_fit_expert` does.
-    """
-    if n_old == X.shape[0]:
-        return old, [], None
-    lower = None
-    if previous is not None:
-        # The old matrix is kept: extend it for the expert's next refit.
-        K = _training_kernel(old.kernel_, X, previous)
-        K_cross, K_new = K[n_old:, :n_old], K[n_old:, n_old:]
-        lower = _lower_triangle(K) if keep_kernel else None
-    else:
-        K_cross, K_new = old.kernel_(X[n_old:], X[:n_old]), old.kernel_(X[n_old:])
-    absorbed = old._absorbed(X[n_old:], y[n_old:], K_cross, K_new)
-    if absorbed is not None:
-        return absorbed, [], lower
-    hold = np.arange(X.shape[0]) < n_old
-    return _fit_expert(expert, X, y, sites, previous, keep_kernel, hold=hold)
-
-
-def _appended(k, rows, old_rows, origin):
-    """Whether expert ``k``'s rows are its old rows with new ones after them (not split,
-    not new)."""
-    return origin[k] == k and np.array_equal(rows[k][: old_rows[k].size], old_rows[k])
-
-
-def _warn_once_each(expert_warnings, n_experts):
-    """Re-raise the experts' warnings in the caller: each kind once, with how many experts.
-
-    Messages that differ only in their numbers (a residual, an iteration count) are one
-    kind; the first expert's message stands for them.
-    """
-    kinds, stacklevel = {}, caller_stacklevel()
-    for caught in expert_warnings:
-        seen = set()
-        for category, message in caught:
-            key = (category, re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
-            if key not in seen:
-                seen.add(key)
-                first, count = kinds.get(key, (message, 0))
-                kinds[key] = (first, count + 1)
-    for (category, _), (message, count) in kinds.items():
-        warnings.warn(
-            f"{count} of {n_experts} expert(s): {message}", category, stacklevel=stacklevel
-        )
-
-
-def _learns_kernel(expert):
-    """Whether fitting ``expert`` learns kernel hyperparameters (an optimiser and a kernel
-    with free ones)."""
-    params = expert.get_params() if hasattr(expert, "get_params") else {}
-    kernel = params.get("kernel")
-    return params.get("optimizer") is not None and kernel is not None and kernel.n_dims > 0
-
-
-def _is_binary_ep(expert):
-    return type(expert) is EPGaussianProcessClassifier and expert.n_classes_ == 2
-
-
-def _integral_parts(kernel):
-    """``(c, k)`` for a kernel that is an :class:`IntegralKernel` ``k`` (``c`` None) or a
-    product of one with a ``ConstantKernel`` ``c``; None for any other kernel."""
-    if type(kernel) is IntegralKernel:
-        return None, kernel
-    if type(kernel) is Product:
-        for c, k in ((kernel.k1, kernel.k2), (kernel.k2, kernel.k1)):
-            if type(c) is ConstantKernel and type(k) is IntegralKernel:
-                return c, k
-    return None
-
-
-def _prior_variance(expert, X):
-    if isinstance(expert, _ConstantExpert):
-        return expert.prior_variance(X)
-    kernel = getattr(expert, "kernel_", None)
-    if kernel is None:
-        return np.ones(X.shape[0])
-    return np.asarray(kernel.diag(X), dtype=np.float64)
-
-
-def _default_kernel():
-    from sklearn.gaussian_process.kernels import ConstantKernel
-
-    from .kernels import IntegralKernel
-
-    # On separable occupancy data the evidence keeps growing with the signal variance (to
-    # the bound on the office): fixed at 1e3, which keeps most of the walls and calibration
-    # that larger values gain at less cost to ACES' ranking (see the ``expert`` parameter
-    # and benchmarks/bench_tuning.py), so that only the length scale is learned.
-    return ConstantKernel(1e3, "fixed") * IntegralKernel()
-
-
-def _default_expert(kernel=None):
-    """The expert of ``expert=None``: EP with the default kernel (or ``kernel``), stopped at
-    ``_EXPERT_TOL`` (see the ``expert`` parameter)."""
-    from .classifier import EPGaussianProcessClassifier
-
-    kernel = _default_kernel() if kernel is None else kernel
-    return EPGaussianProcessClassifier(kernel=kernel, tol=_EXPERT_TOL)
 
 
 # ---------------------------------------------------------------------------------------

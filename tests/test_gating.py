@@ -430,7 +430,7 @@ def test_piece_gate_is_the_posterior_of_a_gaussian_mixture_of_the_pieces():
     from scipy.special import logsumexp
     from scipy.stats import multivariate_normal
 
-    from skoccmap.mixture import _GATING_RIDGE, _PieceGate
+    from skoccmap._partition import _GATING_RIDGE, _PieceGate
 
     rng = np.random.default_rng(0)
     groups = [

@@ -23,17 +23,13 @@ from sklearn.model_selection import GridSearchCV
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import FunctionTransformer
 
+from skoccmap._beams import _assign_no_return, _beam_pieces
+from skoccmap._experts import _ConstantExpert
+from skoccmap._partition import _bisect, _merge_small
 from skoccmap.combine import COMBINERS, combine
 from skoccmap.datasets import make_paper_scans
 from skoccmap.kernels import IntegralKernel
-from skoccmap.mixture import (
-    MixtureGPOccupancyMap,
-    _assign_no_return,
-    _beam_pieces,
-    _bisect,
-    _ConstantExpert,
-    _merge_small,
-)
+from skoccmap.mixture import MixtureGPOccupancyMap
 from skoccmap.observations import HIT, NO_RETURN, RETURN, as_segments
 
 
@@ -157,9 +153,9 @@ def test_no_return_rule_matches_brute_force(paper, length_scale):
 
 
 def test_no_return_rule_on_samples_of_return_beams(paper, monkeypatch):
-    import skoccmap.mixture as mixture
+    import skoccmap._beams as beams
 
-    monkeypatch.setattr(mixture, "_NO_RETURN_PAIRS", 40 * 30)  # blocks of 40 beams
+    monkeypatch.setattr(beams, "_NO_RETURN_PAIRS", 40 * 30)  # blocks of 40 beams
     X, kind = paper.X, paper.kind
     ret, nr = X[kind == RETURN], X[kind == NO_RETURN]
     labels = np.arange(len(ret))
@@ -176,10 +172,10 @@ def test_no_return_rule_on_samples_of_return_beams(paper, monkeypatch):
 
 
 def test_no_return_beams_of_a_block_choose_among_its_sample(paper, monkeypatch):
-    import skoccmap.mixture as mixture
+    import skoccmap._beams as beams
 
     # Blocks of 40 no-return beams, each compared with a sample of at most 3 return beams.
-    monkeypatch.setattr(mixture, "_NO_RETURN_PAIRS", 40 * 3)
+    monkeypatch.setattr(beams, "_NO_RETURN_PAIRS", 40 * 3)
     X, kind = paper.X, paper.kind
     ret, nr = X[kind == RETURN], X[kind == NO_RETURN]
     assert ret.shape[0] > 3 and nr.shape[0] > 80
@@ -398,7 +394,7 @@ def test_piece_gates_favour_each_hits_own_piece(paper):
 def test_piece_gate_of_an_expert_without_pieces_weighs_nothing():
     # An online update can leave an expert of a split cluster without pieces (its hits all
     # transient): its share is 0, not NaN, and the others still sum to one.
-    from skoccmap.mixture import _PieceGate
+    from skoccmap._partition import _PieceGate
 
     rng = np.random.default_rng(0)
     groups = [rng.normal(size=(20, 2)), np.empty((0, 2)), rng.normal(3.0, size=(5, 2))]
@@ -1008,7 +1004,7 @@ def test_default_expert_ep_tolerance_moves_the_map_by_under_1e_3(default_model, 
     # The default experts stop EP at 1e-4 of a site's marginal: against experts run to
     # 1e-9, with fewer sweeps, and the map within 1e-3 (EP at 1e-2 moves it by ~1e-2).
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap.mixture import _default_kernel
+    from skoccmap._experts import _default_kernel
 
     _, Q = grid
     experts = [e for e in default_model.experts_ if hasattr(e, "n_iter_")]
@@ -1052,7 +1048,7 @@ def test_defaults_map_the_paper_scans(default_model, grid, combiner):
 @pytest.mark.parametrize("share", [False, True])
 def test_mixture_auc_within_001_of_single_gp(paper, share):
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap.mixture import _default_kernel
+    from skoccmap._experts import _default_kernel
 
     g = paper.environment.ground_truth_grid(0.2, scans=paper.scans)
     Q = as_segments(g.points[g.observed])
@@ -1132,7 +1128,7 @@ def test_expert_warnings_in_threads_are_not_recorded(paper):
     from sklearn.exceptions import ConvergenceWarning
 
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap.mixture import _fit_expert
+    from skoccmap._experts import _fit_expert
 
     expert = EPGaussianProcessClassifier(C(4.0) * RBF(1.0), optimizer=None, max_iter=1)
     out = []
@@ -1150,7 +1146,7 @@ def test_expert_warnings_in_threads_are_not_recorded(paper):
 def test_expert_warnings_are_counted_once_per_expert_and_kind():
     from sklearn.exceptions import ConvergenceWarning
 
-    from skoccmap.mixture import _warn_once_each
+    from skoccmap._experts import _warn_once_each
 
     caught = [
         # One expert warning twice of one kind (numbers of any width) counts once.
@@ -1205,7 +1201,7 @@ def test_warnings_of_fit_and_partial_fit_name_the_callers_line(paper):
     ],
 )
 def test_similarity_length_scale(kernel, expected):
-    from skoccmap.mixture import _similarity_length_scale
+    from skoccmap._beams import _similarity_length_scale
 
     np.testing.assert_allclose(np.atleast_1d(_similarity_length_scale(kernel, 2)), expected)
 
@@ -1296,7 +1292,7 @@ def test_a_hit_takes_at_most_half_an_expert_of_nearest_pieces(paper):
 def test_nearest_with_room_matches_a_greedy_assignment():
     from scipy.spatial import cKDTree
 
-    from skoccmap.mixture import _nearest_with_room
+    from skoccmap._partition import _nearest_with_room
 
     rng = np.random.default_rng(0)
     points, hits = rng.random((300, 2)), rng.random((12, 2))
@@ -1609,7 +1605,7 @@ def test_a_beam_far_longer_than_the_map_is_a_clear_error(paper):
 
 
 def test_split_hits_bounds_at_exactly_the_limits():
-    from skoccmap.mixture import _split_hits
+    from skoccmap._partition import _split_hits
 
     # Two clusters of three hits on a line; piece_hit gives each hit its pieces.
     hits = np.column_stack([np.arange(6.0), np.zeros(6)])
@@ -1650,7 +1646,7 @@ def test_an_expert_without_rows_is_the_prior():
     # A part of a split cluster whose hits are all transient holds no rows; EP on one class
     # had nothing to run on ("Found array with 0 sample(s)").
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap.mixture import _ConstantExpert, _fit_expert
+    from skoccmap._experts import _ConstantExpert, _fit_expert
 
     kernel = C(1e3, "fixed") * IntegralKernel(1.0, "fixed")
     expert = EPGaussianProcessClassifier(kernel, optimizer=None)
@@ -1664,7 +1660,7 @@ def test_an_expert_without_rows_is_the_prior():
 def test_a_one_class_expert_of_another_kind_is_the_smoothed_frequency():
     # A non-EP expert on free rows only: Phi(mean / sqrt(1 + var)) = (0 + 1) / (n + 2); on
     # hits only, (n + 1) / (n + 2).
-    from skoccmap.mixture import _fit_expert
+    from skoccmap._experts import _fit_expert
 
     X = np.tile([0.0, 0.0, 1.0, 0.0], (8, 1))
     Q = np.array([[0.0, 0.0, 1.0, 1.0], [3.0, 3.0, 3.0, 3.0]])
@@ -1681,7 +1677,7 @@ def test_a_one_class_ep_expert_is_the_same_whether_its_kernel_matrix_is_kept():
     # Hits along a wall and no free row, or free rows alone: the GP posterior of one class,
     # whether the kernel matrix is kept for later refits or not.
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap.mixture import _fit_expert
+    from skoccmap._experts import _fit_expert
 
     rng = np.random.default_rng(0)
     wall = as_segments(np.column_stack([np.zeros(15), rng.uniform(-2, 2, 15)]))

@@ -87,7 +87,7 @@ def test_update_refits_only_touched_experts(office, online):
 
 
 def test_new_pieces_join_the_expert_of_the_hit_nearest_to_them(office, online):
-    from skoccmap.mixture import _beam_pieces
+    from skoccmap._beams import _beam_pieces
 
     data, _ = office
     _, _, after = online
@@ -386,8 +386,8 @@ def test_refit_hyperparameters():
 
 
 def test_training_kernel_from_a_previous_matrix():
+    from skoccmap._experts import _training_kernel
     from skoccmap.classifier import _from_lower_triangle, _lower_triangle
-    from skoccmap.mixture import _training_kernel
 
     data = make_office_scans(random_state=0)
     kernel = ConstantKernel(100.0) * IntegralKernel(0.8)
@@ -633,7 +633,7 @@ def test_added_rows_change_the_map_at_once(office, label):
 
 
 def test_one_class_expert_is_recounted_at_once():
-    from skoccmap.mixture import _ConstantExpert
+    from skoccmap._experts import _ConstantExpert
 
     # A one-class expert is a count: it is refitted (recounted), never added to.
     model = _model(refit_fraction=10.0)
@@ -663,7 +663,7 @@ def test_an_expert_is_refitted_once_its_added_rows_reach_refit_fraction():
 def test_rows_added_by_a_refit_hold_exactly_the_old_sites(monkeypatch):
     # Where EP on the new sites alone fails, the expert is refitted on all rows with the old
     # rows' sites held: they stay as they were, and every new row gets a site of its own.
-    from skoccmap.mixture import _append_rows
+    from skoccmap._experts import _append_rows
 
     data = make_office_scans(random_state=0)
     rows = np.random.default_rng(0).choice(data.X.shape[0], 80, replace=False)
