@@ -173,6 +173,20 @@ def test_variances_of_nearly_flat_sites_are_not_lost_to_cancellation():
     np.testing.assert_allclose(ep_posterior(K, tau, nu).var, np.diag(Sigma), rtol=1e-11)
 
 
+def test_posterior_of_flat_sites_keeps_the_natural_means_it_was_given():
+    # All sites flat: alpha = (I + S K)^-1 nu = nu and the mean is K nu, whatever the
+    # caller does with its array of natural means afterwards.
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((5, 5))
+    K = A @ A.T / 5 + 0.8 * np.eye(5)
+    nu = rng.standard_normal(5)
+    given = nu.copy()
+    post = ep_posterior(K, np.zeros(5), nu)
+    nu[:] = 7.0
+    np.testing.assert_array_equal(post.alpha, given)
+    np.testing.assert_allclose(post.mean, K @ given, rtol=1e-12)
+
+
 def test_negative_precisions_that_need_row_exchanges_match_dense_inverse():
     # I + K S = [[0, 0.9], [-0.9, 2]]: its LU factorisation exchanges the rows and has a
     # negative pivot, yet K^-1 + S is positive definite and det(I + K S) = 0.81.
