@@ -50,6 +50,25 @@ def _tilted_moments(y, mu_cav, s2_cav, m=0.0):
     return z0, mean, z2 / z0 - mean**2
 
 
+def _matched_sites(K, y, tau, nu, sites=None):
+    """Sites matching the tilted moments of the marginals of the sites ``tau``, ``nu``: the
+    posterior densely, the moments of R&W eq. 3.58 in closed form (eq. 3.59)."""
+    n = len(y)
+    Sigma = np.linalg.solve(np.eye(n) + K * tau, K)
+    mu, var = Sigma @ nu, np.diag(Sigma)
+    tau_cav, nu_cav = 1 / var - tau, mu / var - nu
+    mu_cav, s2_cav = nu_cav / tau_cav, 1 / tau_cav
+    z = y * mu_cav / np.sqrt(1 + s2_cav)
+    ratio = norm.pdf(z) / norm.cdf(z)
+    mean = mu_cav + y * s2_cav * ratio / np.sqrt(1 + s2_cav)
+    var_hat = s2_cav - s2_cav**2 * ratio * (z + ratio) / (1 + s2_cav)
+    tau_new, nu_new = tau.copy(), nu.copy()
+    sites = np.arange(n) if sites is None else sites
+    tau_new[sites] = 1 / var_hat[sites] - tau_cav[sites]
+    nu_new[sites] = mean[sites] / var_hat[sites] - nu_cav[sites]
+    return tau_new, nu_new
+
+
 @pytest.mark.parametrize("y", [-1.0, 1.0])
 @pytest.mark.parametrize("k", [0.3, 4.0])
 @pytest.mark.parametrize("m", [-0.8, 0.0, 1.1])
@@ -626,6 +645,38 @@ def test_sequential_sweep_matches_algorithm_3_5_site_by_site(damping):
         nu[i] += (1.0 - damping) * (n_[0] - nu[i])
     np.testing.assert_allclose(got_tau, tau, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(got_nu, nu, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("damping", [0.0, 0.3, 0.8])
+def test_parallel_sweeps_keep_the_damping_weight_on_the_current_sites(damping):
+    # new = damping * current + (1 - damping) * proposed, all sites at once, for the first
+    # two sweeps from the prior's zero sites.
+    kernel, X, y = _problem(n=6)
+    K = kernel(X)
+    tau, nu = np.zeros(6), np.zeros(6)
+    for max_iter in (1, 2):
+        tau_new, nu_new = _matched_sites(K, y, tau, nu)
+        tau = damping * tau + (1 - damping) * tau_new
+        nu = damping * nu + (1 - damping) * nu_new
+        res = expectation_propagation(K, y, damping=damping, acceleration=0, max_iter=max_iter)
+        np.testing.assert_allclose(res.site_precision, tau, rtol=1e-7)
+        np.testing.assert_allclose(res.site_nu, nu, rtol=1e-7)
+
+
+@pytest.mark.parametrize("damping", [0.3, 0.7])
+def test_sequential_sweep_from_the_prior_keeps_the_damping_weight_on_each_site(damping):
+    # R&W Algorithm 3.5 with damping: site i is updated against the posterior of the
+    # sites before it, already damped.
+    kernel, X, y = _problem(n=6)
+    K = kernel(X)
+    res = expectation_propagation(K, y, update="sequential", damping=damping, max_iter=1)
+    tau, nu = np.zeros(6), np.zeros(6)
+    for i in range(6):
+        tau_new, nu_new = _matched_sites(K, y, tau, nu, sites=[i])
+        tau[i] = damping * tau[i] + (1 - damping) * tau_new[i]
+        nu[i] = damping * nu[i] + (1 - damping) * nu_new[i]
+    np.testing.assert_allclose(res.site_precision, tau, rtol=1e-7)
+    np.testing.assert_allclose(res.site_nu, nu, rtol=1e-7)
 
 
 @pytest.mark.parametrize("update", ["parallel", "sequential"])
