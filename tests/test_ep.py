@@ -679,6 +679,28 @@ def test_sequential_sweep_from_the_prior_keeps_the_damping_weight_on_each_site(d
     np.testing.assert_allclose(res.site_nu, nu, rtol=1e-7)
 
 
+def test_anderson_acceleration_of_one_step_mixes_the_last_two_damped_steps():
+    # Anderson mixing (Walker & Ni 2011) of the damped map x -> x + f(x), x = (tau, nu),
+    # with one past step (acceleration=1): x3 = x2 + f2 - gamma (dx + df), gamma fitting
+    # f2 by df = f2 - f1 in least squares, dx = x2 - x1, from the prior's zero sites x1.
+    kernel, X, y = _problem(n=6)
+    K = kernel(X)
+
+    def damped_step(x):
+        return 0.5 * (np.concatenate(_matched_sites(K, y, x[:6], x[6:])) - x)
+
+    x1 = np.zeros(12)
+    f1 = damped_step(x1)
+    x2 = x1 + f1
+    f2 = damped_step(x2)
+    dx, df = x2 - x1, f2 - f1
+    gamma = (df @ f2) / (df @ df)
+    x3 = x2 + f2 - gamma * (dx + df)
+    assert np.all(x3[:6] >= 0) and abs(gamma) > 0.01  # a proper, accelerated step
+    res = expectation_propagation(K, y, damping=0.5, acceleration=1, max_iter=2)
+    np.testing.assert_allclose(np.r_[res.site_precision, res.site_nu], x3, rtol=1e-7)
+
+
 @pytest.mark.parametrize("update", ["parallel", "sequential"])
 @pytest.mark.parametrize("signal_variance", [1e-4, 1e-2, 0.1])
 def test_converged_sites_meet_the_documented_stopping_rule(update, signal_variance):
