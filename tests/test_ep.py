@@ -604,6 +604,90 @@ def test_parallel_ep_on_near_duplicates_reaches_the_sequential_fixed_point(monke
     np.testing.assert_allclose(stalled.posterior.var, ref.posterior.var, rtol=1e-6, atol=1e-9)
 
 
+def _recorded_parallel_sweeps(monkeypatch, K, y, stall_sweeps, **options):
+    """EP's result, and each parallel sweep's sites, proposed sites and marginal variances."""
+    sweeps = []
+    proposed = ep_module._proposed_sites
+
+    def spy(y, mean, tau, nu, posterior):
+        tau_new, nu_new = proposed(y, mean, tau, nu, posterior)
+        sweeps.append((np.r_[tau, nu], np.r_[tau_new, nu_new], posterior.var.copy()))
+        return tau_new, nu_new
+
+    with monkeypatch.context() as patch:
+        patch.setattr(ep_module, "_proposed_sites", spy)
+        patch.setattr(ep_module, "_STALL_SWEEPS", stall_sweeps)
+        res = expectation_propagation(K, y, **options)
+    return res, sweeps
+
+
+def _sweep_residual(x, x_new, var):
+    """Largest change of a site in units of its marginal: |d tau| var, |d nu| sqrt(var)."""
+    n = len(var)
+    change = np.abs(x_new - x)
+    return max(np.max(change[:n] * var), np.max(change[n:] * np.sqrt(var)))
+
+
+def _stalls(sweeps, stall_sweeps):
+    """Sweeps at which the largest residual has not reached a new minimum for
+    ``stall_sweeps`` sweeps, counted afresh from each stall."""
+    stalls, best, best_sweep = [], np.inf, 0
+    for k, sweep in enumerate(sweeps, start=1):
+        residual = _sweep_residual(*sweep)
+        if residual < best:
+            best, best_sweep = residual, k
+        elif k - best_sweep == stall_sweeps:
+            stalls.append(k)
+            best, best_sweep = residual, k
+    return stalls
+
+
+def _is_damped_step(x, x_new, x_next, damping):
+    return np.allclose(
+        x_next - x, (1 - damping) * (x_new - x), rtol=1e-9, atol=1e-12 * np.max(np.abs(x))
+    )
+
+
+def test_stalled_parallel_ep_damps_halfway_to_one_then_sweeps_sequentially(monkeypatch):
+    # At damping 0.2 parallel sweeps cycle on the near-duplicate hits: the first stall
+    # moves the damping halfway to 1 (0.6), the second hands the sites over to sequential
+    # sweeps. Every parallel step is the plain damped one (no acceleration).
+    K, y = _wall_hit_again_and_again()
+    options = {"damping": 0.2, "acceleration": 0, "tol": 1e-10}
+    res, sweeps = _recorded_parallel_sweeps(monkeypatch, K, y, 3, **options)
+    stalls = _stalls(sweeps, 3)
+    assert len(stalls) >= 2 and len(sweeps) == stalls[1]
+    for k in range(1, len(sweeps)):  # the step of sweep k, from sweeps[k - 1] to sweeps[k]
+        (x, x_new, _), (x_next, _, _) = sweeps[k - 1], sweeps[k]
+        assert _is_damped_step(x, x_new, x_next, 0.2 if k < stalls[0] else 0.6)
+    assert res.converged and res.n_iter > stalls[1]
+
+
+def test_sequential_sweeps_after_a_stall_stay_within_max_iter(monkeypatch):
+    # The sequential sweeps after a second stall share the budget of max_iter sweeps.
+    K, y = _wall_hit_again_and_again()
+    options = {"damping": 0.2, "acceleration": 0, "tol": 1e-10}
+    _, sweeps = _recorded_parallel_sweeps(monkeypatch, K, y, 3, **options)
+    handover = _stalls(sweeps, 3)[1]
+    res, _ = _recorded_parallel_sweeps(monkeypatch, K, y, 3, max_iter=handover + 1, **options)
+    assert res.n_iter == handover + 1 and not res.converged
+
+
+def test_a_jump_of_the_residual_restarts_the_acceleration(monkeypatch):
+    # A sweep whose residual is more than ten times the smallest before it drops the
+    # Anderson history: it takes the plain damped step (no stall changes the damping here).
+    K, y = _wall_hit_again_and_again()
+    _, sweeps = _recorded_parallel_sweeps(monkeypatch, K, y, 10**6, tol=1e-10, max_iter=60)
+    lowest, jumps = np.inf, 0
+    for (x, x_new, var), (x_next, _, _) in zip(sweeps[:-1], sweeps[1:], strict=True):
+        residual = _sweep_residual(x, x_new, var)
+        if residual > 10 * lowest:
+            jumps += 1
+            assert _is_damped_step(x, x_new, x_next, 0.5)
+        lowest = min(lowest, residual)
+    assert jumps > 0
+
+
 @pytest.mark.parametrize("signal_variance", [1e3, 1e5, 1e13])
 def test_first_sweep_from_the_prior_is_not_taken_for_convergence(signal_variance):
     # At a large signal variance the sites are of order 1 / variance: measured against
