@@ -3,6 +3,7 @@
 Multi-class models are checked against binary problems fitted by hand.
 """
 
+import pickle
 import warnings
 
 import numpy as np
@@ -831,6 +832,15 @@ def test_packed_factor_unpacks_to_its_lower_triangle_with_zeros_above(n):
         np.testing.assert_array_equal(unpacked, lower)
         symmetric = _from_lower_triangle(_lower_triangle(full), symmetric=True)
         np.testing.assert_array_equal(symmetric, lower + np.tril(lower, -1).T)
+
+
+def test_a_fitted_classifier_pickles_to_less_than_one_square_factor():
+    # Predictions need the n x n lower Cholesky factor of B; kept as its lower triangle
+    # (with the n-vectors of the fit), the whole classifier is smaller than the square.
+    X, y = _data(n=150)
+    clf = EPGaussianProcessClassifier(C(1.0) * RBF(1.0), optimizer=None).fit(X, y)
+    assert len(pickle.dumps(clf)) < 8 * 150 * 150
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(clf)).predict(X), clf.predict(X))
 
 
 def test_a_refused_one_class_fit_leaves_no_classes_behind():
