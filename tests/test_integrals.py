@@ -129,6 +129,10 @@ CASES_2D = {
     "long antiparallel identical": (_seg([0, 0], [100, 0]), _seg([100, 0], [0, 0])),
     "shared start (one pose)": (_seg([1, 1], [9, 3]), _seg([1, 1], [3, 8])),
     "touching T": (_seg([0, 0], [6, 0]), _seg([3, 0], [3, 7])),
+    # The shorter segment starts 30 behind the longer one and crosses it at a shallow angle,
+    # both ends of the longer one more than the window margin off its line: the window is
+    # where its closest point lies within the longer segment, up to its far end.
+    "shallow crossing from behind": (_seg([-30, -11], [59, 1.5]), _seg([0, 0], [100, 0])),
     # Perpendicular segments (axis-aligned beams): the inner segment's closest point is the
     # same for every point of the outer one.
     "perpendicular from the line": (_seg([0, 0], [14, 0]), _seg([6, 0], [6, -6])),
