@@ -807,6 +807,41 @@ def test_loose_upper_bound_uses_either_line(swap):
 
 
 @pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("offset", [0.0, 1e3])
+def test_loose_upper_bound_of_segments_end_to_end_is_their_gap(dim, offset):
+    # Collinear segments 3 and 2 long, 5 apart end to end: the bounding circles' gap is the
+    # segments' distance, and neither line separates them (each lies on the other's line).
+    rng = np.random.default_rng(90 + dim)
+    e = rng.normal(size=dim)
+    e /= np.linalg.norm(e)
+    a = rng.uniform(-1.0, 1.0, dim) + offset
+    s1 = np.r_[a, a + 3.0 * e][None]
+    s2 = np.r_[a + 8.0 * e, a + 10.0 * e][None]
+    exact, dist2 = pair_upper_bound(s1, s2)
+    assert dist2[0] == pytest.approx(25.0)
+    loose = loose_upper_bound(s1, s2)[0, 0]
+    assert exact[0] <= loose <= np.exp(-0.5 * 4.999**2) * np.sqrt(2.0 * np.pi) / 3.0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_loose_upper_bound_of_collinear_segments_far_from_the_origin(dim):
+    # Segments end to end on one line, 1e6 length scales from the origin: their bounding
+    # circles touch, and the dense products that give the circles' gap round to about 1e-4
+    # there; the screen must still not fall below the exact bound (whose distance is 0).
+    rng = np.random.default_rng(95 + dim)
+    n = 50
+    e = rng.normal(size=(n, dim))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    a = 1e6 + rng.uniform(-10.0, 10.0, (n, dim))
+    joint = a + rng.uniform(0.5, 5.0, (n, 1)) * e
+    s1 = np.hstack([a, joint])
+    s2 = np.hstack([joint, joint + rng.uniform(0.5, 5.0, (n, 1)) * e])
+    exact, dist2 = pair_upper_bound(s1, s2)
+    assert np.all(dist2 == 0.0)
+    assert np.all(loose_upper_bound(s1, s2).diagonal() >= exact)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
 def test_tiled_points_hold_every_pair_within_the_cutoff(dim):
     # Points on a grid finer than the tiles, around a point, a short and two long segments,
     # with many pairs just inside and just beyond the cut-off; chunks of 64 pairs tile the
