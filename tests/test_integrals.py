@@ -747,6 +747,27 @@ def test_crossing_bound_takes_the_smaller_strip(swap):
         assert k[0] <= bound[0] <= 1.05 * k[0]
 
 
+def _normal_mass(lo, hi):
+    """Standard normal mass of ``[lo, hi]`` by adaptive quadrature, relative to its value."""
+    value = integrate.quad(lambda x: np.exp(-0.5 * x * x), lo, hi, epsabs=0.0, epsrel=1e-13)[0]
+    return value / np.sqrt(2.0 * np.pi)
+
+
+@pytest.mark.parametrize("cross_at", [-7.5, -6.9, 7.5, 8.5, 8.9])
+def test_crossing_bound_of_perpendicular_segments_keeps_its_digits_in_the_tails(cross_at):
+    # A unit segment and one 20 long at right angles, whose lines cross past an end of the
+    # first: the integral is 2 pi / (L1 L2) times the normal masses of the two strips, that
+    # of the first in a far tail (1e-15 near the cut-off), that of the second all but 1e-23.
+    # The bound is that product without the second mass: to its relative digits.
+    s1 = np.array([[0.0, 0.0, 1.0, 0.0]])
+    s2 = np.array([[cross_at, -10.0, cross_at, 10.0]])
+    expected = 2.0 * np.pi / 20.0 * _normal_mass(-cross_at, 1.0 - cross_at)
+    k, _ = pair_integrals(s1, s2)
+    assert k[0] == pytest.approx(expected, rel=1e-7, abs=0.0)
+    for bound in (crossing_upper_bound(s1, s2), pair_upper_bound(s1, s2)[0]):
+        assert bound[0] == pytest.approx(expected, rel=1e-9, abs=0.0)
+
+
 def _pair_by_erf_and_quad(s1, s2):
     """Mean of exp(-|p - q|^2 / 2) over two 2-D segments: the first segment's integral in
     closed form (erf) at each point of the second, that one by adaptive quadrature, all in
