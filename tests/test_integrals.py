@@ -734,6 +734,43 @@ def test_pairs_at_the_cutoff(dim):
             assert np.all(v.sum(axis=1) > 0.0) if inside else np.all(v == 0.0), (gap, v)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pairs_exactly_at_the_cutoff_are_kept(dim):
+    # Only pairs further apart than _CUTOFF are 0: pairs of each kind exactly _CUTOFF apart
+    # (coordinates that are sums of powers of 2, so that every distance is exact) are not,
+    # in K(X, Y), K(Y, X) and K of both, in pair_integrals (pairs with a segment) and in
+    # point_row_pairs.
+    e0, e1 = np.eye(dim)[0], np.eye(dim)[1]
+    short = 1.0 / 32.0  # below _SHORT
+
+    def row(start, end):
+        return np.r_[start, end]
+
+    def pt(x):
+        return row(x, x)
+
+    pairs = [
+        (pt(0 * e0), pt(_CUTOFF * e1)),
+        (pt((1.0 + _CUTOFF) * e0), row(0 * e0, 1.0 * e0)),
+        (pt((short + _CUTOFF) * e0), row(0 * e0, short * e0)),
+        (pt(2.0 * e0 + _CUTOFF * e1), row(0 * e0, 4.0 * e0)),
+        (row(0 * e0, 1.0 * e0), row((1.0 + _CUTOFF) * e0, (2.0 + _CUTOFF) * e0)),
+        (row(0 * e0, 4.0 * e0), row(_CUTOFF * e1, 4.0 * e0 + _CUTOFF * e1)),
+        (row(0 * e0, short * e0), row((short + _CUTOFF) * e0, (2 * short + _CUTOFF) * e0)),
+    ]
+    X, Y = np.array([x for x, _ in pairs]), np.array([y for _, y in pairs])
+    n = len(X)
+    for k in (
+        integral_kernel(X, Y).diagonal(),
+        integral_kernel(Y, X).diagonal(),
+        integral_kernel(np.vstack([X, Y]))[np.arange(n), n + np.arange(n)],
+        pair_integrals(X[1:], Y[1:])[0],
+        pair_integrals(Y[1:], X[1:])[0],
+        point_row_pairs(X[:4, :dim], Y, np.arange(4), np.arange(4)),
+    ):
+        assert np.all(k > 0.0), k
+
+
 @pytest.mark.parametrize("swap", [False, True])
 def test_crossing_bound_takes_the_smaller_strip(swap):
     # A T: the second segment starts on the middle of the first, at right angles. The
