@@ -188,6 +188,28 @@ def test_a_hit_at_exactly_the_bound_is_not_transient():
     assert counts.transient(hit, 0.26, 3)[0]
 
 
+def test_a_hit_with_a_length_is_counted_in_the_cell_of_its_end():
+    # Hits that are segments (accepted with a warning) count where they end, as the
+    # frequency grid counts them, and are looked up there.
+    X = np.array(
+        [
+            [0.05, 0.05, 0.35, 0.05],
+            [0.15, 0.05, 0.33, 0.02],
+            [0.25, 0.05, 0.37, 0.08],
+            [0.55, 0.05, 0.55, 0.05],
+        ]
+    )
+    counts = CellCounts(0.1, 2).add(X, np.ones(4, dtype=bool))
+    end_cells = np.floor(X[:, 2:] / 0.1)
+    for points in (X[:, 2:], X[:, :2]):
+        cells = np.floor(points / 0.1)
+        expected = (cells[:, None] == end_cells[None]).all(axis=-1).sum(axis=1)
+        hits, passes = counts.counted(points)
+        np.testing.assert_array_equal(hits, expected)
+        np.testing.assert_array_equal(passes, 0)
+    assert counts.counted(X[:3, 2:])[0].tolist() == [3, 3, 3]
+
+
 def test_a_map_without_a_lasting_hit_says_so():
     # Three hits in one cell that forty beams cross, and no other hit.
     y_beam = np.linspace(0.01, 0.09, 40)
