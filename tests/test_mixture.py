@@ -409,6 +409,54 @@ def test_piece_gate_of_an_expert_without_pieces_weighs_nothing():
     np.testing.assert_allclose(none, 0.5)
 
 
+def test_piece_gate_is_the_posterior_of_a_gaussian_per_expert_weighted_by_its_pieces():
+    # Each expert's Gaussian: mean and covariance of its pieces' midpoints (a single piece:
+    # unit covariance), plus a ridge of 1e-3 of its mean variance; its prior weight: its
+    # share of the pieces.
+    from scipy.stats import multivariate_normal
+
+    from skoccmap._partition import _PieceGate
+
+    rng = np.random.default_rng(0)
+    groups = [
+        rng.normal([0.0, 0.0], [2.0, 0.8], size=(30, 2)),
+        rng.normal([1.0, 1.0], [0.5, 0.5], size=(8, 2)),
+        np.array([[2.0, -1.0]]),
+    ]
+    points = rng.uniform(-2.0, 2.0, size=(50, 2))
+    density = np.empty((50, 3))
+    for k, g in enumerate(groups):
+        cov = np.cov(g, rowvar=False) if len(g) > 1 else np.eye(2)
+        cov = cov + 1e-3 * np.trace(cov) / 2 * np.eye(2)
+        density[:, k] = len(g) / 39 * multivariate_normal(g.mean(axis=0), cov).pdf(points)
+    expected = density / density.sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(_PieceGate(groups).predict_proba(points), expected, rtol=1e-9)
+
+
+def test_piece_gates_remake_only_the_clusters_asked_for():
+    # Clusters 0 and 1 of two experts each, cluster 2 of one; then cluster 1 gains a piece
+    # and a cluster 3 of two experts is added: only clusters 1 and 3 get new gates.
+    from skoccmap._partition import _piece_gates, _PieceGate
+
+    rng = np.random.default_rng(0)
+    expert_cluster = np.array([0, 0, 1, 1, 2])
+    piece_expert = np.repeat(np.arange(5), 4)
+    pieces = rng.normal(size=(20, 4))
+    old = _piece_gates(expert_cluster, 3, pieces, piece_expert)
+    assert isinstance(old[0], _PieceGate) and isinstance(old[1], _PieceGate) and old[2] is None
+    expert_cluster = np.r_[expert_cluster, 3, 3]
+    piece_expert = np.r_[piece_expert, 2, 5, 5, 6, 6]
+    pieces = np.vstack([pieces, rng.normal(size=(5, 4))])
+    new = _piece_gates(expert_cluster, 4, pieces, piece_expert, clusters=[1, 3], gates=old)
+    assert len(new) == 4 and new[0] is old[0] and new[2] is None
+    assert new[1] is not old[1] and isinstance(new[3], _PieceGate)
+    # The new gates are those of the experts' pieces now: each Gaussian at its midpoints.
+    mids = 0.5 * (pieces[:, :2] + pieces[:, 2:])
+    for c, experts in ((1, [2, 3]), (3, [5, 6])):
+        for mean, k in zip(new[c].means_, experts, strict=True):
+            np.testing.assert_allclose(mean, mids[piece_expert == k].mean(axis=0), rtol=1e-12)
+
+
 def test_split_pieces_keep_each_hit_with_its_beams(paper):
     # Pieces are cut through the hits; beams follow their hit, so no piece is left with
     # one class (a wall without the beams that saw it, or free space without its wall).
