@@ -1337,6 +1337,23 @@ def test_a_hit_takes_at_most_half_an_expert_of_nearest_pieces(paper):
     assert np.any(chosen[moved] != np.argmin(dist2[rows], axis=1))
 
 
+def _greedy_nearest_with_room(points, hits, radius, cap, rounds):
+    """Brute force of the rounds: the j-th choices of the unplaced points, nearest first
+    (equally near ones in point order)."""
+    dist = np.sqrt(((points[:, None] - hits[None]) ** 2).sum(axis=-1))
+    order = np.argsort(dist, axis=1)
+    expected, load = np.full(len(points), -1), np.zeros(len(hits), dtype=int)
+    for j in range(min(rounds, len(hits))):
+        asking = [
+            i for i in range(len(points)) if expected[i] < 0 and dist[i, order[i, j]] <= radius
+        ]
+        for i in sorted(asking, key=lambda i: (order[i, j], dist[i, order[i, j]])):
+            if load[order[i, j]] < cap:
+                expected[i] = order[i, j]
+                load[order[i, j]] += 1
+    return expected, order
+
+
 def test_nearest_with_room_matches_a_greedy_assignment():
     from scipy.spatial import cKDTree
 
@@ -1345,19 +1362,41 @@ def test_nearest_with_room_matches_a_greedy_assignment():
     rng = np.random.default_rng(0)
     points, hits = rng.random((300, 2)), rng.random((12, 2))
     chosen = _nearest_with_room(cKDTree(hits), points, 0.5, cap=15, rounds=4)
-    # Brute force of the rounds: the j-th choices of the unplaced points, nearest first.
-    dist = np.sqrt(((points[:, None] - hits[None]) ** 2).sum(axis=-1))
-    order = np.argsort(dist, axis=1)
-    expected, load = np.full(len(points), -1), np.zeros(len(hits), dtype=int)
-    for j in range(4):
-        asking = [i for i in range(len(points)) if expected[i] < 0 and dist[i, order[i, j]] <= 0.5]
-        for i in sorted(asking, key=lambda i: (order[i, j], dist[i, order[i, j]])):
-            if load[order[i, j]] < 15:
-                expected[i] = order[i, j]
-                load[order[i, j]] += 1
+    expected, order = _greedy_nearest_with_room(points, hits, 0.5, 15, 4)
     np.testing.assert_array_equal(chosen, expected)
     assert np.bincount(chosen[chosen >= 0]).max() == 15 and np.any(chosen < 0)
     assert np.any(chosen != order[:, 0])
+
+
+def test_nearest_with_room_asks_up_to_the_last_hit():
+    # As many rounds as hits, each with room for one point: one point is left to take its
+    # farthest hit in the last round.
+    from scipy.spatial import cKDTree
+
+    from skoccmap._partition import _nearest_with_room
+
+    points = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]])
+    hits = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    chosen = _nearest_with_room(cKDTree(hits), points, 5.0, cap=1, rounds=3)
+    expected, _ = _greedy_nearest_with_room(points, hits, 5.0, 1, 3)
+    np.testing.assert_array_equal(chosen, expected)
+    assert sorted(chosen.tolist()) == [0, 1, 2]
+
+
+def test_nearest_with_room_gives_equally_near_askers_room_in_point_order():
+    # Hits B, A, C at x = 3, -3, 0, with room for one point each. Points at B and A take
+    # them in round 1; p (x = -2, nearest A) and q (x = 2, nearest B) then ask C, 2 m from
+    # both, in round 2: the first point in order, p, takes it.
+    from scipy.spatial import cKDTree
+
+    from skoccmap._partition import _nearest_with_room
+
+    hits = np.array([[3.0, 0.0], [-3.0, 0.0], [0.0, 0.0]])
+    points = np.array([[3.0, 0.0], [-3.0, 0.0], [-2.0, 0.0], [2.0, 0.0]])
+    chosen = _nearest_with_room(cKDTree(hits), points, 10.0, cap=1, rounds=3)
+    expected, _ = _greedy_nearest_with_room(points, hits, 10.0, 1, 3)
+    np.testing.assert_array_equal(chosen, expected)
+    assert chosen.tolist() == [0, 1, 2, -1]
 
 
 def test_free_pieces_follow_the_nearest_hit_whatever_its_index():
