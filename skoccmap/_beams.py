@@ -47,7 +47,7 @@ def _hit_tree(points):
 def _observation_kinds(X, occupied, return_radius, workers=1):
     """HIT / RETURN / NO_RETURN code per row and the hit nearest to every return beam's end.
 
-    A beam is a return beam when a hit lies within ``return_radius`` of its end (the
+    A beam is a return beam when a hit lies closer than ``return_radius`` to its end (the
     observation model stops return beams a small margin short of their hit). A hit's
     nearest hit is itself; a no-return beam's is -1.
     """
