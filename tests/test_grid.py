@@ -376,6 +376,15 @@ def test_map_server_stem_keeps_its_dots(tmp_path):
     assert "image: intel_0.05.pgm" in yaml_path.read_text()
 
 
+def test_load_map_server_from_a_stem_with_dots(tmp_path):
+    # The stem "intel_0.05" names intel_0.05.yaml, not intel_0.yaml.
+    grid = OccupancyGrid([[0.9, 0.1]], origin=(1.0, -2.0), resolution=0.05)
+    grid.save_map_server(tmp_path / "intel_0.05")
+    back = OccupancyGrid.load_map_server(tmp_path / "intel_0.05")
+    np.testing.assert_array_equal(back.trinary(), [[100, 0]])
+    assert back.origin.tolist() == [1.0, -2.0] and back.resolution == 0.05
+
+
 @pytest.mark.parametrize("coordinate", [0.85, 1.7, 1.95, 0.0, -0.85])
 def test_one_point_extent_covers_the_point(coordinate):
     # floor(0.85 / 0.05) * 0.05 rounds above 0.85: the grid must still hold the point.
