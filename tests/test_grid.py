@@ -385,6 +385,24 @@ def test_load_map_server_from_a_stem_with_dots(tmp_path):
     assert back.origin.tolist() == [1.0, -2.0] and back.resolution == 0.05
 
 
+def test_save_writes_a_compressed_npz(tmp_path):
+    import zipfile
+
+    grid = OccupancyGrid(np.full((50, 40), 0.5), (0.0, 0.0), 0.1, variance=np.ones((50, 40)))
+    grid.save(tmp_path / "grid.npz")
+    with zipfile.ZipFile(tmp_path / "grid.npz") as archive:
+        members = archive.infolist()
+    assert {m.filename for m in members} == {
+        "probability.npy",
+        "origin.npy",
+        "resolution.npy",
+        "variance.npy",
+    }
+    assert all(m.compress_type == zipfile.ZIP_DEFLATED for m in members)
+    # 2000 equal doubles deflate to far less than their 16 kB.
+    assert (tmp_path / "grid.npz").stat().st_size < 4000
+
+
 @pytest.mark.parametrize("coordinate", [0.85, 1.7, 1.95, 0.0, -0.85])
 def test_one_point_extent_covers_the_point(coordinate):
     # floor(0.85 / 0.05) * 0.05 rounds above 0.85: the grid must still hold the point.
