@@ -403,6 +403,16 @@ def test_save_writes_a_compressed_npz(tmp_path):
     assert (tmp_path / "grid.npz").stat().st_size < 4000
 
 
+def test_a_grid_of_exactly_the_largest_size_is_allowed():
+    from skoccmap.grid import _grid_from_extent
+
+    # 10000 x 5000 cells: 50,000,000, the most a map may have; one row more is refused.
+    origin, counts = _grid_from_extent((0.0, 10000.0, 0.0, 5000.0), 1.0)
+    assert origin.tolist() == [0.0, 0.0] and counts.tolist() == [10000, 5000]
+    with pytest.raises(ValueError, match="too large .at most 50,000,000 cells"):
+        _grid_from_extent((0.0, 10000.0, 0.0, 5001.0), 1.0)
+
+
 @pytest.mark.parametrize("coordinate", [0.85, 1.7, 1.95, 0.0, -0.85])
 def test_one_point_extent_covers_the_point(coordinate):
     # floor(0.85 / 0.05) * 0.05 rounds above 0.85: the grid must still hold the point.
