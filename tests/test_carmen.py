@@ -193,6 +193,21 @@ def test_robotlaser_uses_its_own_geometry(tmp_path):
     np.testing.assert_allclose(only_flaser.angles, flaser_angles(3))
 
 
+def test_robotlaser_scans_keep_angles_that_differ_between_scans(tmp_path):
+    path = tmp_path / "two.log"
+    path.write_text(
+        _robotlaser([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], start=-0.5, resolution=0.25, max_range=30.0)
+        + _robotlaser([2.0, 2.0, 2.0], [1.0, 2.0, 0.3], start=0.1, resolution=0.25, max_range=30.0)
+    )
+    scans = load_carmen(path)
+    assert scans.angles.shape == (2, 3)
+    np.testing.assert_allclose(scans.angles, [[-0.5, -0.25, 0.0], [0.1, 0.35, 0.6]])
+    # The second scan's first beam points at its heading 0.3 plus its own start angle 0.1.
+    np.testing.assert_allclose(
+        scans.hit_points()[3], [1.0 + 2.0 * np.cos(0.4), 2.0 + 2.0 * np.sin(0.4)]
+    )
+
+
 def test_robotlaser_max_range_is_the_smallest_stated(tmp_path):
     # Scans stating 30 and 20 m: beyond 20 m the second cannot tell a return from none.
     path = tmp_path / "two.log"
