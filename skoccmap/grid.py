@@ -88,7 +88,10 @@ def _grid_from_extent(extent, resolution):
 
 
 def _snapped_origin(low, resolution):
-    """The largest multiple of ``resolution`` at or below ``low`` (per axis)."""
+    """A multiple of ``resolution`` at or below ``low`` (per axis): the largest, or one cell
+    below it where the quotient rounds down (75.3 / 0.1 is 752.99..., so 75.2 where 75.3
+    itself is 753 * 0.1). The grid then holds an empty row or column on its low side;
+    it covers the data either way."""
     origin = np.floor(low / resolution) * resolution
     # floor(m / r) * r can round above m (0.85 / 0.05 -> 17 * 0.05 > 0.85): one cell lower.
     return np.where(origin > low, origin - resolution, origin)
