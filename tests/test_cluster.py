@@ -762,6 +762,21 @@ def test_sampling_stops_by_the_documented_rule(params):
     assert joint == pytest.approx(model.best_log_joint_, rel=1e-9)
 
 
+def test_a_sweep_that_only_matches_the_best_log_joint_is_no_rise_at_zero_tol():
+    # Two far blobs: the chain returns to the same partition, whose log joint repeats exactly.
+    # With tol=0 such a sweep has not risen above the best, so it counts towards stopping.
+    X, _ = blobs(60, 2, 2, seed=1, separation=10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        model = DPGMMClusterer(
+            tol=0.0, burn_in=0, n_iter_no_change=3, max_iter=30, random_state=0
+        ).fit(X)
+    trace = model.log_joint_
+    assert len(np.unique(trace)) < len(trace)  # the best value is matched exactly
+    expected = _stopping_rule(trace, 0, 0.0, len(X), 3)[:2]
+    assert (model.n_iter_, model.converged_) == expected == (len(trace), True)
+
+
 def test_one_cluster_start_is_bisected_before_sampling():
     # init="one" with one sweep and no split-merge: the blobs are found by the greedy
     # bisection of the initialisation, not by the sampler.
@@ -775,7 +790,9 @@ def test_one_cluster_start_is_bisected_before_sampling():
     assert adjusted_rand_score(y, model.labels_) >= 0.95
 
 
-@pytest.mark.parametrize("alpha, n, expected", [(1.0, 500, 13), (0.5, 40, 5), (10.0, 500, 50)])
+@pytest.mark.parametrize(
+    "alpha, n, expected", [(1.0, 500, 13), (0.5, 40, 5), (10.0, 500, 50), (2.0, 10, 8)]
+)
 def test_kmeans_start_has_the_documented_number_of_clusters(monkeypatch, alpha, n, expected):
     # ceil(2 alpha log(1 + n / alpha)) clusters, at least 2 and at most 50.
     import skoccmap.cluster as cluster
