@@ -923,3 +923,24 @@ def test_clusterer_partial_fit_sequence_is_reproducible_on_ambiguous_batches():
         runs.append([model.partial_fit(b).labels_.copy() for b in batches[1:]])
     for first, second in zip(*runs, strict=True):
         np.testing.assert_array_equal(first, second)
+
+
+@pytest.mark.parametrize("burn_in", [0, 3, 7])
+def test_clusterer_partial_fit_runs_burn_in_sweeps_over_the_batch_only(monkeypatch, burn_in):
+    import skoccmap.cluster as cluster
+
+    a, b = _rooms()
+    model = DPGMMClusterer(burn_in=burn_in, max_iter=10, random_state=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        model.fit(a)
+    swept = []
+    sweep = cluster._CollapsedGibbs.gibbs_sweep
+
+    def spy(self, rng):
+        swept.append(len(self.X))
+        return sweep(self, rng)
+
+    monkeypatch.setattr(cluster._CollapsedGibbs, "gibbs_sweep", spy)
+    model.partial_fit(b[:20])
+    assert swept == [20] * burn_in
