@@ -568,6 +568,17 @@ def test_scalar_prior_parameters():
     assert adjusted_rand_score(y, model.labels_) >= 0.95
 
 
+@pytest.mark.parametrize("D", [1, 3])
+def test_default_covariance_prior_is_the_covariance_plus_a_millionth_of_its_mean_variance(D):
+    X = np.random.default_rng(2).normal(size=(30, D)) * np.arange(1, D + 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        model = DPGMMClusterer(max_iter=2, burn_in=0, random_state=0).fit(X)
+    cov = np.atleast_2d(np.cov(X.T))
+    expected = cov + 1e-6 * np.trace(cov) / D * np.eye(D)
+    np.testing.assert_allclose(model.covariance_prior_, expected, rtol=1e-14, atol=0)
+
+
 def test_coordinates_whose_squares_overflow_are_refused():
     # They gave NaN probabilities, and partial_fit NaN for good.
     rng = np.random.default_rng(0)
@@ -690,6 +701,17 @@ def test_greedy_split_bisects_one_cluster_into_the_blobs(seed):
     assert _log_joint(X, labels, prior, 1.0) == pytest.approx(_log_joint(X, y, prior, 1.0))
 
 
+def test_greedy_split_bisects_a_four_point_cluster_of_two_far_pairs():
+    # Two tight pairs far apart in one cluster: the split into the pairs raises the log joint
+    # (by brute force), so the bisection takes it.
+    X = np.array([[0.0, 0.0], [0.1, 0.05], [5.0, 5.0], [5.05, 5.1]])
+    prior = NIWPrior(X.mean(0), 0.01, 3.0, 0.05 * np.eye(2))
+    pairs = np.array([0, 0, 1, 1])
+    assert _log_joint(X, pairs, prior, 1.0) > _log_joint(X, np.zeros(4), prior, 1.0)
+    labels = greedy_split(X, np.zeros(4, dtype=np.intp), prior, 1.0)
+    assert adjusted_rand_score(pairs, labels) == 1.0
+
+
 def test_launch_state_is_nearest_anchor_then_two_restricted_steps():
     # The split-merge launch written out from its definition: each point joins the anchor
     # nearer in the metric Psi0^-1, then twice every point joins the sub-cluster (anchors
@@ -791,7 +813,8 @@ def test_one_cluster_start_is_bisected_before_sampling():
 
 
 @pytest.mark.parametrize(
-    "alpha, n, expected", [(1.0, 500, 13), (0.5, 40, 5), (10.0, 500, 50), (2.0, 10, 8)]
+    "alpha, n, expected",
+    [(1.0, 500, 13), (0.5, 40, 5), (10.0, 500, 50), (2.0, 10, 8), (0.05, 40, 2)],
 )
 def test_kmeans_start_has_the_documented_number_of_clusters(monkeypatch, alpha, n, expected):
     # ceil(2 alpha log(1 + n / alpha)) clusters, at least 2 and at most 50.
