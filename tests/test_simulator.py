@@ -560,6 +560,21 @@ def test_room_cast_matches_marching():
         assert abs(r - ref) < 2e-6
 
 
+def test_room_distance_hand_computed():
+    # Distance to the nearest occupied point: across the nearest room face, or to the
+    # obstacle box [2, 3] x [2, 3] x [0, 1] (its face, edge or corner); 0 inside it.
+    room = Room3D(size=(4, 4, 2), obstacles=[[2, 2, 0, 3, 3, 1]])
+    points = [
+        [0.5, 1.0, 1.0],  # room face x = 0
+        [1.7, 2.5, 0.5],  # obstacle face x = 2, 0.3 away (the floor is 0.5 away)
+        [3.3, 3.4, 0.6],  # obstacle edge x = 3, y = 3: hypot(0.3, 0.4)
+        [3.2, 1.8, 1.1],  # obstacle corner (3, 2, 1)
+        [2.5, 2.5, 0.5],  # inside the obstacle
+    ]
+    expected = [0.5, 0.3, 0.5, np.sqrt(0.04 + 0.04 + 0.01), 0.0]
+    assert_allclose(room.distance(points), expected, atol=1e-12)
+
+
 def test_room_grid_matches_supersampling():
     room = make_room3d_environment()
     grid = room.ground_truth_grid(0.5)
