@@ -844,6 +844,24 @@ def test_tf_chain_composes_rotations_about_different_axes(tmp_path):
     np.testing.assert_allclose(scans.hit_points(), expected, atol=1e-6)
 
 
+def test_tf_chain_composes_two_tilted_rotations(tmp_path):
+    # A rolled base carrying a laser that is turned and rolled too: both rotations of the
+    # chain have x and y components, and the laser's orientation is R_x(0.4) R_z(0.7) R_x(0.3).
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.2, 0.1, 0.3), yaw=0.7, roll=0.3, static=True)
+    for stamp in (0.0, 1.0):
+        bag.tf(stamp, "map", "base_link", (1.0, 2.0, 0.5), roll=0.4)
+    bag.scan(0.5, [1.0, 2.0, 3.0])  # angles -0.5, 0, 0.5
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    assert scans.n_dims == 3
+    rotation = _rot_x(0.4) @ _rot_z(0.7) @ _rot_x(0.3)
+    position = np.array([1.0, 2.0, 0.5]) + _rot_x(0.4) @ np.array([0.2, 0.1, 0.3])
+    angles = np.array([-0.5, 0.0, 0.5])
+    beams = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(3)])
+    expected = position + np.array([1.0, 2.0, 3.0])[:, None] * (beams @ rotation.T)
+    np.testing.assert_allclose(scans.hit_points(), expected, atol=1e-6)
+
+
 def test_a_stamp_sent_twice_keeps_its_last_sample(tmp_path):
     # The transform at t=1 is sent again (recorded later) with a corrected translation; tf2
     # keeps the last one sent.
@@ -946,6 +964,17 @@ def test_readings_at_range_min_and_range_max_are_hits(tmp_path):
     scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
     np.testing.assert_allclose(scans.angles, [-0.5, 0.0, 0.5], atol=1e-6)
     np.testing.assert_allclose(scans.ranges, [[0.1, 1.0, 5.0]], atol=1e-6)
+
+
+def test_equal_range_limits_keep_the_reading_between_them(tmp_path):
+    # range_min == range_max is not a swapped pair: a reading at that value is a hit, one
+    # below is dropped, one above is a beam without a return.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [2.0, 1.0, 3.0], range_min=2.0, range_max=2.0)
+    scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
+    np.testing.assert_allclose(scans.angles, [-0.5, 0.5], atol=1e-6)
+    np.testing.assert_array_equal(scans.ranges, [[2.0, np.inf]])
 
 
 def test_max_range_is_the_smallest_range_max_stated(tmp_path):
