@@ -560,6 +560,29 @@ def test_room_cast_matches_marching():
         assert abs(r - ref) < 2e-6
 
 
+def test_room_cast_from_outside_the_open_room_is_zero():
+    # The walls, floor and ceiling (surfaces included) are occupied: a ray starting there,
+    # even one pointing into the room, reads 0.
+    room = Room3D(size=(4, 4, 2))
+    origins = [[-0.1, 1.0, 1.0], [1.0, 1.0, 2.0], [4.0, 2.0, 1.0]]
+    dirs = [[1, 0, 0], [0, 0, -1], [-1, 0, 0]]
+    assert_array_equal(room.cast(origins, dirs), [0.0, 0.0, 0.0])
+
+
+def test_room_extent_holds_the_walls_on_both_sides():
+    room = Room3D(size=(4, 3, 2), wall_thickness=0.5)
+    assert_allclose(room.extent, [-0.5, 4.5, -0.5, 3.5, -0.5, 2.5])
+
+
+def test_room_grid_voxels_touching_a_face_are_occupied():
+    # A grid aligned with the room: of the 3 x 3 x 3 voxels inside a 3 m room, only the
+    # centre one touches none of the six faces; the voxels outside are occupied too.
+    room = Room3D(size=(3, 3, 3), wall_thickness=1.0)
+    grid = room.ground_truth_grid(1.0, extent=(-1, 4, -1, 4, -1, 4))
+    assert grid.shape == (5, 5, 5)
+    assert_array_equal(grid.points[grid.occupied == 0], [[1.5, 1.5, 1.5]])
+
+
 def test_room_distance_hand_computed():
     # Distance to the nearest occupied point: across the nearest room face, or to the
     # obstacle box [2, 3] x [2, 3] x [0, 1] (its face, edge or corner); 0 inside it.
