@@ -29,6 +29,8 @@ _NO_RETURN_SCREEN = 16
 
 
 def _midpoints(X):
+    """:func:`~skoccmap.observations.segment_midpoints` of rows already validated, without
+    its input checks (called per prediction chunk and per update)."""
     d = X.shape[1] // 2
     return 0.5 * (X[:, :d] + X[:, d:])
 

@@ -23,9 +23,16 @@ from sklearn.model_selection import GridSearchCV
 from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import FunctionTransformer
 
-from skoccmap._beams import _assign_no_return, _beam_pieces
-from skoccmap._experts import _ConstantExpert
-from skoccmap._partition import _bisect, _merge_small
+from skoccmap._beams import _assign_no_return, _beam_pieces, _similarity_length_scale
+from skoccmap._experts import _ConstantExpert, _default_kernel, _fit_expert, _warn_once_each
+from skoccmap._partition import (
+    _bisect,
+    _merge_small,
+    _nearest_with_room,
+    _piece_gates,
+    _PieceGate,
+    _split_hits,
+)
 from skoccmap.combine import COMBINERS, combine
 from skoccmap.datasets import make_paper_scans
 from skoccmap.kernels import IntegralKernel
@@ -394,8 +401,6 @@ def test_piece_gates_favour_each_hits_own_piece(paper):
 def test_piece_gate_of_an_expert_without_pieces_weighs_nothing():
     # An online update can leave an expert of a split cluster without pieces (its hits all
     # transient): its share is 0, not NaN, and the others still sum to one.
-    from skoccmap._partition import _PieceGate
-
     rng = np.random.default_rng(0)
     groups = [rng.normal(size=(20, 2)), np.empty((0, 2)), rng.normal(3.0, size=(5, 2))]
     points = rng.normal(1.0, 2.0, size=(50, 2))
@@ -415,8 +420,6 @@ def test_piece_gate_is_the_posterior_of_a_gaussian_per_expert_weighted_by_its_pi
     # share of the pieces.
     from scipy.stats import multivariate_normal
 
-    from skoccmap._partition import _PieceGate
-
     rng = np.random.default_rng(0)
     groups = [
         rng.normal([0.0, 0.0], [2.0, 0.8], size=(30, 2)),
@@ -425,10 +428,12 @@ def test_piece_gate_is_the_posterior_of_a_gaussian_per_expert_weighted_by_its_pi
     ]
     points = rng.uniform(-2.0, 2.0, size=(50, 2))
     density = np.empty((50, 3))
+    n_pieces = sum(len(g) for g in groups)
     for k, g in enumerate(groups):
         cov = np.cov(g, rowvar=False) if len(g) > 1 else np.eye(2)
         cov = cov + 1e-3 * np.trace(cov) / 2 * np.eye(2)
-        density[:, k] = len(g) / 39 * multivariate_normal(g.mean(axis=0), cov).pdf(points)
+        weight = len(g) / n_pieces
+        density[:, k] = weight * multivariate_normal(g.mean(axis=0), cov).pdf(points)
     expected = density / density.sum(axis=1, keepdims=True)
     np.testing.assert_allclose(_PieceGate(groups).predict_proba(points), expected, rtol=1e-9)
 
@@ -436,8 +441,6 @@ def test_piece_gate_is_the_posterior_of_a_gaussian_per_expert_weighted_by_its_pi
 def test_piece_gates_remake_only_the_clusters_asked_for():
     # Clusters 0 and 1 of two experts each, cluster 2 of one; then cluster 1 gains a piece
     # and a cluster 3 of two experts is added: only clusters 1 and 3 get new gates.
-    from skoccmap._partition import _piece_gates, _PieceGate
-
     rng = np.random.default_rng(0)
     expert_cluster = np.array([0, 0, 1, 1, 2])
     piece_expert = np.repeat(np.arange(5), 4)
@@ -1052,7 +1055,6 @@ def test_default_expert_ep_tolerance_moves_the_map_by_under_1e_3(default_model, 
     # The default experts stop EP at 1e-4 of a site's marginal: against experts run to
     # 1e-9, with fewer sweeps, and the map within 1e-3 (EP at 1e-2 moves it by ~1e-2).
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap._experts import _default_kernel
 
     _, Q = grid
     experts = [e for e in default_model.experts_ if hasattr(e, "n_iter_")]
@@ -1096,7 +1098,6 @@ def test_defaults_map_the_paper_scans(default_model, grid, combiner):
 @pytest.mark.parametrize("share", [False, True])
 def test_mixture_auc_within_001_of_single_gp(paper, share):
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap._experts import _default_kernel
 
     g = paper.environment.ground_truth_grid(0.2, scans=paper.scans)
     Q = as_segments(g.points[g.observed])
@@ -1176,7 +1177,6 @@ def test_expert_warnings_in_threads_are_not_recorded(paper):
     from sklearn.exceptions import ConvergenceWarning
 
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap._experts import _fit_expert
 
     expert = EPGaussianProcessClassifier(C(4.0) * RBF(1.0), optimizer=None, max_iter=1)
     out = []
@@ -1193,8 +1193,6 @@ def test_expert_warnings_in_threads_are_not_recorded(paper):
 
 def test_expert_warnings_are_counted_once_per_expert_and_kind():
     from sklearn.exceptions import ConvergenceWarning
-
-    from skoccmap._experts import _warn_once_each
 
     caught = [
         # One expert warning twice of one kind (numbers of any width) counts once.
@@ -1249,8 +1247,6 @@ def test_warnings_of_fit_and_partial_fit_name_the_callers_line(paper):
     ],
 )
 def test_similarity_length_scale(kernel, expected):
-    from skoccmap._beams import _similarity_length_scale
-
     np.testing.assert_allclose(np.atleast_1d(_similarity_length_scale(kernel, 2)), expected)
 
 
@@ -1357,8 +1353,6 @@ def _greedy_nearest_with_room(points, hits, radius, cap, rounds):
 def test_nearest_with_room_matches_a_greedy_assignment():
     from scipy.spatial import cKDTree
 
-    from skoccmap._partition import _nearest_with_room
-
     rng = np.random.default_rng(0)
     points, hits = rng.random((300, 2)), rng.random((12, 2))
     chosen = _nearest_with_room(cKDTree(hits), points, 0.5, cap=15, rounds=4)
@@ -1373,8 +1367,6 @@ def test_nearest_with_room_asks_up_to_the_last_hit():
     # farthest hit in the last round.
     from scipy.spatial import cKDTree
 
-    from skoccmap._partition import _nearest_with_room
-
     points = np.array([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]])
     hits = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
     chosen = _nearest_with_room(cKDTree(hits), points, 5.0, cap=1, rounds=3)
@@ -1388,8 +1380,6 @@ def test_nearest_with_room_gives_equally_near_askers_room_in_point_order():
     # them in round 1; p (x = -2, nearest A) and q (x = 2, nearest B) then ask C, 2 m from
     # both, in round 2: the first point in order, p, takes it.
     from scipy.spatial import cKDTree
-
-    from skoccmap._partition import _nearest_with_room
 
     hits = np.array([[3.0, 0.0], [-3.0, 0.0], [0.0, 0.0]])
     points = np.array([[3.0, 0.0], [-3.0, 0.0], [-2.0, 0.0], [2.0, 0.0]])
@@ -1692,8 +1682,6 @@ def test_a_beam_far_longer_than_the_map_is_a_clear_error(paper):
 
 
 def test_split_hits_bounds_at_exactly_the_limits():
-    from skoccmap._partition import _split_hits
-
     # Two clusters of three hits on a line; piece_hit gives each hit its pieces.
     hits = np.column_stack([np.arange(6.0), np.zeros(6)])
     hit_cluster = np.array([0, 0, 0, 1, 1, 1])
@@ -1733,7 +1721,6 @@ def test_an_expert_without_rows_is_the_prior():
     # A part of a split cluster whose hits are all transient holds no rows; EP on one class
     # had nothing to run on ("Found array with 0 sample(s)").
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap._experts import _ConstantExpert, _fit_expert
 
     kernel = C(1e3, "fixed") * IntegralKernel(1.0, "fixed")
     expert = EPGaussianProcessClassifier(kernel, optimizer=None)
@@ -1747,8 +1734,6 @@ def test_an_expert_without_rows_is_the_prior():
 def test_a_one_class_expert_of_another_kind_is_the_smoothed_frequency():
     # A non-EP expert on free rows only: Phi(mean / sqrt(1 + var)) = (0 + 1) / (n + 2); on
     # hits only, (n + 1) / (n + 2).
-    from skoccmap._experts import _fit_expert
-
     X = np.tile([0.0, 0.0, 1.0, 0.0], (8, 1))
     Q = np.array([[0.0, 0.0, 1.0, 1.0], [3.0, 3.0, 3.0, 3.0]])
     expert = _fast_expert()
@@ -1764,7 +1749,6 @@ def test_a_one_class_ep_expert_is_the_same_whether_its_kernel_matrix_is_kept():
     # Hits along a wall and no free row, or free rows alone: the GP posterior of one class,
     # whether the kernel matrix is kept for later refits or not.
     from skoccmap import EPGaussianProcessClassifier
-    from skoccmap._experts import _fit_expert
 
     rng = np.random.default_rng(0)
     wall = as_segments(np.column_stack([np.zeros(15), rng.uniform(-2, 2, 15)]))
