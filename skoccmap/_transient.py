@@ -100,8 +100,8 @@ class CellCounts:
             raise ValueError(
                 f"Coordinates more than {half * self.cell_size:g} m from the first data "
                 f"counted (near {(self.origin * self.cell_size).tolist()}) cannot be counted "
-                "in cells; keep the data within that distance, or pass "
-                "min_hit_frequency=None."
+                "in cells: are they in the coordinate frame of the first data? Keep the data "
+                "within that distance, or pass min_hit_frequency=None."
             )
         return cells.astype(np.int64)
 

@@ -63,6 +63,10 @@ def _split_rows(X, layout):
 # Within this distance (in cells) of a face, the order of two axes' crossings is decided
 # from their crossing parameters rather than from the rounded crossing point.
 _NEAR_FACE = 1e-6
+# Most cells one segment may cross: 1 678 km at 0.1 m. The traversal holds about 100 bytes
+# per crossing, so a reading far off the map (a failed range of 1e8 m) would ask for
+# gigabytes before anything else could say what is wrong.
+_MAX_SEGMENT_CELLS = 1 << 24
 
 
 def traverse_cells(starts, ends, origin, resolution, shape):
@@ -95,6 +99,13 @@ def traverse_cells(starts, ends, origin, resolution, shape):
         Integer cell index of each visit. Each segment visits its start cell and every cell
         it passes through exactly once. Visits are not in path order: first every
         segment's start cell, then the cells entered through faces of each axis in turn.
+
+    Raises
+    ------
+    ValueError
+        If a segment is not finite or leaves the grid, or crosses more than 16 777 216
+        cells (1 678 km at 0.1 m: a failed range read as a distance), whose visits alone
+        would take gigabytes.
 
     Examples
     --------
@@ -150,6 +161,7 @@ def _traverse_flat(q0, q1, shape):
     upper = np.asarray(shape) - 1
     i0 = np.clip(np.floor(q0).astype(np.int64), 0, upper)
     i1 = np.clip(np.floor(q1).astype(np.int64), 0, upper)
+    _check_crossings(np.abs(i1 - i0).sum(axis=1))
     dq = q1 - q0
     strides = np.cumprod((1,) + shape[:0:-1])[::-1]
     seg_parts = [np.arange(n)]
@@ -192,6 +204,18 @@ def _traverse_flat(q0, q1, shape):
         seg_parts.append(seg)
         flat_parts.append(flat)
     return np.concatenate(seg_parts), np.concatenate(flat_parts)
+
+
+def _check_crossings(n_crossings):
+    """ValueError when a segment would cross more than ``_MAX_SEGMENT_CELLS`` cells."""
+    if n_crossings.size and n_crossings.max() >= _MAX_SEGMENT_CELLS:
+        longest = int(n_crossings.max()) + 1
+        raise ValueError(
+            f"a segment crosses {longest:,} grid cells, more than {_MAX_SEGMENT_CELLS:,}: a "
+            "reading far beyond any sensor's range (a failed range read as a distance?). "
+            "Drop such rows or clip them to the sensor's maximum range (or, for a grid, use a "
+            "coarser resolution)."
+        )
 
 
 def _passed_cells(q0, q1, shape):

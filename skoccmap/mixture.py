@@ -1273,6 +1273,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         n_old_hits, n_old_pieces = self._hits.shape[0], self._pieces.shape[0]
         n_old_experts = self.n_experts_
         all_hits = np.vstack([self._hits, new_hits])
+        # First, as it changes nothing: a batch it refuses (a reading far off the map)
+        # leaves the clusterer and the random state as they were.
+        transient, cell_counts = self._transient_hits(X, occupied, self._cell_counts)
 
         # 1. Cluster and expert of each new hit.
         raw = self._new_hit_clusters(new_hits) if new_hits.shape[0] else np.empty(0, int)
@@ -1287,7 +1290,6 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         # 2. Pieces of the new rows, appended to the training state. Old pieces keep
         # their hit even where a new hit lies nearer.
         pieces, source = _beam_pieces(X, kinds, self.max_beam_length, self.beam_end_length)
-        transient, cell_counts = self._transient_hits(X, occupied, self._cell_counts)
         pieces, source = self._thinned(
             pieces, source, y_enc, rng, transient, kept=self._pieces[self._piece_y != 1]
         )

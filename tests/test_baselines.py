@@ -170,6 +170,17 @@ def test_traverse_segments_between_grid_corners_stay_in_their_cell_range():
             _assert_staircase(mine, tuple(i0), tuple(i1))
 
 
+def test_traverse_refuses_a_segment_over_the_cell_limit(monkeypatch):
+    import skoccmap.baselines as baselines
+
+    monkeypatch.setattr(baselines, "_MAX_SEGMENT_CELLS", 10)
+    # 9 crossings (10 cells, 4 + 5 along the axes) pass; 10 crossings are refused.
+    seg, cells = traverse_cells(np.zeros((1, 2)), [[4.5, 5.5]], np.zeros(2), 1.0, (12, 12))
+    assert len(cells) == 10
+    with pytest.raises(ValueError, match="crosses 11 grid cells, more than 10"):
+        traverse_cells(np.zeros((1, 2)), [[5.5, 5.5]], np.zeros(2), 1.0, (12, 12))
+
+
 def _loop_reference(X, y, res, l_occ, l_free, l_min, l_max):
     """Per-row log-odds sums with the box-clipping cells, excluding each beam's end cell."""
     n_dims = X.shape[1] // 2
@@ -282,6 +293,15 @@ def test_bad_input():
     for grid in (OccupancyGridMap, FrequencyGridMap):
         with pytest.raises(ValueError, match="far off the map"):
             grid().fit(far, [0, 1])
+    # A beam that fits the index but crosses a billion cells: refused before traversal.
+    failed_range = np.array([[0.0, 0.0, 1e8, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    for fit in (
+        OccupancyGridMap().fit,
+        FrequencyGridMap().fit,
+        lambda X, y: OccupancyGridMap().fit(X, y, scan_index=[0, 1]),
+    ):
+        with pytest.raises(ValueError, match="crosses 1,000,000,001 grid cells"):
+            fit(failed_range, [0, 1])
     with pytest.raises(NotFittedError):
         OccupancyGridMap().predict_proba(X)
     est = OccupancyGridMap().fit(X, [0, 1, 0, 1])

@@ -948,6 +948,12 @@ def test_bad_input_raises_clear_errors(paper):
         warnings.simplefilter("error")
         with pytest.raises(ValueError, match=r"up to 1e\+160.*Rescale or shift"):
             model.partial_fit(far_beam[-5:], far_y[-5:])
+    # A failed range read as 1e8 m: a billion cells for the transient hits' counts.
+    failed_range = np.r_[paper.X, [[0.0, 0.0, 1e8, 0.0]]]
+    with pytest.raises(ValueError, match="crosses 1,000,000,001 grid cells.*Drop such rows"):
+        _mixture().fit(failed_range, far_y)
+    with pytest.raises(ValueError, match="crosses 1,000,000,001 grid cells"):
+        model.partial_fit(failed_range[-5:], far_y[-5:])
     with pytest.raises(ValueError, match="contains NaN. Observations must be finite"):
         model.partial_fit(X[:5] * np.nan, paper.y[:5])
     with pytest.raises(ValueError, match="contains infinity. Query points must be finite"):

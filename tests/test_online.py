@@ -302,19 +302,24 @@ def test_an_empty_batch_changes_nothing(office):
         lambda X, y: (X[:, :3], y),
         lambda X, y: (X, np.where(y == 1, 7, y)),
         lambda X, y: (X, np.where(np.arange(y.size) % 3 == 0, 2, y)),
+        # A failed range read as 1e8 m, refused by the transient hits' cell counts.
+        lambda X, y: (np.r_[X, [[0.0, 0.0, 1e8, 0.0]]], np.r_[y, 0]),
     ],
-    ids=["nan", "columns", "unknown-label", "three-classes"],
+    ids=["nan", "columns", "unknown-label", "three-classes", "failed-range"],
 )
 def test_bad_batch_is_refused_without_change(office, make_bad):
     data, queries = office
     model = _model().partial_fit(*_batch(data, 0, 10), classes=[0, 1])
     before = model.predict_proba(queries)
+    state = pickle.dumps(model)
     n_rows, n_experts = model.cluster_labels_.size, model.n_experts_
     X, y = make_bad(*_batch(data, 10, 12))
     with pytest.raises(ValueError):
         model.partial_fit(X, y)
     assert model.cluster_labels_.size == n_rows and model.n_experts_ == n_experts
     np.testing.assert_array_equal(model.predict_proba(queries), before)
+    # Nothing else moved either: the clusterer, the random state, the cell counts.
+    assert pickle.dumps(model) == state
     # Still usable: a good batch goes in.
     model.partial_fit(*_batch(data, 10, 12))
     assert model.cluster_labels_.size > n_rows
@@ -771,10 +776,16 @@ def test_a_batch_too_far_for_the_clusterer_leaves_the_map_as_it_was(office):
     n_rows, n_clusters = model.cluster_labels_.size, model.clusterer_.n_clusters_
     X, y = _batch(data, 10, 12)
     with pytest.raises(ValueError, match="Fit again on all points"):
-        model.partial_fit(X + 1e10, y)
+        model.partial_fit(X + 1e7, y)
     assert model.cluster_labels_.size == n_rows
     assert model.clusterer_.n_clusters_ == n_clusters
     np.testing.assert_array_equal(model.predict_proba(queries), before)
+    # Farther still, beyond the cells that count hits (1.07e8 m): refused before the
+    # clusterer sees the batch.
+    state = pickle.dumps(model)
+    with pytest.raises(ValueError, match="cannot be counted in cells: are they in the coord"):
+        model.partial_fit(X + 1e10, y)
+    assert pickle.dumps(model) == state
 
 
 # -- skoccmap map --online -----------------------------------------------------------------
