@@ -211,6 +211,39 @@ def test_3d_slice_is_the_layer_holding_z(z, k):
     assert disp.ax_.get_title() == f"P(occupied), slice at z = {k + 0.5:.2f} m"
 
 
+def test_3d_default_slice_is_the_layer_holding_the_mid_height():
+    # An even number of layers: four of 1 m from z = 0. The grid's mid-height, 2 m, is the
+    # bottom of layer 2 (layers span [k, k + 1)): the default slice is the layer asking for
+    # that height draws, not layer 1 below it.
+    rng = np.random.default_rng(4)
+    grid = OccupancyGrid(rng.uniform(size=(4, 2, 3)), (0.0, 0.0, 0.0), 1.0)
+    zmin, zmax = grid.extent[4:]
+    default = OccupancyMapDisplay.from_grid(grid)
+    asked = OccupancyMapDisplay.from_grid(grid, z=(zmin + zmax) / 2)
+    np.testing.assert_allclose(default.im_.get_array(), asked.im_.get_array())
+    np.testing.assert_allclose(default.im_.get_array(), grid.probability[2])
+    assert default.ax_.get_title() == asked.ax_.get_title() == "P(occupied), slice at z = 2.50 m"
+
+
+def test_every_panel_has_square_cells_and_axes_in_metres():
+    # A metre is as long along x as along y on every panel, so the walls keep their angles,
+    # even under a style whose images fill their axes.
+    with matplotlib.rc_context({"image.aspect": "auto"}):
+        disp = OccupancyMapDisplay.from_grid(_grid())
+    for ax in disp.axes_:
+        assert ax.get_aspect() == 1.0
+        assert (ax.get_xlabel(), ax.get_ylabel()) == ("x [m]", "y [m]")
+
+
+def test_poses_overlay_as_their_positions():
+    # The robot's path as poses (x, y, heading): the heading column is not drawn.
+    grid = _grid()
+    poses = np.array([[1.2, -0.8, 0.0], [2.5, 0.1, 1.5], [1.9, -0.3, -3.0]])
+    disp = OccupancyMapDisplay.from_grid(grid, kind="probability", points=poses)
+    (scatter,) = disp.ax_.collections
+    np.testing.assert_allclose(scatter.get_offsets(), poses[:, :2])
+
+
 def _rendered(fig):
     """The figure rendered: RGB per pixel, row 0 at the top."""
     fig.canvas.draw()
@@ -338,6 +371,9 @@ def test_colorbar_one_per_panel_labelled_or_none():
         (dict(extent=(3.0, 0.0, 0.0, 2.0)), "extent"),
         (dict(extent=(0.0, 3.0, 2.0, 0.0)), "extent"),
         (dict(extent=(0.0, np.inf, 0.0, 2.0)), "extent"),
+        # A map of no width or no height has no cell to draw.
+        (dict(extent=(1.0, 1.0, 0.0, 2.0)), "extent"),
+        (dict(extent=(0.0, 3.0, 2.0, 2.0)), "extent"),
     ],
 )
 def test_values_and_extents_a_map_cannot_have(kwargs, match):
