@@ -139,7 +139,8 @@ def test_a_failed_map_removes_the_folders_it_made(tmp_path, capsys):
 @pytest.mark.parametrize(
     "log, stem",
     [("intel.gfs.log", "intel"), ("aces.log.gz", "aces"), ("lab.2024-06-01.log", "lab.2024-06-01"),
-     ("run.bag", "run"), (".scan.log", "scan"), (".log", "log"), ("bagdir", "bagdir")],
+     ("run.bag", "run"), (".scan.log", "scan"), (".log", "log"), ("bagdir", "bagdir"),
+     ("INTEL.GFS.LOG", "INTEL"), ("Aces.Log.Gz", "Aces"), ("run.BAG", "run")],
 )  # fmt: skip
 def test_log_stem(log, stem):
     assert log_stem(log) == stem
@@ -406,6 +407,16 @@ def test_no_command_is_a_usage_error(capsys):
         main([])
     assert exit_info.value.code == 2
     assert "COMMAND" in capsys.readouterr().err
+
+
+def test_usage_errors_name_the_skoccmap_command(capsys):
+    # Run as python -m skoccmap, argparse would name the program after __main__.py; the
+    # usage errors carry the prefix of the commands' own errors.
+    with pytest.raises(SystemExit):
+        main(["map"])
+    err = capsys.readouterr().err
+    assert err.startswith("usage: skoccmap map ")
+    assert "skoccmap map: error: the following arguments are required: LOG" in err
 
 
 def test_version(capsys):
