@@ -19,13 +19,16 @@ import math
 
 import numpy as np
 
-from .baselines import _passed_cells
+from .baselines import _chunks_by_crossings, _passed_cells
 
 __all__ = ["CellCounts"]
 
 # Free rows traversed at once: their passed cells (tens per row) stay within tens of MB; at
 # 100 000 rows, counting the 3M rows of B2's largest fit took 0.7 GiB.
 _CHUNK = 16_384
+# Most cells counted: 0.34 km^2 of 0.1 m cells in 2-D, a few GB while merging. Beams far
+# longer than any laser's (ranges in millimetres) would otherwise fill the memory.
+_MAX_COUNTED_CELLS = 1 << 25
 
 
 def _occurrences(flat, shape):
@@ -116,10 +119,10 @@ class CellCounts:
         """Count the rows of ``X`` (segment rows; ``occupied`` marks the hits); free rows
         pass the cells :func:`skoccmap.baselines._passed_cells` says.
 
-        The free rows are taken ``_CHUNK`` at a time, each chunk's passes reduced to one
-        count per cell before the next: memory follows the map's cells, not the cells all
-        beams cross. The count arrays are replaced, never written into: a shallow copy of
-        these counts keeps its own.
+        The free rows are taken ``_CHUNK`` at a time (fewer where they are long), each
+        chunk's passes reduced to one count per cell before the next: memory follows the
+        map's cells, not the cells all beams cross. The count arrays are replaced, never
+        written into: a shallow copy of these counts keeps its own.
         """
         d = self.n_dims
         starts, ends = X[:, :d], X[:, d:]
@@ -135,9 +138,9 @@ class CellCounts:
         keys, hits = np.unique(self._keys(self._cells(ends[occupied])), return_counts=True)
         parts = [(self.keys, self.hits, self.passes), (keys, hits, np.zeros_like(hits))]
         free = np.flatnonzero(~occupied)
-        for lo in range(0, free.size, _CHUNK):
-            rows = free[lo : lo + _CHUNK]
-            first, last = self._cells(starts[rows]), self._cells(ends[rows])
+        first_cells, last_cells = self._cells(starts[free]), self._cells(ends[free])
+        for lo, hi in _chunks_by_crossings(first_cells, last_cells, _CHUNK):
+            rows, first, last = free[lo:hi], first_cells[lo:hi], last_cells[lo:hi]
             low = np.minimum(first.min(axis=0), last.min(axis=0))
             high = np.maximum(first.max(axis=0), last.max(axis=0))
             shape = tuple(int(n) for n in high - low + 1)
@@ -151,8 +154,19 @@ class CellCounts:
             )
             cells, passes = _occurrences(flat, shape)
             parts.append((self._keys(cells + low), np.zeros_like(passes), passes))
+            if sum(part[0].size for part in parts) > _MAX_COUNTED_CELLS:
+                parts = [_merged(parts)]
+                self._check_size(parts[0][0].size)
         self.keys, self.hits, self.passes = _merged(parts)
         return self
+
+    def _check_size(self, n_cells):
+        if n_cells > _MAX_COUNTED_CELLS:
+            raise ValueError(
+                f"The free beams pass more than {_MAX_COUNTED_CELLS:,} cells of "
+                f"{self.cell_size:g} m, too many to count hits against passes: are the ranges "
+                "in metres? For a map this large, pass min_hit_frequency=None."
+            )
 
     def counted(self, points):
         """Hits in and free rows through the cells holding ``points`` (0 where uncounted)."""

@@ -67,6 +67,9 @@ _NEAR_FACE = 1e-6
 # per crossing, so a reading far off the map (a failed range of 1e8 m) would ask for
 # gigabytes before anything else could say what is wrong.
 _MAX_SEGMENT_CELLS = 1 << 24
+# Cell crossings traversed at once (about 100 bytes each while traversing): a chunk of long
+# beams, such as ranges given in millimetres, stays within half a gigabyte.
+_CROSSINGS_PER_CHUNK = 1 << 22
 
 
 def traverse_cells(starts, ends, origin, resolution, shape):
@@ -218,6 +221,21 @@ def _check_crossings(n_crossings):
         )
 
 
+def _chunks_by_crossings(first, last, max_rows):
+    """Consecutive row ranges ``(lo, hi)`` to traverse at once: at most ``max_rows`` rows
+    whose segments, from cell ``first`` to cell ``last`` (cell coordinates, one row per
+    segment), cross at most ``_CROSSINGS_PER_CHUNK`` cells, but for a row that alone
+    crosses more, which is a range of its own."""
+    crossings = np.cumsum(np.abs(last - first).sum(axis=1) + 1)
+    lo = 0
+    while lo < crossings.size:
+        done = crossings[lo - 1] if lo else 0
+        hi = int(np.searchsorted(crossings, done + _CROSSINGS_PER_CHUNK, side="right"))
+        hi = min(max(hi, lo + 1), lo + max_rows)
+        yield lo, hi
+        lo = hi
+
+
 def _passed_cells(q0, q1, shape):
     """The cells free segments pass, in grid units: (segment, flat cell) pairs.
 
@@ -363,19 +381,17 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
     def _free_cells(self, starts, ends, hit):
         """Chunks of (row, flat cell) pairs: the cells each free row passes
         (:func:`_passed_cells`). Free rows longer than ``max_free_length`` pass nothing.
-        ``chunk_size`` rows are traversed at once.
+        At most ``chunk_size`` rows are traversed at once, fewer where they are long.
         """
         free = np.flatnonzero(~hit)
         if self.max_free_length is not None:
             length = np.linalg.norm(ends[free] - starts[free], axis=1)
             free = free[length <= self.max_free_length]
         res = float(self.resolution)
-        for lo in range(0, free.size, self.chunk_size):
-            rows = free[lo : lo + self.chunk_size]
-            seg, flat = _passed_cells(
-                (starts[rows] - self.origin_) / res, (ends[rows] - self.origin_) / res, self.shape_
-            )
-            yield rows[seg], flat
+        q0, q1 = (starts[free] - self.origin_) / res, (ends[free] - self.origin_) / res
+        for lo, hi in _chunks_by_crossings(np.floor(q0), np.floor(q1), self.chunk_size):
+            seg, flat = _passed_cells(q0[lo:hi], q1[lo:hi], self.shape_)
+            yield free[lo:hi][seg], flat
 
     def _cell_position(self, X):
         """Position in ``cell_index_`` of the cell holding each query's midpoint, else -1."""
@@ -483,7 +499,8 @@ class OccupancyGridMap(_CountingGridBase):
         when it is odd (such a row cannot hold a segment). Use ``"points"`` for 2-column
         points in 2-D, which ``"auto"`` reads as 1-D segments.
     chunk_size : int, default=100_000
-        Beams traversed at once; bounds the memory of the fit.
+        Most beams traversed at once (fewer where they cross many cells); bounds the
+        memory of the fit.
 
     Attributes
     ----------
@@ -686,7 +703,8 @@ class FrequencyGridMap(_CountingGridBase):
     layout : {"auto", "segments", "points"}, default="auto"
         How rows of ``X`` are read; see :class:`OccupancyGridMap`.
     chunk_size : int, default=100_000
-        Beams traversed at once; bounds the memory of the fit.
+        Most beams traversed at once (fewer where they cross many cells); bounds the
+        memory of the fit.
 
     Attributes
     ----------

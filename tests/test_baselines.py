@@ -12,6 +12,7 @@ from sklearn.metrics import roc_auc_score
 from sklearn.utils.estimator_checks import check_param_validation, parametrize_with_checks
 
 from skoccmap.baselines import FrequencyGridMap, HilbertMap, OccupancyGridMap, traverse_cells
+from skoccmap.datasets import make_office_scans
 
 
 def _cells_by_slabs(start, end, origin, res, shape):
@@ -179,6 +180,43 @@ def test_traverse_refuses_a_segment_over_the_cell_limit(monkeypatch):
     assert len(cells) == 10
     with pytest.raises(ValueError, match="crosses 11 grid cells, more than 10"):
         traverse_cells(np.zeros((1, 2)), [[5.5, 5.5]], np.zeros(2), 1.0, (12, 12))
+
+
+def test_chunks_by_crossings_cover_the_rows_within_the_budget(monkeypatch):
+    import skoccmap.baselines as baselines
+
+    monkeypatch.setattr(baselines, "_CROSSINGS_PER_CHUNK", 50)
+    rng = np.random.default_rng(5)
+    first = rng.integers(0, 100, (200, 2))
+    last = first + rng.integers(-30, 30, (200, 2))
+    last[17] = first[17] + [80, 0]  # crosses 80 cells alone: a chunk of its own
+    crossings = np.abs(last - first).sum(axis=1) + 1
+    chunks = list(baselines._chunks_by_crossings(first, last, max_rows=7))
+    assert chunks[0][0] == 0 and chunks[-1][1] == 200
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:], strict=False))
+    assert (17, 18) in chunks
+    for lo, hi in chunks:
+        assert 1 <= hi - lo <= 7
+        assert hi - lo == 1 or crossings[lo:hi].sum() <= 50
+        # As many rows as fit: one more would pass the budget or the row count.
+        if hi < 200 and hi - lo < 7:
+            assert crossings[lo : hi + 1].sum() > 50
+
+
+@pytest.mark.parametrize(
+    "estimator, per_scan",
+    [(OccupancyGridMap, False), (OccupancyGridMap, True), (FrequencyGridMap, False)],
+)
+def test_grids_do_not_depend_on_how_the_beams_are_chunked(monkeypatch, estimator, per_scan):
+    import skoccmap.baselines as baselines
+
+    scans = make_office_scans(n_poses=4, n_beams=30, random_state=0)
+    kwargs = {"scan_index": scans.scan_index} if per_scan else {}
+    whole = estimator().fit(scans.X, scans.y, **kwargs)
+    monkeypatch.setattr(baselines, "_CROSSINGS_PER_CHUNK", 64)
+    chunked = estimator().fit(scans.X, scans.y, **kwargs)
+    np.testing.assert_array_equal(chunked.cell_index_, whole.cell_index_)
+    np.testing.assert_array_equal(chunked.predict_proba(scans.X), whole.predict_proba(scans.X))
 
 
 def _loop_reference(X, y, res, l_occ, l_free, l_min, l_max):

@@ -49,6 +49,41 @@ def test_counts_of_batches_add_up_to_the_counts_of_all_rows():
     np.testing.assert_array_equal(before.hits, hits)
 
 
+@pytest.mark.parametrize("n_dims", [2, 3])
+def test_counts_do_not_depend_on_how_the_rows_are_chunked(monkeypatch, n_dims):
+    import skoccmap._transient as transient
+    import skoccmap.baselines as baselines
+
+    X, y = _random_rows(np.random.default_rng(10 + n_dims), n_dims)
+    whole = CellCounts(0.1, n_dims).add(X, y == 1)
+    n_cells = whole.keys.size
+    # A few crossings per chunk (beams of 1.5 m cross about 20 cells of 0.1 m: a row or
+    # two per chunk), and parts merged on the way once they hold more than the map's cells.
+    monkeypatch.setattr(baselines, "_CROSSINGS_PER_CHUNK", 40)
+    monkeypatch.setattr(transient, "_MAX_COUNTED_CELLS", n_cells)
+    chunked = CellCounts(0.1, n_dims).add(X, y == 1)
+    for got, expected in zip(
+        (chunked.keys, chunked.hits, chunked.passes),
+        (whole.keys, whole.hits, whole.passes),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(got, expected)
+    monkeypatch.setattr(transient, "_MAX_COUNTED_CELLS", n_cells - 1)
+    with pytest.raises(ValueError, match=f"pass more than {n_cells - 1:,} cells of 0.1 m"):
+        CellCounts(0.1, n_dims).add(X, y == 1)
+
+
+def test_a_map_too_large_to_count_names_min_hit_frequency(monkeypatch):
+    import skoccmap._transient as transient
+
+    data = make_office_scans(n_poses=4, n_beams=30, random_state=0)
+    # As if the beams passed more cells than the counts take (ranges in millimetres).
+    monkeypatch.setattr(transient, "_MAX_COUNTED_CELLS", 100)
+    with pytest.raises(ValueError, match="in metres.*pass min_hit_frequency=None"):
+        MixtureGPOccupancyMap(random_state=0).fit(data.X, data.y)
+    MixtureGPOccupancyMap(min_hit_frequency=None, random_state=0).fit(data.X, data.y)
+
+
 def test_coordinates_too_far_to_count_are_an_error():
     X = np.array([[0.0, 0.0, 1e12, 0.0]])
     with pytest.raises(ValueError, match="cannot be counted"):
