@@ -123,6 +123,31 @@ def warn_unless_metres(starts, ends):
         )
 
 
+# Coarsest float32 step (metres) at which a warning is not needed: 2**-7 m, that of
+# coordinates below 131 072 m; UTM northings (4e6 m) step by 0.25 or 0.5 m.
+_FINEST_FLOAT32_STEP = 2.0**-7
+
+
+def warn_if_coarse_float32(X_in, X):
+    """Warn where ``X_in`` held float32 coordinates whose steps, at the size of ``X`` (its
+    float64 copy), are more than ``_FINEST_FLOAT32_STEP``: the map cannot be finer than
+    the data's rounding, which no later cast undoes."""
+    dtypes = getattr(X_in, "dtypes", None)  # a DataFrame's columns
+    dtype = np.result_type(*dtypes) if dtypes is not None else getattr(X_in, "dtype", None)
+    if dtype != np.float32 or not X.size:
+        return
+    largest = np.float32(max(np.max(X), -np.min(X)))
+    step = float(np.spacing(largest))
+    if step > _FINEST_FLOAT32_STEP:
+        warnings.warn(
+            f"X is float32 and holds coordinates up to {largest:.3g}, where float32 steps "
+            f"are {step:.3g} m: the map cannot be finer than that. Pass float64 "
+            "coordinates, or subtract an origin (such as the first pose) first.",
+            UserWarning,
+            stacklevel=caller_stacklevel(),
+        )
+
+
 def is_number(value):
     """Whether ``value`` is a real number (Python or numpy scalar), not a bool: ``True``
     would read as 1, and text is no number however ``float`` reads it."""

@@ -73,6 +73,7 @@ from ._validation import (
     non_finite_explained,
     unfitted_on_error,
     validate_queries,
+    warn_if_coarse_float32,
     warn_unless_metres,
 )
 from .combine import COMBINERS, combine_pairs
@@ -141,7 +142,8 @@ def _check_hits_are_points(X, occupied, classes):
     occupied that are mostly segments, beside free rows that are all points, are labels
     reversed (``1 - y``, or strings whose order puts "miss" last): the map would be
     inverted. Most occupied rows with a length otherwise (points of 2 coordinates read as
-    1-D segments, or surface segments) give a map the defaults were not made for.
+    1-D segments, columns scaled each on its own, or surface segments) give a map the
+    defaults were not made for.
     """
     dim = X.shape[1] // 2
     classes = classes.tolist()  # labels as Python scalars: 1, not np.int64(1)
@@ -160,7 +162,9 @@ def _check_hits_are_points(X, occupied, classes):
         "pass layout='points', or beams as segments and hits as "
         "skoccmap.as_segments(points)."
         if dim == 1
-        else ""
+        else " Were the start and end columns transformed each on its own (a "
+        "StandardScaler in a pipeline does so)? Give the map coordinates in metres, starts "
+        "and ends alike."
     )
     warnings.warn(
         f"Most rows labelled occupied (y == {classes[1]!r}) are segments of positive "
@@ -879,7 +883,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             Fitted estimator.
         """
         with non_finite_explained("observations"):
-            X, y = validate_data(self, X, y, dtype=np.float64)
+            X_in, (X, y) = X, validate_data(self, X, y, dtype=np.float64)
+        warn_if_coarse_float32(X_in, X)
         check_classification_targets(y)
         classes, y_enc = np.unique(y, return_inverse=True)
         _check_two_classes(classes)
@@ -1118,7 +1123,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
             # A first call that raises leaves the model unfitted, as fit does.
             with unfitted_on_error(self):
                 with non_finite_explained("observations"):
-                    X, y = validate_data(self, X, y, dtype=np.float64)
+                    X_in, (X, y) = X, validate_data(self, X, y, dtype=np.float64)
+                warn_if_coarse_float32(X_in, X)
                 check_classification_targets(y)
                 present = np.unique(y)
                 if present.size == 1:
@@ -1134,7 +1140,8 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 _check_known_labels(y, classes)
                 return self._fit(X, np.searchsorted(classes, y), classes)
         check_is_fitted(self)
-        X, y = validate_queries(self, X, y)
+        X_in, (X, y) = X, validate_queries(self, X, y)
+        warn_if_coarse_float32(X_in, X)
         if X.shape[0] == 0:
             # A batch whose readings all failed (zeros): nothing to learn, nothing touched.
             self.touched_experts_ = np.empty(0, dtype=np.intp)

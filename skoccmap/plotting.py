@@ -215,8 +215,10 @@ class OccupancyMapDisplay:
             unknown is not a confidence to read.
         colorbar : bool, default=True
             Add a colour bar to each panel.
-        points : array-like of shape (m, 2), default=None
-            Points to overlay on every panel (e.g. the training hits or the robot's path).
+        points : array-like of shape (m, 2) or more columns, default=None
+            Points to overlay on every panel (e.g. the training hits or the robot's path);
+            the first two columns are drawn, so poses ``(x, y, heading)`` may be passed
+            as they are.
         point_kwargs : dict, default=None
             Passed to ``Axes.scatter`` for ``points``.
 
@@ -229,7 +231,9 @@ class OccupancyMapDisplay:
         if points is not None:
             points = np.asarray(points, dtype=np.float64)
             if points.ndim != 2 or points.shape[1] < 2:
-                raise ValueError(f"points must have shape (m, 2), got {points.shape}.")
+                raise ValueError(
+                    f"points must have shape (m, 2) or more columns, got {points.shape}."
+                )
         probability = np.asarray(self.probability, dtype=np.float64)
         if probability.ndim != 2:
             raise ValueError(f"probability must be 2-D (ny, nx), got shape {probability.shape}.")

@@ -885,6 +885,42 @@ def test_occupied_rows_with_a_length_warn(paper):
     assert not any("layout='points'" in str(w.message) for w in record)
 
 
+def test_columns_scaled_each_on_its_own_are_named_in_the_warning(paper):
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    # A scaler in a pipeline scales the start and end columns apart: hits stop being points.
+    pipeline = make_pipeline(StandardScaler(), _mixture())
+    with pytest.warns(UserWarning, match="Most rows.*StandardScaler in a pipeline") as record:
+        pipeline.fit(paper.X, paper.y)
+    assert not any("layout='points'" in str(w.message) for w in record)
+
+
+def test_float32_coordinates_coarser_than_a_centimetre_warn(paper):
+    from skoccmap._validation import warn_if_coarse_float32
+
+    # float32 steps by 2**-7 m below 131 072 m and by 2**-6 m from there on.
+    for largest, warns in [(131071.0, False), (131072.0, True)]:
+        X = np.array([[0.0, 0.0, largest, 0.0]], dtype=np.float32)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            warn_if_coarse_float32(X, X.astype(np.float64))
+            warn_if_coarse_float32(X.astype(np.float64), X.astype(np.float64))
+        assert len(caught) == warns
+    # UTM-like offsets in float32: the rows are rounded to 0.25 m before any cast.
+    utm = (paper.X + [5e5, 4e6, 5e5, 4e6]).astype(np.float32)
+    match = "float32 steps are 0.25 m: the map cannot be finer"
+    with pytest.warns(UserWarning, match=match):
+        _mixture().fit(utm, paper.y)
+    model = MixtureGPOccupancyMap(random_state=0)
+    for rows in (slice(0, 400), slice(400, None)):  # the first call and a later one
+        with pytest.warns(UserWarning, match=match):
+            model.partial_fit(utm[rows], paper.y[rows], classes=[0, 1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        _mixture().fit(paper.X.astype(np.float32), paper.y)
+
+
 def test_hits_warn_only_when_most_of_them_have_a_length():
     from skoccmap.mixture import _check_hits_are_points
 
