@@ -731,6 +731,12 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     predicted in chunks of nearby queries, sized by sklearn's ``working_memory``, and
     each expert predicts its queries of a chunk in one call.
 
+    A fitted map keeps each expert's Cholesky factor (its lower triangle, ``4 n^2`` bytes
+    for ``n`` rows), so that prediction needs no factorisation; the factors are most of a
+    map's memory and of its pickle. Every 20th scan of the Intel log (16 368 rows, 121
+    experts of up to 384 rows) pickles to 66 MB, 50 MB of them the experts'; the size
+    grows with the rows times ``max_expert_size``.
+
     References
     ----------
     S. Kim and J. Kim, "Building occupancy maps with a mixture of Gaussian processes",
