@@ -434,7 +434,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         the people of the held-out scans (about a fifth of ACES' held-out hits lie in
         cells the training beams call transient). Look at ``transient_hits_`` to see
         what was left out. The cells are counted from the first row's: every row must lie
-        within about 1e8 m of it in 2-D and 52 km in 3-D (a ValueError says so otherwise).
+        within about 1e8 m of it in 2-D and 52 km in 3-D, and the free beams may pass at
+        most 2**25 cells (0.34 km^2 in 2-D, 33 500 m^3 in 3-D); a ValueError says so
+        otherwise (pass ``None`` for larger maps).
     piece_assignment : {"nearest_hit", "beam"}, default="nearest_hit"
         Which expert a free piece (of a beam cut by ``max_beam_length`` and
         ``beam_end_length``) joins. ``"beam"``: its beam's, i.e. its hit's (the paper's
