@@ -103,6 +103,11 @@ def _check_free_margin(free_margin):
     return value
 
 
+# |qw| at most this at every pose: a rotation of more than 174 degrees, the sensor upside
+# down; a level robot's quaternions given [qx, qy, qz, qw] read so (their qx is 0).
+_UPSIDE_DOWN_QW = 0.05
+
+
 def _check_poses(poses):
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 2 or poses.shape[1] not in _POSE_COLUMNS:
@@ -124,6 +129,15 @@ def _check_poses(poses):
             )
         poses = poses.copy()
         poses[:, 3:] /= norms[:, None]
+        if poses.shape[0] > 1 and np.all(np.abs(poses[:, 3]) <= _UPSIDE_DOWN_QW):
+            warnings.warn(
+                "Every pose turns the sensor upside down (qw = poses[:, 3] near 0). "
+                "skoccmap reads quaternions scalar first, [qw, qx, qy, qz]; ROS messages "
+                "and scipy's Rotation.as_quat() give [qx, qy, qz, qw]: reorder them with "
+                "np.roll(q, 1, axis=1). A sensor mounted upside down gives these poses too.",
+                UserWarning,
+                stacklevel=caller_stacklevel(),
+            )
     return poses
 
 

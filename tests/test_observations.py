@@ -495,6 +495,28 @@ def test_split_segments_refuses_an_infinite_end_length():
         split_segments([[0.0, 0.0, 5.0, 0.0]], 1.0, end_length=np.inf)
 
 
+def test_quaternions_in_scalar_last_order_warn():
+    # A level robot turning: scipy's as_quat() is [qx, qy, qz, qw] = [0, 0, sin, cos].
+    yaw = np.array([0.0, 0.7, 1.4, -2.0])
+    q_scipy = Rotation.from_euler("z", yaw[:, None]).as_quat()
+    poses = np.column_stack([np.zeros((4, 3)), q_scipy])
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    ranges = np.ones((4, 2))
+    with pytest.warns(UserWarning, match=r"upside down.*np.roll\(q, 1, axis=1\)"):
+        scans_to_observations(poses, ranges, directions, 5.0)
+    # Reordered as the warning says: level poses, no warning.
+    poses[:, 3:] = np.roll(q_scipy, 1, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        X, _, _ = scans_to_observations(poses, ranges, directions, 5.0)
+    assert_allclose(X[:, 2], 0.0, atol=1e-12)
+    # One pose turned by pi is a robot facing back, not a convention: no warning.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans_to_observations([[0, 0, 0, 0, 0, 0, 1.0]], [[1.0, 1.0]], directions, 5.0)
+        scans_to_observations([[0, 0, 0, 0.06, 0, 0, 0.9982]] * 2, ranges[:2], directions, 5.0)
+
+
 def test_near_unit_quaternions_and_directions_are_normalised_and_far_ones_refused():
     q = Rotation.random(random_state=0).as_quat()  # scipy: [x, y, z, w]
     pose = np.r_[1.0, 2.0, 3.0, q[3], q[:3]]

@@ -250,6 +250,19 @@ def test_3d_scans_with_a_tilted_laser_read_back(tmp_path):
     np.testing.assert_allclose(flat.poses, [[1.0, 2.0, 0.0], [1.5, 2.0, 0.0]], atol=1e-12)
 
 
+@pytest.mark.parametrize("first", [0.0, -np.pi, 2.5])
+def test_3d_scans_over_the_whole_circle_read_back(tmp_path, first):
+    # Eight beams a full turn round from `first`: their directions pass arctan2's cut at pi.
+    q = [np.cos(0.15), np.sin(0.15), 0.0, 0.0]
+    angles = first + np.arange(8) * np.pi / 4
+    directions = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(8)])
+    scans = Scans(poses=[[0.0, 0.0, 0.5, *q]], ranges=[np.full(8, 2.0)], angles=directions,
+                  max_range=5.0, timestamps=[1.0])  # fmt: skip
+    back = load_rosbag(write_rosbag(scans, tmp_path / "round.bag", ros_version=1))
+    np.testing.assert_allclose(back.angles, directions, atol=1e-6)
+    np.testing.assert_allclose(back.hit_points(), scans.hit_points(), atol=1e-5)
+
+
 # --------------------------------------------------------------------------------------------
 # Poses from TF and from pose topics
 # --------------------------------------------------------------------------------------------
@@ -368,6 +381,29 @@ def test_level_tolerance_chooses_2d_or_3d_poses(tmp_path):
     np.testing.assert_allclose(tilted.poses[0], [1.0, 0.0, 0.4, *q], atol=1e-12)
     # Both describe the same beams: hit points agree in the plane.
     np.testing.assert_allclose(tilted.hit_points()[:, :2], level.hit_points(), atol=0.02)
+
+
+def test_level_tolerance_and_tf_topics_are_checked(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.2)
+    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.2)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    for bad in ("0.3", None, True, -0.1, np.nan):
+        with pytest.raises(ValueError, match="level_tolerance must be >= 0 radians"):
+            load_rosbag(path, level_tolerance=bad)
+    # 5 "degrees" read as radians: every laser level, the 0.2 rad roll flattened.
+    with pytest.warns(UserWarning, match="Degrees\\? Pass radians"):
+        assert load_rosbag(path, level_tolerance=5).poses.shape == (1, 3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_rosbag(path, level_tolerance=np.inf).poses.shape == (1, 3)
+        assert load_rosbag(path, level_tolerance=np.pi / 2).poses.shape == (1, 3)
+    for bad in (("/tf",), "/tf", ("/tf", "/tf_static", "/x"), ("/tf", 3), 5):
+        with pytest.raises(ValueError, match="tf_topics must be a pair of topic names"):
+            load_rosbag(path, tf_topics=bad)
+    # The bag has no static topic: naming another one reads it as well.
+    assert load_rosbag(path, tf_topics=["/tf", "/none"]).poses.shape == (1, 7)
 
 
 @pytest.mark.parametrize("roll", [np.pi, np.pi - 0.005])

@@ -399,6 +399,21 @@ def _kept(track, stamp, translation, rotation, what, left_out):
     return True
 
 
+def _check_tf_topics(tf_topics):
+    """``tf_topics`` as a pair of topic names, or a ValueError."""
+    try:
+        topics = (tf_topics,) if isinstance(tf_topics, str) else tuple(tf_topics)
+    except TypeError:  # not a sequence
+        topics = (tf_topics,)
+    if len(topics) != 2 or not all(isinstance(topic, str) for topic in topics):
+        raise ValueError(
+            "tf_topics must be a pair of topic names, the dynamic and the static transforms "
+            f"(default ('/tf', '/tf_static')), got {tf_topics!r}. A bag without the static "
+            "topic is read as well."
+        )
+    return topics
+
+
 def _read_tf(reader, tf_topics, path):
     samples, left_out = {}, []
     static_topic = tf_topics[1]
@@ -720,8 +735,17 @@ def load_rosbag(
         raise ValueError(f"pose must be 'tf' or 'topic', got {pose!r}.")
     if pose == "topic" and pose_topic is None:
         raise ValueError("pose='topic' needs pose_topic, the topic to read poses from.")
-    if not (level_tolerance >= 0):
+    if not (is_number(level_tolerance) and level_tolerance >= 0):
         raise ValueError(f"level_tolerance must be >= 0 radians, got {level_tolerance!r}.")
+    if np.pi / 2 < level_tolerance < np.inf:
+        warnings.warn(
+            f"level_tolerance={level_tolerance!r} radians takes every laser for level, as "
+            "np.inf does (no scan plane is more than pi / 2 from the horizontal). Degrees? "
+            "Pass radians: np.deg2rad(...).",
+            UserWarning,
+            stacklevel=caller_stacklevel(),
+        )
+    tf_topics = _check_tf_topics(tf_topics)
     if max_range is not None:
         from ..observations import _check_max_range
 
@@ -903,7 +927,8 @@ def _scan_geometry(scans):
         beams = np.broadcast_to(scans.angles, scans.ranges.shape + (3,))
         if np.any(np.abs(beams[..., 2]) > 1e-6):
             raise ValueError("LaserScan beams lie in the laser's xy-plane; these scans' do not.")
-        angles = np.arctan2(beams[..., 1], beams[..., 0])
+        # Unwrapped along the scan: a scan over all of the circle crosses arctan2's cut.
+        angles = np.unwrap(np.arctan2(beams[..., 1], beams[..., 0]), axis=1)
     n = scans.n_beams
     increment = (angles[:, -1] - angles[:, 0]) / max(n - 1, 1)
     even = angles[:, :1] + increment[:, None] * np.arange(n)
