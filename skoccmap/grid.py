@@ -109,6 +109,21 @@ def _checked_counts(counts, resolution):
     return counts.astype(np.int64)
 
 
+def _check_grid_dims(estimator, n_dims):
+    """ValueError where the estimator's rows cannot be cells of an ``n_dims``-D grid (points
+    of ``n_dims`` columns or zero-length segments of twice as many)."""
+    n_features = getattr(estimator, "n_features_in_", None)
+    if n_features is None or n_features in (n_dims, 2 * n_dims):
+        return
+    raise ValueError(
+        f"extent gives a {n_dims}-D grid, but {type(estimator).__name__} was fitted on "
+        f"{n_features} columns ({n_dims}-D takes {n_dims} or {2 * n_dims}): pass extent as "
+        "(xmin, xmax, ymin, ymax) in 2-D or (xmin, xmax, ymin, ymax, zmin, zmax) in 3-D, or "
+        "points or segment rows of the estimator's dimension (2-D poses [x, y, theta] are "
+        "no points: pass poses[:, :2])."
+    )
+
+
 class OccupancyGrid:
     """Occupancy probabilities (and variances) on a regular 2-D or 3-D grid.
 
@@ -304,9 +319,10 @@ class OccupancyGrid:
             if extent is None:
                 raise ValueError(
                     "extent=None needs an estimator with an extent_ attribute; pass extent as "
-                    "(xmin, xmax, ymin, ymax) or the hit points to cover."
+                    "(xmin, xmax, ymin, ymax[, zmin, zmax]) or the hit points to cover."
                 )
         origin, counts = _grid_from_extent(extent, resolution)
+        _check_grid_dims(estimator, origin.size)
         shape = tuple(int(c) for c in counts[::-1])
         proba, var = _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose)
         proba = proba.reshape(shape)

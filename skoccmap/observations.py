@@ -186,7 +186,14 @@ def _shape_hint(beam_axis, n_beams):
 def _check_angles(angles, n_scans, n_beams, n_dims):
     angles = np.asarray(angles, dtype=np.float64)
     if n_dims == 2:
-        if angles.shape not in ((n_beams,), (n_scans, n_beams)):
+        valid = ((n_beams,), (n_scans, n_beams))
+        if angles.shape not in valid and angles.shape[-2:] == (n_beams, 3) and angles.ndim < 4:
+            raise ValueError(
+                f"angles holds 3-D beam directions of shape {angles.shape}, but the poses are "
+                "2-D [x, y, theta]: 3-D beams need 3-D poses of shape (n_scans, 7), "
+                "[x, y, z, qw, qx, qy, qz]; 2-D poses take one angle per beam."
+            )
+        if angles.shape not in valid:
             raise ValueError(
                 f"angles must have shape ({n_beams},) shared by all scans or ({n_scans}, "
                 f"{n_beams}) per scan for 2-D poses, got shape {angles.shape}"

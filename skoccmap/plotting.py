@@ -95,7 +95,8 @@ class OccupancyMapDisplay:
         kind : {"probability", "std", "variance", "both"} or None, default=None
             Panels to draw; ``None``: both when the grid has a variance, else probability.
         z : float or None, default=None
-            Height of the slice of a 3-D grid (``None``: the middle slice).
+            Height of the slice of a 3-D grid: the layer holding it, a layer spanning
+            ``[bottom, top)`` (``None``: the layer holding the grid's mid-height).
         ax : matplotlib Axes, sequence of two Axes or None, default=None
             Where to draw; ``None`` makes a new figure.
         **plot_kwargs
@@ -120,7 +121,10 @@ class OccupancyMapDisplay:
             # The layer as a float first: a height far off the grid gives an infinite one,
             # which int() refuses with an OverflowError.
             with np.errstate(over="ignore", invalid="ignore"):
-                k = grid.shape[0] // 2 if z is None else (float(z) - zmin) // grid.resolution
+                # A height on a layer's lower face is in that layer, whatever the division's
+                # rounding (1.2 m above -0.2 m is 6.999... layers of 0.2 m).
+                layers = (float(z) - zmin) / grid.resolution if z is not None else 0.0
+                k = grid.shape[0] // 2 if z is None else np.floor(layers + 1e-9 * abs(layers))
             if not 0 <= k < grid.shape[0]:
                 raise ValueError(f"z={z} is outside the grid's height range {grid.extent[4:]}.")
             k = int(k)
@@ -163,7 +167,8 @@ class OccupancyMapDisplay:
         ax : matplotlib Axes, sequence of two Axes or None, default=None
             Where to draw; ``None`` makes a new figure.
         **plot_kwargs
-            Passed to :meth:`plot`.
+            ``z`` (the height of a 3-D grid's slice, see :meth:`from_grid`), and the
+            arguments of :meth:`plot`.
 
         Returns
         -------

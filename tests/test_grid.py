@@ -462,6 +462,19 @@ def test_bad_grid_arguments(kwargs, match):
         OccupancyGrid(**args)
 
 
+@pytest.mark.parametrize("n_features, n_dims", [(4, 3), (6, 2), (3, 2), (2, 3)])
+def test_an_extent_of_another_dimension_than_the_estimator_is_named(n_features, n_dims):
+    from sklearn.dummy import DummyClassifier
+
+    est = DummyClassifier().fit(np.zeros((2, n_features)), [0, 1])
+    extent = (0, 1) * n_dims
+    with pytest.raises(ValueError, match=f"extent gives a {n_dims}-D grid, but Dummy.*on "):
+        OccupancyGrid.from_estimator(est, extent, 0.5)
+    # An extent of its own dimension (2 or 3 columns of points, 4 or 6 of segments).
+    own = n_features if n_features in (2, 3) else n_features // 2
+    assert OccupancyGrid.from_estimator(est, (0, 1) * own, 0.5).probability.ndim == own
+
+
 def test_bad_from_estimator_arguments():
     est = _FieldEstimator()
     with pytest.raises(ValueError, match="extent must be"):

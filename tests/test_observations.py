@@ -495,6 +495,16 @@ def test_split_segments_refuses_an_infinite_end_length():
         split_segments([[0.0, 0.0, 5.0, 0.0]], 1.0, end_length=np.inf)
 
 
+def test_3d_directions_with_2d_poses_name_the_poses():
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    for angles in (directions, np.stack([directions] * 3)):
+        with pytest.raises(ValueError, match=r"3-D beam directions .* poses are 2-D"):
+            scans_to_observations(np.zeros((3, 3)), np.ones((3, 2)), angles, 5.0)
+    # Per-scan angles of three scans of three beams are 2-D angles, not directions.
+    X, _, _ = scans_to_observations(np.zeros((3, 3)), np.ones((3, 3)), np.zeros((3, 3)), 5.0)
+    assert X.shape[1] == 4
+
+
 def test_quaternions_in_scalar_last_order_warn():
     # A level robot turning: scipy's as_quat() is [qx, qy, qz, qw] = [0, 0, sin, cos].
     yaw = np.array([0.0, 0.7, 1.4, -2.0])

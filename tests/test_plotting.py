@@ -211,6 +211,16 @@ def test_3d_slice_is_the_layer_holding_z(z, k):
     assert disp.ax_.get_title() == f"P(occupied), slice at z = {k + 0.5:.2f} m"
 
 
+@pytest.mark.parametrize("z, k", [(1.2, 7), (1.4, 8), (-0.2, 0), (1.1999, 6)])
+def test_3d_slice_at_a_layers_lower_face_is_that_layer(z, k):
+    # Layers of 0.2 m from -0.2 m: 1.2 m is the lower face of layer 7, though
+    # (1.2 + 0.2) / 0.2 rounds to 6.999...
+    rng = np.random.default_rng(3)
+    grid = OccupancyGrid(rng.uniform(size=(10, 2, 3)), (0.0, 0.0, -0.2), 0.2)
+    disp = OccupancyMapDisplay.from_grid(grid, z=z)
+    np.testing.assert_allclose(disp.im_.get_array(), grid.probability[k])
+
+
 def test_3d_default_slice_is_the_layer_holding_the_mid_height():
     # An even number of layers: four of 1 m from z = 0. The grid's mid-height, 2 m, is the
     # bottom of layer 2 (layers span [k, k + 1)): the default slice is the layer asking for
