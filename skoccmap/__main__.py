@@ -2,9 +2,9 @@
 
 import sys
 
-from .cli import main
+from .cli import console_main
 
 # Guarded as in cli.py: importing the module (documentation tools, package walkers) must
 # not run the command and exit the interpreter.
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

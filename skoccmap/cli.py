@@ -7,6 +7,7 @@ Each subcommand lives in its own module ``skoccmap._cmd_<name>`` exposing
 import argparse
 import importlib
 import sys
+import warnings
 
 SUBCOMMANDS = {
     "demo": "reproduce the paper's simulation experiment (tables, figures, maps)",
@@ -38,5 +39,17 @@ def main(argv=None):
     return args._run(args)
 
 
+def _print_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"skoccmap: {category.__name__}: {message}", file=sys.stderr if file is None else file)
+
+
+def console_main(argv=None):
+    """:func:`main` for the installed command and ``python -m skoccmap``: warnings print as
+    ``skoccmap: UserWarning: ...``, not with the line of the launcher script that the
+    library's warnings would otherwise point at."""
+    warnings.showwarning = _print_warning
+    return main(argv)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

@@ -419,6 +419,20 @@ def test_usage_errors_name_the_skoccmap_command(capsys):
     assert "skoccmap map: error: the following arguments are required: LOG" in err
 
 
+def test_the_console_command_prints_warnings_without_the_launcher_line(monkeypatch, capsys):
+    import warnings
+
+    from skoccmap.cli import console_main
+
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # restored after
+    with pytest.raises(SystemExit):
+        console_main(["--version"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        warnings.warn("ranges in millimetres?", UserWarning, stacklevel=1)
+    assert capsys.readouterr().err == "skoccmap: UserWarning: ranges in millimetres?\n"
+
+
 def test_version(capsys):
     import skoccmap
 
