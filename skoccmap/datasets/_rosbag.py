@@ -599,6 +599,11 @@ def _warn_skipped(path, topic, n_total, outside, span, no_beams):
             f"{outside} of {n_total} scans whose stamps lie outside the time range of their "
             f"poses [{start}, {end}] s (poses are interpolated, never extrapolated)"
         )
+        if span[0] == span[1]:
+            notes[-1] += (
+                "; a range of one instant is that of a transform sampled once on the dynamic "
+                "transform topic: a static transform belongs on the static one (/tf_static)"
+            )
     if no_beams:
         notes.append(f"{no_beams} scans without a reading within [range_min, range_max]")
     if notes:
