@@ -1866,6 +1866,19 @@ def test_many_queries_beyond_every_expert_get_the_prior(default_model):
     np.testing.assert_array_equal(default_model.prior_variance(far), var)
 
 
+def test_segments_beyond_every_expert_get_exactly_the_shared_prior(default_model):
+    # Where no expert reaches, predict_var is prior_variance bit for bit: the shared
+    # kernel's prior at each query, not an average of the experts' priors that rounds.
+    # Segments of many lengths give many priors (one falls with its segment's length).
+    rng = np.random.default_rng(1)
+    far = as_segments(rng.uniform(500.0, 600.0, size=(300, 2)))
+    far[:, 2:] += rng.uniform(-2.0, 2.0, size=(300, 2))
+    prior = default_model.shared_kernel_.diag(far)
+    assert np.unique(prior).size > 200
+    np.testing.assert_array_equal(default_model.predict_var(far), prior)
+    np.testing.assert_array_equal(default_model.prior_variance(far), prior)
+
+
 def test_query_segments_merge_the_experts_own_predictions_and_priors(default_model, grid):
     # Under the integral kernel a segment's prior variance falls with its length: the
     # committee machines take each expert's prior at each query segment, as the experts
