@@ -365,12 +365,17 @@ def test_pose_stamped_topic_gives_the_laser_pose(tmp_path):
     np.testing.assert_allclose(scans.poses, [[2.5, 1.0, 1.75]], atol=1e-12)
 
 
-def test_level_tolerance_chooses_2d_or_3d_poses(tmp_path):
+def _rolled_laser_bag(tmp_path, roll):
+    """A ROS 2 bag of one scan by a laser 0.4 m up at yaw 0.5, rolled by ``roll``."""
     bag = _Bag(2)
-    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.005)
-    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.005)
+    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=roll)
+    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=roll)
     bag.scan(0.5, [1.0, 2.0, 3.0])
-    path = bag.write(tmp_path / "b")
+    return bag.write(tmp_path / "b")
+
+
+def test_level_tolerance_chooses_2d_or_3d_poses(tmp_path):
+    path = _rolled_laser_bag(tmp_path, 0.005)
     level = load_rosbag(path)  # 0.005 rad of roll is level at the default 0.01 rad
     np.testing.assert_allclose(level.poses, [[1.0, 0.0, 0.5]], atol=1e-12)
     tilted = load_rosbag(path, level_tolerance=0.001)
@@ -384,11 +389,7 @@ def test_level_tolerance_chooses_2d_or_3d_poses(tmp_path):
 
 
 def test_level_tolerance_and_tf_topics_are_checked(tmp_path):
-    bag = _Bag(2)
-    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.2)
-    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.4), yaw=0.5, roll=0.2)
-    bag.scan(0.5, [1.0, 2.0, 3.0])
-    path = bag.write(tmp_path / "b")
+    path = _rolled_laser_bag(tmp_path, 0.2)
     for bad in ("0.3", None, True, -0.1, np.nan):
         with pytest.raises(ValueError, match="level_tolerance must be >= 0 radians"):
             load_rosbag(path, level_tolerance=bad)
