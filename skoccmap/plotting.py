@@ -118,13 +118,16 @@ class OccupancyMapDisplay:
                 raise TypeError(f"z must be a height in metres (a number), got {z!r}.")
             if z is not None and not np.isfinite(z):
                 raise ValueError(f"z must be a finite height, got {z!r}.")
-            # The layer as a float first: a height far off the grid gives an infinite one,
-            # which int() refuses with an OverflowError.
-            with np.errstate(over="ignore", invalid="ignore"):
-                # A height on a layer's lower face is in that layer, whatever the division's
-                # rounding (1.2 m above -0.2 m is 6.999... layers of 0.2 m).
-                layers = (float(z) - zmin) / grid.resolution if z is not None else 0.0
-                k = grid.shape[0] // 2 if z is None else np.floor(layers + 1e-9 * abs(layers))
+            if z is None:
+                k = grid.shape[0] // 2
+            else:
+                # The layer as a float first: a height far off the grid gives an infinite
+                # one, which int() refuses with an OverflowError. A height on a layer's
+                # lower face is in that layer, whatever the division's rounding (1.2 m
+                # above -0.2 m is 6.999... layers of 0.2 m).
+                with np.errstate(over="ignore", invalid="ignore"):
+                    layers = (float(z) - zmin) / grid.resolution
+                    k = np.floor(layers + 1e-9 * abs(layers))
             if not 0 <= k < grid.shape[0]:
                 raise ValueError(f"z={z} is outside the grid's height range {grid.extent[4:]}.")
             k = int(k)
