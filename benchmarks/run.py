@@ -2,7 +2,7 @@
 
 Run::
 
-    python benchmarks/run.py              # full: B1, B2 (1k..64k), B3 (all, 10th, 40th scan), B4
+    python benchmarks/run.py              # full: B1, B2 (1k..3M), B3 (all, 10th, 40th scan), B4
     python benchmarks/run.py --quick      # smoke run, a few minutes per workload
     python benchmarks/run.py --only B3 --skip-full-log   # B3 on every 10th and 40th only
     python benchmarks/run.py --only B4 --n-jobs 2        # map quality only (the longest)
@@ -21,8 +21,8 @@ markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_pap
   all: it is cubic in them) and the counting grid ``OccupancyGridMap`` at 0.2 m. Fit s
   includes hyperparameter learning; predict s is the 0.2 m map (all cells); AUC is against
   the true map on the observed cells.
-- **B2**, the mixture's fit and predict time from 1k to 64k observations and the log-log slope
-  of fit time: ``benchmarks/bench_mixture.py`` run as a subprocess.
+- **B2**, the mixture's fit and predict time from 1k to 64k, 300k and 3M observations and the
+  log-log slopes of fit time: ``benchmarks/bench_mixture.py`` run as a subprocess.
 - **B3**, the Intel Research Lab log (``../shared/data/intel.gfs.log``): every 10th scan held
   out (offset 5); the mixture and the counting grid (0.1 m) trained on every 1st (unless
   ``--skip-full-log``), 10th and 40th remaining scan; AUC on held-out hits against points drawn
@@ -426,7 +426,8 @@ def parse_args(argv=None):
         type=int,
         nargs="+",
         default=None,
-        help="B2 observation counts (default: bench_mixture.py's, 1000 to 64000)",
+        help="B2 observation counts (default: bench_mixture.py's, 1000 to 64000, 300000 and "
+        "3000000)",
     )
     parser.add_argument("--intel", default=str(INTEL), help="path of intel.gfs.log")
     args = parser.parse_args(argv)
