@@ -53,6 +53,20 @@ def queries_of_our_own():
         yield
 
 
+def queries_at(estimator, points):
+    """``points`` (an array of shape (n, D)) as the rows ``estimator`` predicts on: the
+    points themselves for an estimator fitted on ``D`` columns (``layout="points"``, or
+    any classifier fitted on points), zero-length segments ``[p, p]`` otherwise.
+
+    The helpers that query an estimator at points of their own (cell centres, held-out
+    points) call it: segments alone reached an estimator fitted on points as
+    "X has 4 features, but ... is expecting 2"."""
+    points = np.asarray(points, dtype=np.float64)
+    if getattr(estimator, "n_features_in_", None) == points.shape[1]:
+        return points
+    return np.concatenate([points, points], axis=1)
+
+
 @contextlib.contextmanager
 def non_finite_explained(what):
     """Around ``validate_data`` of a map estimator: scikit-learn's NaN and infinity errors

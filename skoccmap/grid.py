@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._validation import caller_stacklevel, is_number, queries_of_our_own
+from ._validation import caller_stacklevel, is_number, queries_at, queries_of_our_own
 
 __all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
 
@@ -248,7 +248,9 @@ class OccupancyGrid:
         ----------
         estimator : fitted estimator
             Has ``predict_proba`` on segment rows (column 1 = P(occupied)); ``predict_var`` is
-            used when present.
+            used when present. The cells are zero-length segments, or points for an
+            estimator fitted on as many columns as the grid has dimensions (e.g.
+            ``layout="points"``).
         extent : tuple, array-like or None, default=None
             ``(xmin, xmax, ymin, ymax[, zmin, zmax])``; or data -- points (m, 2|3) or segment
             rows (m, 4|6) -- whose bounding box, snapped to multiples of ``resolution``, is
@@ -742,7 +744,7 @@ def _predict_on_cells(estimator, origin, resolution, counts, chunk_size, verbose
     for lo in range(0, n_cells, chunk_size):
         hi = min(lo + chunk_size, n_cells)
         centers = _cell_centers(origin, resolution, counts, np.arange(lo, hi))
-        queries = np.concatenate([centers, centers], axis=1)  # zero-length segments
+        queries = queries_at(estimator, centers)  # zero-length segments, or points
         with queries_of_our_own():
             if joint is not None:
                 proba[lo:hi], var[lo:hi] = joint(queries)
@@ -783,7 +785,7 @@ def _reference_variance(estimator, var, origin, resolution, counts):
     sample = np.unique(np.linspace(0, n_cells - 1, min(n_cells, 1024)).astype(np.int64))
     centers = _cell_centers(origin, resolution, counts, sample)
     with queries_of_our_own():
-        prior = prior_variance(np.concatenate([centers, centers], axis=1))
+        prior = prior_variance(queries_at(estimator, centers))
     return max(reference, float(np.max(prior)))
 
 

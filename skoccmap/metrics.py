@@ -17,10 +17,10 @@ import numpy as np
 from sklearn.metrics import brier_score_loss, roc_auc_score
 from sklearn.utils import Bunch, check_random_state
 
-from ._validation import queries_of_our_own
+from ._validation import queries_at, queries_of_our_own
 from .datasets import Environment2D, Room3D
 from .grid import ROS_FREE_THRESH, ROS_OCCUPIED_THRESH
-from .observations import Scans, _check_free_margin, as_segments
+from .observations import Scans, _check_free_margin
 
 __all__ = [
     "HILBERT_BLOCK_SIZE",
@@ -468,8 +468,9 @@ def heldout_auc(
     Parameters
     ----------
     estimator : fitted classifier
-        Its ``predict_proba`` on zero-length segments gives P(occupied) in the column of
-        class 1.
+        Its ``predict_proba`` on zero-length segments (on points, for a classifier fitted
+        on as many columns as the scans have dimensions, e.g. ``layout="points"``) gives
+        P(occupied) in the column of class 1.
     scans : Scans
         Held-out scans; see :func:`split_scans`.
     n_free_per_beam, free_margin, max_beam_range, random_state
@@ -501,7 +502,8 @@ def heldout_auc(
         random_state=random_state,
     )
     _check_both_classes(labels, "held-out point")
-    return _auc(labels, _positive_proba(estimator, as_segments(points)), "held-out point")
+    proba = _positive_proba(estimator, queries_at(estimator, points))
+    return _auc(labels, proba, "held-out point")
 
 
 def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=None, scans=None):
@@ -511,9 +513,10 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
     ----------
     estimator_or_proba : fitted classifier or array-like of shape (n_cells,)
         A classifier whose ``predict_proba`` is evaluated at the cell centres (as zero-length
-        segments), or P(occupied) per cell of ``environment.ground_truth_grid(resolution,
-        extent)`` in its order (or, with ``scans``, per observed cell only). The centre
-        stands for the whole cell here, so that AUCs stay comparable with earlier results;
+        segments, or points for a classifier fitted on points), or P(occupied) per cell of
+        ``environment.ground_truth_grid(resolution, extent)`` in its order (or, with
+        ``scans``, per observed cell only). The centre stands for the whole cell here, so
+        that AUCs stay comparable with earlier results;
         :func:`map_quality` reads a classifier's cell by its largest value over the cell.
     environment : Environment2D or Room3D
         The simulated world.
@@ -550,7 +553,8 @@ def ground_truth_auc(estimator_or_proba, environment, resolution=0.2, *, extent=
     labels = grid.occupied[scored]
     _check_both_classes(labels, what)
     if hasattr(estimator_or_proba, "predict_proba"):
-        proba = _positive_proba(estimator_or_proba, as_segments(grid.points[scored]))
+        queries = queries_at(estimator_or_proba, grid.points[scored])
+        proba = _positive_proba(estimator_or_proba, queries)
     else:
         proba = np.asarray(estimator_or_proba, dtype=np.float64)
         if proba.shape == scored.shape:  # one per cell of the grid: keep the scored ones
@@ -786,7 +790,7 @@ def _probability_source(estimator_or_proba, grid, scored):
         def at(points, what):
             if len(points) == 0:
                 return np.zeros(0)
-            proba = _positive_proba(estimator, as_segments(points))
+            proba = _positive_proba(estimator, queries_at(estimator, points))
             if proba.shape != (len(points),):
                 raise ValueError(
                     f"predict_proba gave {proba.shape[0]} probabilities for {len(points)} {what}s."
@@ -878,17 +882,18 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
     Parameters
     ----------
     estimator_or_proba : fitted classifier or array-like
-        A classifier whose ``predict_proba`` (column of class 1) is evaluated, as zero-length
-        segments, over each cell and at the wall-band points; or P(occupied) per cell
-        of the grid, of shape (n_cells,) in the grid's order or the grid's ``shape`` (an
-        image), or (with ``scans``) of shape (n_observed_cells,) for the observed cells only.
-        The wall-band points of an array take the value of the cell holding them. A
-        classifier's value for a cell is its largest probability over the cell's corners,
-        edge (3-D: and face) midpoints and centre: the true grid marks a cell occupied when
-        any of it touches occupied space, and a cell is at least as likely occupied as any
-        of its points. The exact map queried at the centres alone would miss every cell
-        that overlaps a wall by less than half a cell (it finds 26-27 % of the walls of the
-        paper's world and the office).
+        A classifier whose ``predict_proba`` (column of class 1) is evaluated, as
+        zero-length segments (as points, for a classifier fitted on points), over each cell
+        and at the wall-band points; or P(occupied) per cell of the grid, of shape
+        (n_cells,) in the grid's order or the grid's ``shape`` (an image), or (with
+        ``scans``) of shape (n_observed_cells,) for the observed cells only. The wall-band
+        points of an array take the value of the cell holding them. A classifier's value for
+        a cell is its largest probability over the cell's corners, edge (3-D: and face)
+        midpoints and centre: the true grid marks a cell occupied when any of it touches
+        occupied space, and a cell is at least as likely occupied as any of its points. The
+        exact map queried at the centres alone would miss every cell that overlaps a wall by
+        less than half a cell (it finds 26-27 % of the walls of the paper's world and the
+        office).
     environment : Environment2D or Room3D
         The simulated world.
     resolution : float, default=0.1

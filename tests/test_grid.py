@@ -867,3 +867,37 @@ def test_pgm_header_comments_are_skipped(tmp_path):
     (tmp_path / "g.yaml").write_text("image: g.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n")
     grid = OccupancyGrid.load_map_server(tmp_path / "g.yaml")
     np.testing.assert_array_equal(grid.trinary(), [[100, -1, 0]])
+
+
+def _field_points(n=60, seed=0):
+    """Points of the field of _FieldEstimator over [-1, 2] x [0.5, 1.5], labelled by it."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform([-1.0, 0.5], [2.0, 1.5], size=(n, 2))
+    return points, (_FieldEstimator.proba_at(points) > 0.5).astype(int)
+
+
+def test_an_estimator_fitted_on_points_is_queried_at_points():
+    # Cells of a classifier fitted on points (of layout="points", or any scikit-learn one)
+    # are its points: zero-length segments were refused as "X has 4 features".
+    from sklearn.neighbors import KNeighborsClassifier
+
+    points, y = _field_points()
+    knn = KNeighborsClassifier(3).fit(points, y)
+    grid = OccupancyGrid.from_estimator(knn, extent=(-1.0, 2.0, 0.5, 1.5), resolution=0.25)
+    xs = -1.0 + 0.25 * (np.arange(12) + 0.5)
+    ys = 0.5 + 0.25 * (np.arange(4) + 0.5)
+    gx, gy = np.meshgrid(xs, ys)
+    centres = np.column_stack([gx.ravel(), gy.ravel()])
+    expected = knn.predict_proba(centres)[:, 1].reshape(4, 12)
+    np.testing.assert_array_equal(grid.probability, expected)
+    # The package's own: the joint prediction, the variance and the prior variance's "auto".
+    grid_map = OccupancyGridMap(resolution=0.25, layout="points").fit(points, y)
+    counted = OccupancyGrid.from_estimator(grid_map, resolution=0.25)
+    assert counted.probability.shape == grid_map.shape_[::-1]
+    model = MixtureGPOccupancyMap(layout="points", random_state=0).fit(points, y)
+    grid = OccupancyGrid.from_estimator(model, extent=(-1.0, 2.0, 0.5, 1.5), resolution=0.25)
+    segments = np.hstack([centres, centres])
+    np.testing.assert_allclose(grid.probability.ravel(), model.predict_proba(centres)[:, 1])
+    np.testing.assert_allclose(grid.variance.ravel(), model.predict_var(centres))
+    reference = max(float(model.shared_kernel_.diag(segments).max()), grid.variance.max())
+    np.testing.assert_array_equal(grid.unknown, grid.variance > 0.9 * reference)

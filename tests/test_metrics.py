@@ -1032,3 +1032,26 @@ def test_wrong_objects_are_clear_errors():
         ground_truth_auc(np.zeros(3), object())
     with pytest.raises(ValueError, match="fitted classifier with predict_proba, got object"):
         heldout_auc(object(), data.scans)
+
+
+def test_a_classifier_fitted_on_points_is_scored_at_points(paper):
+    # The scores query a classifier fitted on points (layout="points", or any scikit-learn
+    # one) at points; zero-length segments were refused as "X has 4 features".
+    from sklearn.metrics import roc_auc_score
+    from sklearn.neighbors import KNeighborsClassifier
+
+    train, test = split_scans(paper.scans, every_nth=4)
+    points, labels = heldout_points(train, n_free_per_beam=3, random_state=0)
+    on_points = KNeighborsClassifier(5).fit(points, labels)
+    test_points, test_labels = heldout_points(test, random_state=0)
+    expected = roc_auc_score(test_labels, on_points.predict_proba(test_points)[:, 1])
+    assert heldout_auc(on_points, test, random_state=0) == pytest.approx(expected, abs=1e-15)
+    grid = paper.environment.ground_truth_grid(0.4)
+    expected = roc_auc_score(grid.occupied, on_points.predict_proba(grid.points)[:, 1])
+    auc = ground_truth_auc(on_points, paper.environment, 0.4)
+    assert auc == pytest.approx(expected, abs=1e-15)
+    # On [p, p] every distance is sqrt(2) times as long: the same neighbours, the same map.
+    on_segments = KNeighborsClassifier(5).fit(as_segments(points), labels)
+    env, scans = paper.environment, paper.scans
+    expected = map_quality(on_segments, env, resolution=0.2, scans=scans)
+    assert map_quality(on_points, env, resolution=0.2, scans=scans) == expected
