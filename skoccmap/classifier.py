@@ -353,6 +353,12 @@ class EPGaussianProcessClassifier(ClassifierMixin, BaseEstimator):
 
     Notes
     -----
+    scikit-learn's ``warm_start`` and ``max_iter_predict`` have no counterpart here: EP
+    starts each optimiser step from the last one's sites by itself, ``max_iter`` and
+    ``tol`` bound its sweeps, and prediction runs no iteration (the posterior is kept from
+    the fit). The default kernel learns the signal variance and the length scale, where
+    scikit-learn's default, ``1.0 * RBF(1.0)``, keeps both fixed.
+
     No ``decision_function`` is provided: the latent mean ranks test points differently from
     ``predict_proba``, which also accounts for the latent variance. One-vs-one predictions
     therefore weigh the votes by the binary classifiers' probabilities.
