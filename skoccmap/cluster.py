@@ -927,15 +927,74 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         """
         return np.argmax(self._log_weighted_density(X), axis=1)
 
-    def _log_weighted_density(self, X):
+    def score_samples(self, X):
+        """Log density of the posterior predictive at new points.
+
+        ``log p(x | X, z) = log(sum_k n_k t_k(x) + alpha t_0(x)) - log(n + alpha)``: the
+        Chinese-restaurant predictive of one more point given the partition of the final
+        state (as in Algorithm 3 of Neal 2000, the cluster parameters integrated out),
+        ``t_k`` the clusters' posterior predictive Student-t and ``t_0`` the prior's. The
+        new-cluster term keeps it a density in ``x`` (it integrates to 1), unlike the sum
+        over the fitted clusters alone (:meth:`predict_proba` leaves it out).
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+
+        Returns
+        -------
+        log_density : ndarray of shape (n_samples,)
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap import DPGMMClusterer
+        >>> rng = np.random.default_rng(0)
+        >>> X = np.vstack([rng.normal(c, 0.3, size=(100, 2)) for c in ([0, 0], [4, 0])])
+        >>> model = DPGMMClusterer(random_state=0).fit(X)
+        >>> log_p = model.score_samples([[0.0, 0.0], [2.0, 0.0]])
+        >>> bool(log_p[0] > log_p[1])
+        True
+        """
+        return logsumexp(self._log_weighted_density(X, new_cluster=True), axis=1)
+
+    def score(self, X, y=None):
+        """Mean log density of the posterior predictive at ``X`` (see :meth:`score_samples`).
+
+        The default score of model selection (e.g. ``GridSearchCV`` over ``alpha`` scores
+        held-out points by it), as :meth:`sklearn.mixture.BayesianGaussianMixture.score`.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, n_features)
+        y : Ignored
+            Not used, present for API consistency.
+
+        Returns
+        -------
+        score : float
+        """
+        return float(np.mean(self.score_samples(X)))
+
+    def _log_weighted_density(self, X, new_cluster=False):
+        """``log w_k + log t_k(x)`` of each point and cluster, ``w = weights_``; with
+        ``new_cluster``, the Chinese restaurant's ``w_k = n_k / (n + alpha)`` and a last
+        column for a new cluster, of weight ``alpha / (n + alpha)`` and the prior's t."""
         check_is_fitted(self)
         X = check_magnitude(validate_data(self, X, dtype=np.float64, reset=False))
         X = X - self._shift
-        log_w = np.log(self.weights_)
-        out = np.empty((X.shape[0], self.n_clusters_))
+        t, log_w = self._predictive, np.log(self.weights_)
+        if new_cluster:
+            n, D = self._statistics[0], X.shape[1]
+            prior_t, _ = predictive(
+                np.zeros(1), np.zeros((1, D)), np.zeros((1, D, D)), self._prior
+            )
+            t = StudentT(*(np.concatenate(pair) for pair in zip(t, prior_t, strict=True)))
+            log_w = np.log(np.append(n, self.alpha)) - np.log(n.sum() + self.alpha)
+        out = np.empty((X.shape[0], len(log_w)))
         for start in range(0, X.shape[0], _CHUNK):
             rows = slice(start, start + _CHUNK)
-            out[rows] = log_student_t(X[rows], self._predictive) + log_w
+            out[rows] = log_student_t(X[rows], t) + log_w
         return out
 
 

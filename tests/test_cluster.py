@@ -2,7 +2,7 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import integrate, stats
 from sklearn.datasets import make_blobs
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.metrics import adjusted_rand_score
@@ -431,6 +431,59 @@ def test_fitted_attributes_and_predict_proba():
         dens.append(n * stats.multivariate_t(mean, psi * (kappa + 1) / (kappa * dof), dof).pdf(x))
     dens = np.array(dens).T
     np.testing.assert_allclose(proba[:5], dens / dens.sum(1, keepdims=True), rtol=1e-8)
+
+
+def _textbook_predictive(model, Xk):
+    """Posterior predictive Student-t of the points ``Xk`` under the model's prior (Murphy
+    2007, eq. 258), from the points themselves."""
+    n, D = Xk.shape
+    m0, k0, nu0 = model.mean_prior_, model.mean_precision_prior_, model.degrees_of_freedom_prior_
+    kappa, nu = k0 + n, nu0 + n
+    mean, psi = m0, model.covariance_prior_
+    if n:
+        dm = Xk.mean(0) - m0
+        mean = (k0 * m0 + Xk.sum(0)) / kappa
+        psi = psi + np.cov(Xk.T, bias=True).reshape(D, D) * n + k0 * n / kappa * np.outer(dm, dm)
+    dof = nu - D + 1
+    return stats.multivariate_t(mean, psi * (kappa + 1) / (kappa * dof), dof)
+
+
+def test_score_samples_is_the_chinese_restaurant_predictive_density():
+    X, _ = blobs(300, 2, 3, seed=7)
+    model = DPGMMClusterer(alpha=2.0, random_state=0).fit(X)
+    x = np.vstack([X[:5], [[40.0, -40.0]]])  # the last far from every cluster
+    density = 2.0 * _textbook_predictive(model, X[:0]).pdf(x)
+    for k in range(model.n_clusters_):
+        Xk = X[model.labels_ == k]
+        density += len(Xk) * _textbook_predictive(model, Xk).pdf(x)
+    expected = np.log(density / (len(X) + 2.0))
+    np.testing.assert_allclose(model.score_samples(x), expected, rtol=1e-10)
+    assert model.score(x) == pytest.approx(expected.mean(), rel=1e-10)
+    # In 1-D it integrates to 1 (the new-cluster term included), before and after
+    # partial_fit opens a cluster.
+    rng = np.random.default_rng(0)
+    line = DPGMMClusterer(random_state=0).fit(rng.normal(0.0, 0.5, (60, 1)))
+    for _ in range(2):
+        total, _ = integrate.quad(
+            lambda t: np.exp(line.score_samples([[t]])[0]), -np.inf, np.inf, limit=200
+        )
+        assert total == pytest.approx(1.0, abs=1e-7)
+        line.partial_fit(rng.normal(9.0, 0.5, (30, 1)))
+    assert line.n_clusters_ == 2
+
+
+def test_score_selects_the_concentration_by_held_out_density():
+    # GridSearchCV's default scoring is score: held-out log density.
+    from sklearn.model_selection import GridSearchCV
+
+    X, _ = blobs(200, 2, 3, seed=3)
+    search = GridSearchCV(DPGMMClusterer(random_state=0), {"alpha": [0.5, 2.0]}, cv=2).fit(X)
+    for alpha, mean_score in zip([0.5, 2.0], search.cv_results_["mean_test_score"], strict=True):
+        folds = [(X[100:], X[:100]), (X[:100], X[100:])]
+        expected = np.mean(
+            [DPGMMClusterer(alpha=alpha, random_state=0).fit(a).score(b) for a, b in folds]
+        )
+        assert mean_score == pytest.approx(expected, rel=1e-12)
 
 
 def _fitted_log_joint(model, X):
