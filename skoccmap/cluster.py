@@ -677,8 +677,14 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
             psi = np.atleast_2d(np.cov(X.T))
             mean_var = np.trace(psi) / D
             psi = psi + 1e-6 * (mean_var if mean_var > 0 else 1.0) * np.eye(D)
-        elif np.isscalar(self.covariance_prior):
-            psi = float(self.covariance_prior) * np.eye(D)
+        elif np.ndim(self.covariance_prior) == 0:  # a number, or a 0-d array of one
+            scale = float(self.covariance_prior)
+            if not (np.isfinite(scale) and scale > 0):
+                raise ValueError(
+                    f"covariance_prior must be a positive number or a ({D}, {D}) symmetric "
+                    f"positive definite matrix, got {self.covariance_prior!r}."
+                )
+            psi = scale * np.eye(D)
         else:
             psi = np.asarray(self.covariance_prior, dtype=float)
             if psi.shape != (D, D):

@@ -564,12 +564,23 @@ def test_bad_input_raises(X, match):
         ({"max_iter": 0}, "max_iter"),
         ({"covariance_prior": np.eye(3)}, "covariance_prior"),
         ({"mean_prior": [0.0, 0.0, 0.0]}, "mean_prior"),
+        # a 0-d array is a number: its sign and finiteness are checked as a float's
+        ({"covariance_prior": np.array(-0.5)}, "covariance_prior must be a positive"),
+        ({"covariance_prior": np.array(np.nan)}, "covariance_prior must be a positive"),
     ],
 )
 def test_bad_prior_or_parameter_at_its_bound_raises(params, match):
     X, _ = blobs(50, 2, 2, seed=0)
     with pytest.raises(ValueError, match=match):
         DPGMMClusterer(**params).fit(X)
+
+
+def test_a_0d_covariance_prior_is_the_number_it_holds():
+    X, _ = blobs(50, 2, 2, seed=0)
+    model = DPGMMClusterer(covariance_prior=np.array(0.5), random_state=0).fit(X)
+    np.testing.assert_array_equal(model.covariance_prior_, 0.5 * np.eye(2))
+    same = DPGMMClusterer(covariance_prior=0.5, random_state=0).fit(X)
+    np.testing.assert_array_equal(model.labels_, same.labels_)
 
 
 def test_predict_checks_features():
