@@ -76,15 +76,15 @@ for name, (labels, seconds) in fits.items():
 # is fitted on half of the hits and scores the other half. The sampler's density is the
 # posterior predictive given its partition, the chance of a new cluster included.
 half = np.random.default_rng(0).permutation(len(hits)) < len(hits) // 2
-scores = {"DPGMMClusterer": DPGMMClusterer(alpha=1.0, random_state=0).fit(hits[half])}
+halves = {"DPGMMClusterer": DPGMMClusterer(alpha=1.0, random_state=0).fit(hits[half])}
 for name, prior in [
     ("default prior", {}),
     ("concentration 1", {"weight_concentration_prior": 1.0}),
 ]:
-    scores[f"BayesianGaussianMixture, {name}"] = BayesianGaussianMixture(**common, **prior).fit(
+    halves[f"BayesianGaussianMixture, {name}"] = BayesianGaussianMixture(**common, **prior).fit(
         hits[half]
     )
-for name, model in scores.items():
+for name, model in halves.items():
     print(f"{name}: held-out mean log density {model.score(hits[~half]):.3f}")
 
 # %%
