@@ -2,7 +2,6 @@
 constant expert of a one-class cluster, and the default expert and kernel.
 """
 
-import re
 import threading
 import warnings
 from functools import partial
@@ -11,7 +10,7 @@ import numpy as np
 from scipy.special import ndtri
 from sklearn.gaussian_process.kernels import ConstantKernel, Product
 
-from ._validation import caller_stacklevel
+from ._validation import warn, warning_kind
 from .classifier import EPGaussianProcessClassifier, _from_lower_triangle, _lower_triangle
 from .kernels import IntegralKernel
 
@@ -167,19 +166,17 @@ def _warn_once_each(expert_warnings, n_experts):
     Messages that differ only in their numbers (a residual, an iteration count) are one
     kind; the first expert's message stands for them.
     """
-    kinds, stacklevel = {}, caller_stacklevel()
+    kinds = {}
     for caught in expert_warnings:
         seen = set()
         for category, message in caught:
-            key = (category, re.sub(r"[-+]?\d[\d.e+-]*", "#", message))
+            key = (category, warning_kind(message))
             if key not in seen:
                 seen.add(key)
                 first, count = kinds.get(key, (message, 0))
                 kinds[key] = (first, count + 1)
     for (category, _), (message, count) in kinds.items():
-        warnings.warn(
-            f"{count} of {n_experts} expert(s): {message}", category, stacklevel=stacklevel
-        )
+        warn(f"{count} of {n_experts} expert(s): {message}", category)
 
 
 def _learns_kernel(expert):

@@ -11,8 +11,6 @@ the same area and the same number of observations however dense the scans, so th
 learned length scale does not follow the density of the scans.
 """
 
-import warnings
-
 import numpy as np
 from joblib import effective_n_jobs
 from scipy.spatial import cKDTree
@@ -20,7 +18,7 @@ from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.utils.parallel import Parallel, delayed
 
-from ._validation import caller_stacklevel
+from ._validation import warn
 from .classifier import _check_learnable, _minimize_in_bounds
 
 __all__ = ["learn_shared_kernel", "warn_at_bounds", "warn_beyond_extent", "window_pieces"]
@@ -158,12 +156,11 @@ def warn_at_bounds(kernel, where):
         if lo + _AT_BOUND_ATOL < value < hi - _AT_BOUND_ATOL:
             continue
         side = "lower" if value <= lo + _AT_BOUND_ATOL else "upper"
-        warnings.warn(
+        warn(
             f"The {where} hyperparameter {name} ended at its {side} bound "
             f"({np.exp(value):.3g}). Widen its bounds in the kernel if the map needs it, "
             "or fix it (bounds='fixed').",
             ConvergenceWarning,
-            stacklevel=caller_stacklevel(),
         )
 
 
@@ -184,11 +181,10 @@ def warn_beyond_extent(kernel, extent, where):
             continue
         longest = float(np.max(value))
         if longest > extent:
-            warnings.warn(
+            warn(
                 f"The {where} hyperparameter {name} was learned at {longest:.3g}, beyond "
                 f"the extent of the training data ({extent:.3g}): the map is nearly "
                 "constant. Learn it on smaller pieces (hyperparameter_window=None or a "
                 "smaller window), narrow its bounds in the kernel, or fix it.",
                 ConvergenceWarning,
-                stacklevel=caller_stacklevel(),
             )

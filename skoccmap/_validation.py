@@ -3,6 +3,7 @@
 import contextlib
 import functools
 import os
+import re
 import sys
 import warnings
 from numbers import Real
@@ -33,6 +34,72 @@ def caller_stacklevel():
     ):
         frame, level = frame.f_back, level + 1
     return level
+
+
+# Numbers in a warning's text (a count, a residual).
+_NUMBER = re.compile(r"[-+]?\d[\d.e+-]*")
+# The kinds of warning shown under the filters held (see _repeated).
+_SHOWN = {"filters": None, "snapshot": None, "kinds": set()}
+
+
+def warn(message, category=UserWarning):
+    """``warnings.warn`` at the caller's line (:func:`caller_stacklevel`), each kind of
+    warning once per line where the filters show a warning once.
+
+    Python's ``"default"`` action shows a warning once per line and text, but every
+    ``catch_warnings`` resets its record of what it showed, and the mixture's expert fits
+    run in one: a warning that every ``partial_fit`` of a loop gives would reach the log
+    once per update. Where the filter that applies says ``"default"``, ``"module"`` or
+    ``"once"``, a warning of a kind already shown there (the same text, numbers aside) is
+    left out here, until the filters change; under ``"always"`` or ``"error"`` every one
+    is raised.
+    """
+    frame, level = sys._getframe(1), 2
+    while frame is not None and (
+        frame.f_code.co_filename.startswith(_LIBRARY_DIRS) or _generated_init(frame.f_code)
+    ):
+        frame, level = frame.f_back, level + 1
+    if frame is None or not _repeated(str(message), category, frame):
+        warnings.warn(message, category, stacklevel=level)
+
+
+def warning_kind(text):
+    """A warning's text with its numbers blanked: messages that differ only in their
+    numbers (a count, a residual) are one kind of warning."""
+    return _NUMBER.sub("#", text)
+
+
+def _filter_action(text, category, module, lineno):
+    """The action of the first filter that matches, as ``warnings.warn`` finds it."""
+    for action, msg, cat, mod, line in warnings.filters:
+        if (
+            (msg is None or msg.match(text))
+            and issubclass(category, cat)
+            and (mod is None or mod.match(module))
+            and (line == 0 or line == lineno)
+        ):
+            return action
+    return warnings.defaultaction
+
+
+def _repeated(text, category, frame):
+    """Whether a warning of this kind was shown at ``frame``'s line (its module, or
+    anywhere, for ``"module"`` and ``"once"``) under the filters held now; records it."""
+    module = frame.f_globals.get("__name__", "<string>")
+    filename, lineno = frame.f_code.co_filename, frame.f_lineno
+    action = _filter_action(text, category, module, lineno)
+    if action not in ("default", "module", "once"):
+        return False
+    filters = warnings.filters
+    if _SHOWN["filters"] is not filters or _SHOWN["snapshot"] != filters:
+        # New filters (the caller's catch_warnings, simplefilter): start over, as Python does.
+        _SHOWN.update(filters=filters, snapshot=list(filters), kinds=set())
+    kind = (category, warning_kind(text))
+    kind += {"once": (), "module": (filename,), "default": (filename, lineno)}[action]
+    if kind in _SHOWN["kinds"]:
+        return True
+    _SHOWN["kinds"].add(kind)
+    return False
 
 
 def _generated_init(code):
@@ -128,12 +195,11 @@ def warn_unless_metres(starts, ends):
     lengths = np.linalg.norm(ends - starts, axis=1)
     lengths = lengths[lengths > 0]
     if lengths.size and np.median(lengths) > _LONGEST_MEDIAN_BEAM:
-        warnings.warn(
+        warn(
             f"The beams' median length is {np.median(lengths):.4g}: as metres, beyond any "
             "laser's range. skoccmap reads coordinates in metres (its beam pieces, cells and "
             "length scales are in metres); were these millimetres? Divide X by 1000.",
             UserWarning,
-            stacklevel=caller_stacklevel(),
         )
 
 
@@ -153,12 +219,11 @@ def warn_if_coarse_float32(X_in, X):
     largest = np.float32(max(np.max(X), -np.min(X)))
     step = float(np.spacing(largest))
     if step > _FINEST_FLOAT32_STEP:
-        warnings.warn(
+        warn(
             f"X is float32 and holds coordinates up to {largest:.3g}, where float32 steps "
             f"are {step:.3g} m: the map cannot be finer than that. Pass float64 "
             "coordinates, or subtract an origin (such as the first pose) first.",
             UserWarning,
-            stacklevel=caller_stacklevel(),
         )
 
 

@@ -8,7 +8,6 @@ the experts, whose latent predictions are merged by a rule of :mod:`skoccmap.com
 import copy
 import sys
 import time
-import warnings
 from functools import partial
 from numbers import Integral, Real
 
@@ -67,12 +66,12 @@ from ._shared_kernel import (
 from ._thinning import thin_free_pieces
 from ._transient import CellCounts
 from ._validation import (
-    caller_stacklevel,
     check_magnitude,
     fit_or_unfitted,
     non_finite_explained,
     unfitted_on_error,
     validate_queries,
+    warn,
     warn_if_coarse_float32,
     warn_unless_metres,
 )
@@ -166,11 +165,10 @@ def _check_hits_are_points(X, occupied, classes):
         "StandardScaler in a pipeline does so)? Give the map coordinates in metres, starts "
         "and ends alike."
     )
-    warnings.warn(
+    warn(
         f"Most rows labelled occupied (y == {classes[1]!r}) are segments of positive "
         f"length, where hits are zero-length rows [x, x].{hint}",
         UserWarning,
-        stacklevel=caller_stacklevel(),
     )
 
 
@@ -201,12 +199,11 @@ def _log(verbose, message):
 def _warn_if_every_hit_transient(transient_hit, bound):
     """A map whose every hit was left out as transient shows no obstacle: say so."""
     if transient_hit.size and transient_hit.all():
-        warnings.warn(
+        warn(
             f"Every hit was left out as transient (min_hit_frequency={bound}): free beams "
             "cross each hit's cell far more often than it is hit, so the map shows no "
             "obstacle. Set min_hit_frequency=None to keep every hit.",
             UserWarning,
-            stacklevel=caller_stacklevel(),
         )
 
 

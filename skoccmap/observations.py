@@ -19,13 +19,12 @@ quaternion (scalar first) rotating sensor-frame vectors into the world frame; be
 direction vectors in the sensor frame.
 """
 
-import warnings
 from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
 
-from ._validation import caller_stacklevel, check_segments, segment_dim
+from ._validation import check_segments, segment_dim, warn
 
 __all__ = [
     "HIT",
@@ -130,13 +129,12 @@ def _check_poses(poses):
         poses = poses.copy()
         poses[:, 3:] /= norms[:, None]
         if poses.shape[0] > 1 and np.all(np.abs(poses[:, 3]) <= _UPSIDE_DOWN_QW):
-            warnings.warn(
+            warn(
                 "Every pose turns the sensor upside down (qw = poses[:, 3] near 0). "
                 "skoccmap reads quaternions scalar first, [qw, qx, qy, qz]; ROS messages "
                 "and scipy's Rotation.as_quat() give [qx, qy, qz, qw]: reorder them with "
                 "np.roll(q, 1, axis=1). A sensor mounted upside down gives these poses too.",
                 UserWarning,
-                stacklevel=caller_stacklevel(),
             )
     return poses
 
@@ -212,11 +210,10 @@ def _check_angles(angles, n_scans, n_beams, n_dims):
     if span > 2 * np.pi + 1e-9:
         # A scan's beams span at most one turn: more is degrees read as radians, which
         # would fan the beams around the sensor several times.
-        warnings.warn(
+        warn(
             f"The beam angles of a scan span {span:.4g} radians, more "
             "than a full turn: if they are in degrees, pass np.radians(angles).",
             UserWarning,
-            stacklevel=caller_stacklevel(),
         )
     if n_dims == 3:
         norms = np.linalg.norm(angles, axis=-1)
@@ -403,12 +400,11 @@ def scans_to_observations(
     )
     n_returned, n_free = int(returned.sum()), int(valid[:, 1].sum())
     if n_free < n_returned / 2:
-        warnings.warn(
+        warn(
             f"free_margin={free_margin:g} m is at least as long as {n_returned - n_free} of "
             f"the {n_returned} returned ranges: their beams give no free row, only a hit. "
             "free_margin is the gap between a beam's free part and its hit (a few cm).",
             UserWarning,
-            stacklevel=caller_stacklevel(),
         )
 
     # Boolean indexing walks (scan, kind, beam) in C order: the documented row order.

@@ -955,3 +955,58 @@ def test_clusterer_partial_fit_runs_burn_in_sweeps_over_the_batch_only(monkeypat
     monkeypatch.setattr(cluster._CollapsedGibbs, "gibbs_sweep", spy)
     model.partial_fit(b[:20])
     assert swept == [20] * burn_in
+
+
+def _shown_in_a_loop(action, update, n_calls):
+    """Warnings (category, text) that the warnings module shows while ``update(i)`` runs
+    for ``i < n_calls`` under ``simplefilter(action)``, as a robot's log would have them."""
+    shown = []
+    with warnings.catch_warnings():
+        warnings.simplefilter(action)
+        warnings.showwarning = lambda message, category, *args, **kwargs: shown.append(
+            (category, str(message))
+        )
+        for i in range(n_calls):
+            update(i)
+    return shown
+
+
+def test_a_warning_of_every_update_is_shown_once_under_the_default_filter(office):
+    # float32 coordinates at UTM-like offsets warn on every batch, with the same text.
+    # Python's "default" action shows a repeated warning once per line (a plain
+    # warnings.warn in the same loop: once); the experts' fits used to reset that record,
+    # so a robot's log got one warning per update.
+    data, _ = office
+    offset = np.array([500_000.0, 4_000_000.0] * 2)
+    model = _model()
+
+    def update(i):
+        X, y = _batch(data, 2 * i, 2 * i + 2)
+        model.partial_fit((X + offset).astype(np.float32), y, classes=[0, 1])
+
+    coarse = [text for _, text in _shown_in_a_loop("default", update, 4) if "float32" in text]
+    assert len(coarse) == 1
+    # Under "always" every update still says so.
+    model = _model()
+    coarse = [text for _, text in _shown_in_a_loop("always", update, 4) if "float32" in text]
+    assert len(coarse) == 4
+
+
+def test_experts_warnings_differing_only_in_their_numbers_are_one_kind_in_a_loop(office):
+    # EP stopped early in some experts of every update: "3 of 9 expert(s): EP did not
+    # converge ... residual 1.2e-02", numbers changing from one update to the next.
+    data, _ = office
+    expert = EPGaussianProcessClassifier(
+        ConstantKernel(100.0, "fixed") * IntegralKernel(1.0, "fixed"), optimizer=None, max_iter=1
+    )
+    model = MixtureGPOccupancyMap(expert=expert, max_expert_size=150, random_state=0)
+
+    def update(i):
+        model.partial_fit(*_batch(data, 3 * i, 3 * i + 3), classes=[0, 1])
+
+    shown = _shown_in_a_loop("default", update, 4)
+    assert len([text for _, text in shown if "expert(s): EP" in text]) == 1
+    model = MixtureGPOccupancyMap(expert=expert, max_expert_size=150, random_state=0)
+    texts = [text for _, text in _shown_in_a_loop("always", update, 4) if "expert(s): EP" in text]
+    # Each update's own counts, numbers and all.
+    assert len(texts) >= 4 and len(set(texts)) > 1
