@@ -2331,6 +2331,14 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
     def predict_proba(self, X):
         """Probability of each class at the query segments.
 
+        A segment's probability is that of the map's latent function averaged along it
+        (the integral kernel), not of its most occupied point: a segment that crosses a
+        thin wall reads freer the longer it is (on the simulated office, a 4 m segment
+        centred on a wall read 0.28, its points up to 1.0). To ask whether a path is
+        free, query points along it, e.g.
+        ``as_segments(a + np.linspace(0, 1, n)[:, None] * (b - a))`` at the map's
+        resolution, and take the largest probability.
+
         Parameters
         ----------
         X : array-like of shape (n_queries, 2 * D)
@@ -2390,6 +2398,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
 
     def predict_var(self, X):
         """Merged latent variance at the query segments.
+
+        A segment's is the variance of the latent function averaged along it (see
+        :meth:`predict_proba`).
 
         Parameters
         ----------
