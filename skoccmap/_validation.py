@@ -27,13 +27,18 @@ def caller_stacklevel():
     meta-estimators (``OneVsRestClassifier``, ``Pipeline``) lie between.
 
     Call it from the function that calls ``warnings.warn``."""
-    # Frame 2 is the warning function's caller: stacklevel 2.
-    frame, level = sys._getframe(2), 2
+    return _caller(sys._getframe(2))[1]
+
+
+def _caller(frame):
+    """The first frame from ``frame`` outwards outside this package, scikit-learn and
+    joblib (None if none is), and its ``stacklevel`` counted from ``frame`` as 2."""
+    level = 2
     while frame is not None and (
         frame.f_code.co_filename.startswith(_LIBRARY_DIRS) or _generated_init(frame.f_code)
     ):
         frame, level = frame.f_back, level + 1
-    return level
+    return frame, level
 
 
 # Numbers in a warning's text (a count, a residual).
@@ -54,11 +59,7 @@ def warn(message, category=UserWarning):
     left out here, until the filters change; under ``"always"`` or ``"error"`` every one
     is raised.
     """
-    frame, level = sys._getframe(1), 2
-    while frame is not None and (
-        frame.f_code.co_filename.startswith(_LIBRARY_DIRS) or _generated_init(frame.f_code)
-    ):
-        frame, level = frame.f_back, level + 1
+    frame, level = _caller(sys._getframe(1))
     if frame is None or not _repeated(str(message), category, frame):
         warnings.warn(message, category, stacklevel=level)
 
