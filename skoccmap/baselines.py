@@ -33,6 +33,7 @@ from ._validation import (
     check_magnitude,
     fit_or_unfitted,
     non_finite_explained,
+    unfitted_on_error,
     validate_queries,
     warn_unless_metres,
 )
@@ -277,6 +278,18 @@ def _binary_classes(y, name):
     return classes, y_idx
 
 
+def _label_index(y, classes):
+    """0/1 index of every label among ``classes``, refusing labels outside them."""
+    check_classification_targets(y)
+    unknown = np.setdiff1d(np.unique(y), classes)
+    if unknown.size:
+        raise ValueError(
+            f"y holds label(s) {unknown.tolist()!r} outside classes_ {classes.tolist()!r}; "
+            "pass every label on the first call (classes=...)."
+        )
+    return np.searchsorted(classes, y)
+
+
 def _check_scan_index(scan_index, n_samples):
     """Rank (0, 1, ... in increasing scan order) of the scan of every row."""
     scan_index = np.asarray(scan_index)
@@ -337,31 +350,111 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         tags.classifier_tags.poor_score = True
         return tags
 
-    def _prepare_fit(self, X, y):
-        """Validate ``X, y``; set ``classes_`` and the grid; return starts, ends, hit mask."""
+    def _prepare_fit(self, X, y, classes=None):
+        """Validate ``X, y``; set ``classes_`` (from ``y``, or ``classes`` where given), an
+        empty grid over the data; return starts, ends, hit mask."""
         self._validate_params()
+        self._check_params()
         with non_finite_explained("observations"):
             X, y = validate_data(self, X, y, dtype=np.float64)
-        self.classes_, y_idx = _binary_classes(y, type(self).__name__)
+        if classes is None:
+            self.classes_, y_idx = _binary_classes(y, type(self).__name__)
+        else:
+            self.classes_ = _binary_classes(np.asarray(classes), "classes")[0]
+            y_idx = _label_index(y, self.classes_)
         starts, ends = _split_rows(X, self.layout)
         warn_unless_metres(starts, ends)
         res = float(self.resolution)
         low = np.minimum(starts.min(axis=0), ends.min(axis=0))
         high = np.maximum(starts.max(axis=0), ends.max(axis=0))
-        self.origin_ = _snapped_origin(low, res)
-        shape = np.floor((high - self.origin_) / res) + 1
+        origin = _snapped_origin(low, res)
+        self._set_grid(origin, np.floor((high - origin) / res) + 1)
+        self.cell_index_ = np.zeros(0, dtype=np.int64)
+        self._start_empty()
+        return starts, ends, y_idx == 1
+
+    def _set_grid(self, origin, shape):
         # Cells are stored sparsely, but their flat index must fit an int64.
         if np.prod(shape) >= 2.0**62:
             raise ValueError(
                 f"the data span {' x '.join(f'{s:.3g}' for s in shape)} cells at resolution "
-                f"{res:g}, too many to index: use a coarser resolution, or look for a reading "
-                "far off the map."
+                f"{self.resolution:g}, too many to index: use a coarser resolution, or look "
+                "for a reading far off the map."
             )
+        self.origin_ = origin
         self.shape_ = tuple(int(s) for s in shape)
         self.extent_ = np.column_stack(
-            [self.origin_, self.origin_ + res * np.array(self.shape_)]
+            [self.origin_, self.origin_ + float(self.resolution) * np.array(self.shape_)]
         ).ravel()
-        return starts, ends, y_idx == 1
+
+    def _check_params(self):
+        """Checks of parameters beyond their constraints (none here)."""
+
+    def _prepare_batch(self, X, y, classes):
+        """Validate a later ``partial_fit`` batch; grow the grid to hold it; return starts,
+        ends, hit mask."""
+        with non_finite_explained("observations"):
+            X, y = validate_data(self, X, y, dtype=np.float64, reset=False)
+        if classes is not None and not np.array_equal(np.unique(classes), self.classes_):
+            raise ValueError(
+                f"classes={list(classes)!r} differ from classes_ {self.classes_.tolist()!r} "
+                "of the earlier calls."
+            )
+        hit = _label_index(y, self.classes_) == 1
+        starts, ends = _split_rows(X, self.layout)
+        warn_unless_metres(starts, ends)
+        self._grow(starts, ends)
+        return starts, ends, hit
+
+    def _grow(self, starts, ends):
+        """Widen the grid to hold ``starts`` and ``ends``; the observed cells keep their
+        places, their flat indices renumbered (C order is kept: they stay sorted)."""
+        res = float(self.resolution)
+        low = np.minimum(starts.min(axis=0), ends.min(axis=0))
+        high = np.maximum(starts.max(axis=0), ends.max(axis=0))
+        shift = np.maximum(np.rint((self.origin_ - _snapped_origin(low, res)) / res), 0)
+        origin = self.origin_ - shift * res
+        shape = np.maximum(np.asarray(self.shape_) + shift, np.floor((high - origin) / res) + 1)
+        if np.array_equal(shape, self.shape_):
+            return
+        cells = np.unravel_index(self.cell_index_, self.shape_)
+        self._set_grid(origin, shape)
+        moved = tuple(c + int(s) for c, s in zip(cells, shift, strict=True))
+        self.cell_index_ = np.ravel_multi_index(moved, self.shape_).astype(np.int64)
+
+    def _with_cells(self, cells, *values):
+        """Add the sorted flat indices ``cells`` to ``cell_index_``; return ``values`` (one
+        per observed cell) laid out on the new cells, 0 where a cell is new, and the
+        positions of ``cells`` among them."""
+        if self.cell_index_.size:
+            index = np.union1d(self.cell_index_, cells)
+        else:
+            index = cells
+        kept = np.searchsorted(index, self.cell_index_)
+        laid = []
+        for value in values:
+            out = np.zeros(index.size, dtype=value.dtype)
+            out[kept] = value
+            laid.append(out)
+        self.cell_index_ = index
+        return laid, np.searchsorted(index, cells)
+
+    def _partial_fit(self, X, y, classes, update):
+        """``partial_fit``: the first call fits (with ``classes`` where given); a later one
+        grows the grid and ``update(starts, ends, hit)`` adds its rows. A refused batch
+        leaves the grid as it was."""
+        if not hasattr(self, "cell_index_"):
+            with unfitted_on_error(self):
+                update(*self._prepare_fit(X, y, classes))
+            return self
+        before = dict(vars(self))
+        try:
+            update(*self._prepare_batch(X, y, classes))
+        except BaseException:
+            vars(self).clear()
+            vars(self).update(before)
+            raise
+        return self
 
     def _n_cells(self):
         return int(np.prod(self.shape_, dtype=np.float64))
@@ -467,6 +560,8 @@ class OccupancyGridMap(_CountingGridBase):
       else by ``l_free`` if one of its beams passes it -- and the log-odds are clamped after
       every scan. Evidence beyond a bound is then lost, so a cell saturated at ``l_max`` is
       lowered by the next free pass; with the sum, it may take many.
+
+    :meth:`partial_fit` adds rows online, either way, the grid growing to hold them.
 
     Summed evidence saturates as scans accumulate: many cells tie at the bounds and ranking
     scores (AUC) fall with more data. Clamping after every scan keeps recent evidence in play.
@@ -599,28 +694,76 @@ class OccupancyGridMap(_CountingGridBase):
         self : OccupancyGridMap
             The fitted grid.
         """
-        starts, ends, hit = self._prepare_fit(X, y)
-        if self.l_min >= self.l_max:
-            raise ValueError(f"l_min ({self.l_min}) must be below l_max ({self.l_max}).")
-        if scan_index is None:
-            self._fit_summed(starts, ends, hit)
-        else:
-            self._fit_per_scan(starts, ends, hit, _check_scan_index(scan_index, hit.size))
+        self._add(*self._prepare_fit(X, y), scan_index)
         return self
 
-    def _fit_summed(self, starts, ends, hit):
+    def partial_fit(self, X, y, classes=None, scan_index=None):
+        """Add observations to the grid (online mapping).
+
+        The first call is :meth:`fit` (``classes`` names both labels where its ``y`` holds
+        one only). Each later call applies its rows to the log-odds the grid holds, as
+        :meth:`fit` applies them to zeros: summed and clamped once per call, or, with
+        ``scan_index``, scan by scan, its scans after those of the earlier calls. Calls
+        that each hold whole scans, with their ``scan_index``, give the grid of one
+        ``fit`` on all the rows with theirs. The grid grows to hold new rows; a refused
+        call (NaN, other columns, a label outside ``classes_``) leaves it as it was.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, 2 * n_dims)
+            Segment rows ``[start, end]``; hits are zero-length segments.
+        y : array-like of shape (n_samples,)
+            Labels among ``classes_`` (the larger one marks hits).
+        classes : array-like of shape (2,), default=None
+            Both labels; needed on the first call only if its ``y`` holds one.
+        scan_index : array-like of int of shape (n_samples,), default=None
+            The scan of each row, as in :meth:`fit`.
+
+        Returns
+        -------
+        self : OccupancyGridMap
+            The updated grid.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap.baselines import OccupancyGridMap
+        >>> beam, hit = [0.0, 0.0, 1.0, 0.0], [1.05, 0.0, 1.05, 0.0]
+        >>> grid = OccupancyGridMap().partial_fit([beam], [0], classes=[0, 1])
+        >>> grid = grid.partial_fit([hit, [3.05, 0.0, 3.05, 0.0]], [1, 1])
+        >>> grid.log_odds([hit, [0.55, 0.0, 0.55, 0.0]]).round(2), grid.extent_.round(2)
+        (array([ 0.85, -0.4 ]), array([0. , 3.1, 0. , 0.1]))
+        """
+        return self._partial_fit(X, y, classes, lambda *rows: self._add(*rows, scan_index))
+
+    def _check_params(self):
+        if self.l_min >= self.l_max:
+            raise ValueError(f"l_min ({self.l_min}) must be below l_max ({self.l_max}).")
+
+    def _start_empty(self):
+        self.log_odds_ = np.zeros(0)
+
+    def _add(self, starts, ends, hit, scan_index):
+        if scan_index is None:
+            self._add_summed(starts, ends, hit)
+        else:
+            self._add_per_scan(starts, ends, hit, _check_scan_index(scan_index, hit.size))
+
+    def _add_summed(self, starts, ends, hit):
         _, hit_flat = self._hit_cells(ends, hit)
         keys = [hit_flat]
         weights = [np.full(hit_flat.size, float(self.l_occ))]
         for _, flat in self._free_cells(starts, ends, hit):
             keys.append(flat)
             weights.append(np.full(flat.size, float(self.l_free)))
-        self.cell_index_, (log_odds,) = _sum_by_cell(
+        cells, (evidence,) = _sum_by_cell(
             np.concatenate(keys), [np.concatenate(weights)], self._n_cells()
         )
-        self.log_odds_ = np.clip(log_odds, self.l_min, self.l_max)
+        (log_odds,), at = self._with_cells(cells, self.log_odds_)
+        log_odds[at] = np.clip(log_odds[at] + evidence, self.l_min, self.l_max)
+        self.log_odds_ = log_odds
 
-    def _fit_per_scan(self, starts, ends, hit, scan):
+    def _add_per_scan(self, starts, ends, hit, scan):
         # One update per (scan, cell): hits first in each pair, so a hit wins over a pass.
         hit_rows, hit_flat = self._hit_cells(ends, hit)
         scans, cells, is_hit = [scan[hit_rows]], [hit_flat], [np.ones(hit_rows.size, bool)]
@@ -635,9 +778,9 @@ class OccupancyGridMap(_CountingGridBase):
             np.concatenate(scans), np.concatenate(cells), np.concatenate(is_hit)
         )
         # The pairs come in scan order; within a scan each cell once.
-        self.cell_index_, cell_id = np.unique(cells, return_inverse=True)
+        (log_odds,), _ = self._with_cells(np.unique(cells), self.log_odds_)
+        cell_id = np.searchsorted(self.cell_index_, cells)
         update = np.where(is_hit, float(self.l_occ), float(self.l_free))
-        log_odds = np.zeros(self.cell_index_.size)
         bounds = np.flatnonzero(np.diff(scans)) + 1
         for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, scans.size], strict=True):
             ids = cell_id[lo:hi]
@@ -686,7 +829,8 @@ class FrequencyGridMap(_CountingGridBase):
     class, the larger label ``classes_[1]``) counts in the cell holding its end point; a free
     row passes every cell it crosses (exact traversal, :func:`traverse_cells`) except its end
     cell, and a free row inside a single cell passes that cell. Counts are summed over rows,
-    so the fit does not depend on their order.
+    so the fit does not depend on their order, nor on how :meth:`partial_fit` calls split
+    them.
 
     Works in any dimension ``D`` (``2 * D`` columns); cells are stored sparsely.
 
@@ -771,19 +915,62 @@ class FrequencyGridMap(_CountingGridBase):
         self : FrequencyGridMap
             The fitted grid.
         """
-        starts, ends, hit = self._prepare_fit(X, y)
+        self._add(*self._prepare_fit(X, y))
+        return self
+
+    def partial_fit(self, X, y, classes=None):
+        """Add observations to the grid (online mapping).
+
+        The first call is :meth:`fit` (``classes`` names both labels where its ``y`` holds
+        one only); later calls add their counts, so any split of the rows into calls gives
+        the grid of one ``fit`` on all of them (up to the rounding of a point on a cell's
+        edge, which the grown grid's origin may place in either cell). The grid grows to
+        hold new rows; a refused
+        call (NaN, other columns, a label outside ``classes_``) leaves it as it was.
+
+        Parameters
+        ----------
+        X : array-like of shape (n_samples, 2 * n_dims)
+            Segment rows ``[start, end]``; hits are zero-length segments.
+        y : array-like of shape (n_samples,)
+            Labels among ``classes_`` (the larger one marks hits).
+        classes : array-like of shape (2,), default=None
+            Both labels; needed on the first call only if its ``y`` holds one.
+
+        Returns
+        -------
+        self : FrequencyGridMap
+            The updated grid.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> from skoccmap.baselines import FrequencyGridMap
+        >>> beam, hit = [0.0, 0.0, 1.0, 0.0], [0.55, 0.0, 0.55, 0.0]
+        >>> grid = FrequencyGridMap().partial_fit([beam, beam], [0, 0], classes=[0, 1])
+        >>> grid.partial_fit([beam, hit], [0, 1]).predict_proba([hit])[:, 1]
+        array([0.25])
+        """
+        return self._partial_fit(X, y, classes, self._add)
+
+    def _start_empty(self):
+        self.hits_ = np.zeros(0, dtype=np.int64)
+        self.passes_ = np.zeros(0, dtype=np.int64)
+
+    def _add(self, starts, ends, hit):
         _, hit_flat = self._hit_cells(ends, hit)
         keys, is_hit = [hit_flat], [np.ones(hit_flat.size)]
         for _, flat in self._free_cells(starts, ends, hit):
             keys.append(flat)
             is_hit.append(np.zeros(flat.size))
         is_hit = np.concatenate(is_hit)
-        self.cell_index_, (hits, passes) = _sum_by_cell(
+        cells, (hits, passes) = _sum_by_cell(
             np.concatenate(keys), [is_hit, 1.0 - is_hit], self._n_cells()
         )
-        self.hits_ = np.rint(hits).astype(np.int64)
-        self.passes_ = np.rint(passes).astype(np.int64)
-        return self
+        (total_hits, total_passes), at = self._with_cells(cells, self.hits_, self.passes_)
+        total_hits[at] += np.rint(hits).astype(np.int64)
+        total_passes[at] += np.rint(passes).astype(np.int64)
+        self.hits_, self.passes_ = total_hits, total_passes
 
     def _proba_of_cells(self, pos):
         p = np.full(pos.size, 0.5)

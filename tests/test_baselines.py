@@ -1,4 +1,5 @@
 import itertools
+import warnings
 
 import numpy as np
 import pytest
@@ -1077,3 +1078,103 @@ def test_traverse_cells_takes_ends_on_the_far_face_far_from_the_origin():
         ends = origin + np.array(shape) * res
         seg, cells = traverse_cells(origin[None], ends[None], origin, np.array(res), shape)
         assert cells.min() >= 0 and np.all(cells < shape)
+
+
+def _scattered_batches(n_rows=20):
+    """Four batches of beams and their hits around centres metres apart, so that the grid
+    grows below and above its first extent, the last where the first lies; each row's scan
+    is its batch's 2 i or 2 i + 1."""
+    rng = np.random.default_rng(3)
+    batches = []
+    for i, centre in enumerate(([0.0, 0.0], [-6.0, 2.0], [5.0, -4.0], [0.5, 0.5])):
+        sensor = centre + rng.uniform(-1, 1, (n_rows, 2))
+        hit = sensor + rng.uniform(-3, 3, (n_rows, 2))
+        end = hit - 0.05 * (hit - sensor) / np.linalg.norm(hit - sensor, axis=1, keepdims=True)
+        X = np.vstack([np.hstack([sensor, end]), np.hstack([hit, hit])])
+        scan = 2 * i + np.arange(2 * n_rows) % 2
+        batches.append((X, np.r_[np.zeros(n_rows), np.ones(n_rows)], scan))
+    return batches
+
+
+def test_frequency_partial_fit_in_batches_is_one_fit_on_all_rows():
+    batches = _scattered_batches()
+    grid = FrequencyGridMap(resolution=0.25)
+    for X, y, _ in batches:
+        grid.partial_fit(X, y)
+    full = FrequencyGridMap(resolution=0.25).fit(
+        np.vstack([b[0] for b in batches]), np.concatenate([b[1] for b in batches])
+    )
+    assert grid.shape_ == full.shape_
+    np.testing.assert_allclose(grid.origin_, full.origin_, atol=1e-12)
+    np.testing.assert_allclose(grid.extent_, full.extent_, atol=1e-12)
+    np.testing.assert_array_equal(grid.cell_index_, full.cell_index_)
+    np.testing.assert_array_equal(grid.hits_, full.hits_)
+    np.testing.assert_array_equal(grid.passes_, full.passes_)
+
+
+def test_log_odds_partial_fit_of_whole_scans_is_one_fit_with_their_scan_index():
+    batches = _scattered_batches()
+    grid = OccupancyGridMap(resolution=0.25, l_max=1.0)  # a low bound: clamping matters
+    for X, y, scan in batches:
+        grid.partial_fit(X, y, scan_index=scan)
+    full = OccupancyGridMap(resolution=0.25, l_max=1.0).fit(
+        np.vstack([b[0] for b in batches]),
+        np.concatenate([b[1] for b in batches]),
+        scan_index=np.concatenate([b[2] for b in batches]),
+    )
+    assert grid.shape_ == full.shape_
+    np.testing.assert_array_equal(grid.cell_index_, full.cell_index_)
+    np.testing.assert_allclose(grid.log_odds_, full.log_odds_, atol=1e-12)
+
+
+def test_log_odds_partial_fit_sums_each_call_and_clamps_after_it():
+    params = dict(l_occ=0.9, l_free=-0.3, l_min=-1.0, l_max=2.0)
+    grid, expected = OccupancyGridMap(resolution=0.25, **params), {}
+    for X, y, _ in _scattered_batches():
+        grid.partial_fit(X, y)
+        # The call's evidence summed per cell by the loop reference, keyed by cell centre.
+        origin, evidence = _loop_reference(X, y, 0.25, 0.9, -0.3, -np.inf, np.inf)
+        for cell, value in evidence.items():
+            key = tuple(np.rint((origin + 0.25 * (np.array(cell) + 0.5)) / 0.125).astype(int))
+            expected[key] = np.clip(expected.get(key, 0.0) + value, -1.0, 2.0)
+    centres = 0.125 * np.array(list(expected))
+    assert grid.cell_index_.size == len(expected)
+    queries = np.hstack([centres, centres])
+    np.testing.assert_allclose(grid.log_odds(queries), list(expected.values()), atol=1e-12)
+
+
+@pytest.mark.parametrize("grid", [FrequencyGridMap(0.25), OccupancyGridMap(0.25)])
+def test_a_refused_partial_fit_leaves_the_grid_as_it_was(grid):
+    import pickle
+
+    (X, y, _), (X2, y2, _), *_ = _scattered_batches()
+    grid.partial_fit(X, y)
+    before = pickle.dumps(grid)
+    nan = X2.copy()
+    nan[0, 0] = np.nan
+    far = X2.copy()
+    far[0, 2:] = 1e8  # a beam of 1e8 m: refused after the grid was grown for it
+    bad = [
+        ((nan, y2), {}, "NaN"),
+        ((X2[:, :3], y2), {}, "features"),
+        ((X2, np.where(y2 == 1, 7, 0)), {}, r"label\(s\) \[7\]"),
+        ((X2, y2), {"classes": [0, 2]}, "differ from classes_"),
+        ((far, y2), {}, "cells"),
+    ]
+    for args, kwargs, match in bad:
+        with pytest.raises(ValueError, match=match), warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the far beam's "millimetres?" warning
+            grid.partial_fit(*args, **kwargs)
+        assert pickle.dumps(grid) == before
+
+
+@pytest.mark.parametrize("estimator", [FrequencyGridMap, OccupancyGridMap])
+def test_first_partial_fit_takes_its_classes_from_classes_or_y(estimator):
+    beams = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="exactly 2 classes"):
+        estimator().partial_fit(beams, [0, 0])
+    grid = estimator().partial_fit(beams, ["free", "free"], classes=["wall", "free"])
+    assert grid.classes_.tolist() == ["free", "wall"]
+    grid.partial_fit([[1.05, 0.0, 1.05, 0.0]], ["wall"])
+    assert grid.predict([[1.05, 0.0, 1.05, 0.0]]).tolist() == ["wall"]
+    assert grid.predict_proba([[0.55, 0.0, 0.55, 0.0]])[0, 1] < 0.5
