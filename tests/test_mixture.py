@@ -11,7 +11,7 @@ import warnings
 
 import numpy as np
 import pytest
-from scipy.special import ndtr
+from scipy.special import ndtr, ndtri
 from sklearn.base import BaseEstimator, ClassifierMixin, clone
 from sklearn.cluster import KMeans
 from sklearn.gaussian_process import GaussianProcessClassifier
@@ -1787,6 +1787,50 @@ def test_a_one_class_expert_of_another_kind_is_the_smoothed_frequency():
         np.testing.assert_allclose(ndtr(mean / np.sqrt(1 + var)), expected)
 
 
+class _KernelFreeExpert(ClassifierMixin, BaseEstimator):
+    """Stand-in expert that exposes no kernel: the probit of its smoothed hit frequency,
+    at latent variance 0.5 everywhere."""
+
+    def fit(self, X, y):
+        self.classes_ = np.unique(y)
+        self.mean_ = float(ndtri((np.sum(y == 1) + 1) / (y.size + 2)))
+        return self
+
+    def latent_mean_and_variance(self, X):
+        return np.full(X.shape[0], self.mean_), np.full(X.shape[0], 0.5)
+
+
+def test_experts_without_a_kernel_have_a_unit_prior():
+    # Without a kernel to read it from, an expert's prior latent variance is 1 (the
+    # probit's scale), and so is that of a one-class cluster's constant expert of such an
+    # expert: it learned nothing, so the robust BCM gives the prior where it alone speaks.
+    rng = np.random.default_rng(1)
+    wall = np.column_stack([np.zeros(30), np.linspace(-2, 2, 30)])
+    beams = np.column_stack([np.full(30, 3.0), wall[:, 1], wall + [0.05, 0.0]])
+    far = rng.normal([20.0, 0.0], 0.3, size=(12, 2))
+    X = np.vstack([as_segments(wall), beams, as_segments(far)])
+    y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
+    model = MixtureGPOccupancyMap(
+        KMeans(2, n_init=3, random_state=0),
+        _KernelFreeExpert(),
+        share_hyperparameters=False,
+        combiner="moe",
+        min_expert_size=1,
+        random_state=0,
+    ).fit(X, y)
+    constant = [e for e in model.experts_ if isinstance(e, _ConstantExpert)]
+    assert len(constant) == 1 and model.n_experts_ == 2
+    q = as_segments([[20.0, 0.0], [1e3, 1e3]])
+    np.testing.assert_array_equal(model.prior_variance(q), 1.0)
+    mean, var = constant[0].latent_mean_and_variance(q)
+    np.testing.assert_array_equal(var, 1.0)
+    np.testing.assert_allclose(ndtr(mean / np.sqrt(1 + var)), 13 / 14)
+    np.testing.assert_allclose(model.predict_proba(q)[:, 1], 13 / 14)
+    model.set_params(combiner="rbcm")
+    np.testing.assert_allclose(model.predict_proba(q)[:, 1], 0.5)
+    np.testing.assert_allclose(model.predict_var(q), 1.0)
+
+
 def test_a_one_class_ep_expert_is_the_same_whether_its_kernel_matrix_is_kept():
     # Hits along a wall and no free row, or free rows alone: the GP posterior of one class,
     # whether the kernel matrix is kept for later refits or not.
@@ -1807,6 +1851,32 @@ def test_a_one_class_ep_expert_is_the_same_whether_its_kernel_matrix_is_kept():
         p = [est.predict_proba(Q)[:, 1] for est in fitted]
         np.testing.assert_allclose(p[1], p[0], rtol=1e-10)
         assert np.all(p[0] > 0.5) if label else np.all(p[0] < 0.5)
+
+
+def test_a_one_class_ep_expert_keeps_the_kernel_it_was_given():
+    # Learning hyperparameters on one class would drive the signal variance to its bound:
+    # an expert with an optimiser fits the GP posterior under the kernel it was given.
+    from skoccmap import EPGaussianProcessClassifier
+
+    rng = np.random.default_rng(0)
+    wall = as_segments(np.column_stack([np.zeros(15), rng.uniform(-2, 2, 15)]))
+    kernel = C(10.0, (1e-2, 1e5)) * IntegralKernel(1.0, (0.1, 10.0))
+    for label in (0, 1):
+        est, _, _ = _fit_expert(EPGaussianProcessClassifier(kernel), wall, np.full(15, label))
+        np.testing.assert_array_equal(est.kernel_.theta, kernel.theta)
+
+
+def test_integral_parts_of_a_product_in_either_order():
+    # An integral kernel alone, or times a constant on either side; None for others.
+    from skoccmap._experts import _integral_parts
+
+    c, k = C(3.0), IntegralKernel(0.7)
+    assert _integral_parts(k) == (None, k)
+    for product in (c * k, k * c):
+        got = _integral_parts(product)
+        assert got[0] is c and got[1] is k
+    assert _integral_parts(C(2.0) * RBF(1.0)) is None
+    assert _integral_parts(k + c) is None
 
 
 def test_small_experts_are_no_error(paper):
