@@ -130,6 +130,19 @@ def test_experts_stay_bounded_and_rows_follow_experts(online):
     assert np.all(np.diff(after.expert_cluster_) >= 0)
 
 
+def test_experts_grown_past_max_expert_size_are_cut_to_it_in_rows(office):
+    # max_expert_size counts the rows (beam pieces) an expert is fitted on, not its hits:
+    # after every update each expert holds at most that many, or a single hit that alone
+    # carries more.
+    data, _ = office
+    model = _model(max_expert_size=60)
+    for first in range(0, 20, 5):
+        model.partial_fit(*_batch(data, first, first + 5), classes=[0, 1])
+        rows = np.bincount(model._piece_expert, minlength=model.n_experts_)
+        hits = np.bincount(model._hit_expert, minlength=model.n_experts_)
+        assert np.all((rows <= 60) | (hits == 1))
+
+
 def test_online_map_close_to_batch_fit(office):
     data, queries = office
     model = _model()
@@ -224,6 +237,58 @@ def test_two_new_clusterer_clusters_in_one_batch_are_two_clusters():
     np.testing.assert_array_equal(
         model._first_expert, np.searchsorted(model.expert_cluster_, np.arange(3))
     )
+
+
+class _StaleLabelsStripClusterer(_StripClusterer):
+    """A ``partial_fit`` that learns nothing and leaves ``labels_`` those of the fit."""
+
+    def partial_fit(self, X):
+        return self
+
+
+def test_labels_left_from_the_fit_by_a_clusterers_partial_fit_are_not_read():
+    # labels_ of another length than the batch's hits are not the batch's labels: the
+    # hits are predicted, and each joins the cluster of its strip.
+    model = _model(clusterer=_StaleLabelsStripClusterer(), min_expert_size=20)
+    (Xa, ya), (Xb, yb) = _wall(10.0, 30, 30), _wall(110.0, 30, 30)
+    model.fit(np.vstack([Xa, Xb]), np.r_[ya, yb])
+    at = [model.expert_cluster_[model._hit_expert[i]] for i in (0, -1)]
+    assert at[0] != at[1]
+    X, y = _wall(112.0, 10, 10)
+    model.partial_fit(X, y)
+    assert model.n_clusters_ == 2
+    np.testing.assert_array_equal(model.expert_cluster_[model._hit_expert[-10:]], at[1])
+
+
+def test_a_label_first_seen_below_the_known_ones_keeps_its_cluster():
+    # Strip 0 (x in [0, 50)) first appears after strips 2 and 4: its cluster is new, and a
+    # later batch in strip 0 joins that cluster (a label the clusterer gave before keeps
+    # its cluster), as it does the expert of its hits.
+    model = _model(clusterer=_StripClusterer(), min_expert_size=20, max_expert_size=None)
+    (Xa, ya), (Xb, yb) = _wall(100.0, 30, 30), _wall(200.0, 30, 30)
+    model.fit(np.vstack([Xa, Xb]), np.r_[ya, yb])
+    assert model.n_clusters_ == 2
+    model.partial_fit(*_wall(10.0, 10, 10))
+    assert model.n_clusters_ == 3
+    expert = model.cluster_labels_[-1]
+    X, y = _wall(10.0, 10, 10)
+    model.partial_fit(X + [0.0, 0.1, 0.0, 0.1], y)
+    assert model.n_clusters_ == 3 and model.n_experts_ == 3
+    np.testing.assert_array_equal(model.cluster_labels_[-20:], expert)
+
+
+def test_a_small_new_cluster_joins_the_cluster_of_the_nearest_hit_centroid():
+    # Walls of 30 hits each at x = 0 (strip 0) and x = 100 (strip 2); 5 hits at x = 60
+    # (strip 1, fewer than min_expert_size rows) join the cluster whose hits' mean is
+    # nearer: the wall at 100 m, 40 m off against 60 m.
+    model = _model(clusterer=_StripClusterer(), min_expert_size=20, max_expert_size=None)
+    (Xa, ya), (Xb, yb) = _wall(0.0, 30, 30), _wall(100.0, 30, 30)
+    model.fit(np.vstack([Xa, Xb]), np.r_[ya, yb])
+    assert model.n_clusters_ == 2
+    at_100 = model.expert_cluster_[model._hit_expert[-1]]
+    model.partial_fit(*_wall(60.0, 5, 5))
+    assert model.n_clusters_ == 2
+    np.testing.assert_array_equal(model.expert_cluster_[model._hit_expert[-5:]], at_100)
 
 
 def test_a_later_beam_ending_short_of_an_old_hit_is_its_return_beam(office):
@@ -383,9 +448,13 @@ def test_refit_hyperparameters():
     kernel = model.shared_kernel_
     model.partial_fit(data.X[::2] + 0.01, data.y[::2])
     assert model.shared_kernel_ is kernel
+    reach = model.reach_
     model.refit_hyperparameters()
     assert model.touched_experts_.size == model.n_experts_
     assert model.shared_kernel_ is not kernel
+    # The reach is found again, for the new kernel.
+    assert model.reach_ != reach
+    assert model.reach_ == model._reach(model._pieces, model._kernels())
     with pytest.raises(ValueError, match="share_hyperparameters"):
         _model(share_hyperparameters=False).fit(data.X, data.y).refit_hyperparameters()
 
@@ -515,6 +584,24 @@ def test_fixed_kernel_is_not_relearned(office, optimizer):
     assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
 
 
+def test_a_kernel_with_free_hyperparameters_and_no_optimiser_is_not_relearned(office):
+    # Without an optimiser nothing is learned, however many hyperparameters are free: the
+    # growth of the rows re-learns nothing and refits only the touched experts.
+    data, _ = office
+    expert = EPGaussianProcessClassifier(
+        ConstantKernel(100.0) * IntegralKernel(1.0), optimizer=None
+    )
+    model = MixtureGPOccupancyMap(
+        expert=expert, max_expert_size=150, max_pieces_per_cell=None, random_state=0
+    )
+    model.partial_fit(*_batch(data, 0, 5), classes=[0, 1])
+    n_rows, kernel = model._pieces.shape[0], model.shared_kernel_
+    model.partial_fit(*_batch(data, 5, 15))
+    assert model._pieces.shape[0] >= 2 * n_rows
+    assert model._learned_rows == n_rows and model.shared_kernel_ is kernel
+    assert model.touched_experts_.size < model.n_experts_
+
+
 @pytest.mark.parametrize("growth", [2.0, 1.5])
 def test_hyperparameters_are_relearned_once_the_rows_grow_by_exactly_the_factor(growth):
     model = MixtureGPOccupancyMap(hyperparameter_growth=growth)
@@ -598,6 +685,42 @@ def test_an_expert_a_split_leaves_unchanged_is_not_touched(office):
             assert all(id(model.experts_[k]) in before for k in others)
 
 
+def test_experts_below_refit_fraction_hold_the_sites_of_the_expert_they_come_from(office):
+    # An expert whose rows came from one old two-class EP expert (the same expert with rows
+    # appended, or a part split off it) and whose rows not settled stay below
+    # refit_fraction of those settled is not refitted: the sites of its old rows are the
+    # old expert's, bit for bit. Small experts make splits common.
+    data, _ = office
+    fraction = 0.3
+    model = _model(refit_fraction=fraction, max_expert_size=60)
+    model.partial_fit(*_batch(data, 0, 5), classes=[0, 1])
+    split_off_held = 0
+    for first in range(5, 25, 5):
+        old_experts, old_expert = list(model.experts_), model._piece_expert.copy()
+        old_settled, n_old = model._piece_settled.copy(), model._pieces.shape[0]
+        model.partial_fit(*_batch(data, first, first + 5))
+        for k in model.touched_experts_:
+            rows = np.flatnonzero(model._piece_expert == k)
+            old = rows[rows < n_old]
+            sources = np.unique(old_expert[old])
+            if sources.size != 1:
+                continue
+            j = sources[0]
+            source = old_experts[j]
+            if not hasattr(source, "site_nu_") or np.ptp(source.y_train_) == 0:
+                continue
+            n_settled = np.count_nonzero(old_settled[old])
+            if rows.size - n_settled >= fraction * max(n_settled, 1):
+                continue
+            est = model.experts_[k]
+            at = np.searchsorted(rows, old)
+            was = np.searchsorted(np.flatnonzero(old_expert == j), old)
+            np.testing.assert_array_equal(est.site_precision_[at], source.site_precision_[was])
+            np.testing.assert_array_equal(est.site_nu_[at], source.site_nu_[was])
+            split_off_held += old.size < np.count_nonzero(old_expert == j)
+    assert split_off_held > 0
+
+
 def test_updates_warn_nothing_but_convergence(office):
     # Rows appended in this process and refits in workers alike: no stray warning
     # (such as joblib's about a delayed call run outside Parallel) reaches the user.
@@ -647,6 +770,31 @@ def test_one_class_expert_is_recounted_at_once():
         np.array([0]), [np.arange(6)], [count], [np.arange(5)], np.array([0]), np.ones(6, bool)
     )
     np.testing.assert_array_equal(due, [True])
+
+
+def test_a_one_class_expert_given_more_of_its_class_is_the_one_class_posterior_of_all():
+    from sklearn.cluster import KMeans
+
+    # Left: a wall seen by beams; right: hits that no beam reaches, whose EP expert is the
+    # GP posterior of one class. More hits there make it that posterior on all of them, as
+    # a fit from scratch gives (its saturated sites are no warm start for a fit).
+    rng = np.random.default_rng(1)
+    wall = np.column_stack([np.zeros(30), np.linspace(-2, 2, 30)])
+    beams = np.column_stack([np.full(30, 3.0), wall[:, 1], wall + [0.05, 0.0]])
+    far = rng.normal([20.0, 0.0], 0.3, size=(15, 2))
+    X = np.vstack([as_segments(wall), beams, as_segments(far[:12])])
+    y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
+    model = _model(clusterer=KMeans(2, n_init=3, random_state=0), min_expert_size=1)
+    model.partial_fit(X, y, classes=[0, 1])
+    model.partial_fit(as_segments(far[12:]), np.ones(3, dtype=int))
+    (k,) = model.touched_experts_
+    est = model.experts_[k]
+    np.testing.assert_array_equal(np.sort(est.X_train_[:, 0]), np.sort(far[:, 0]))
+    fresh = clone(model.expert)._fit_one_class(
+        est.X_train_, est.y_train_, classes=np.array([0, 1])
+    )
+    q = as_segments(rng.normal([20.0, 0.0], 1.0, size=(50, 2)))
+    np.testing.assert_allclose(est.predict_proba(q), fresh.predict_proba(q), rtol=1e-6)
 
 
 def test_an_expert_is_refitted_once_its_added_rows_reach_refit_fraction():
@@ -908,6 +1056,9 @@ def test_experts_with_their_own_hyperparameters_take_rows_with_them(office):
     # Only a fixed kernel's matrix is kept for later refits: one of the starting
     # hyperparameters would stand in for the learned kernel when rows are added.
     assert model.kernel_cache_size > 0 and not model._kernel_cache
+    # The refits learned other kernels: the reach is that of the kernels the experts have.
+    assert {repr(e.kernel_) for e in model.experts_} != {repr(e.kernel_) for e in old}
+    assert model.reach_ == model._reach(model._pieces, model._kernels())
 
 
 def test_clusterer_partial_fit_first_seated_points_follow_the_new_room():
