@@ -234,7 +234,9 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
         :class:`~skoccmap.DPGMMClusterer` with default parameters.
     expert : estimator, default=None
         Binary classifier cloned once per cluster; it must have ``fit`` and
-        ``latent_mean_and_variance``. ``None`` means
+        ``latent_mean_and_variance``. Its prior latent variance is read from its
+        ``kernel_``; an expert that exposes none has prior variance 1 (the probit's
+        scale), e.g. in :meth:`prior_variance`. ``None`` means
         :class:`~skoccmap.EPGaussianProcessClassifier` with
         ``ConstantKernel(1e3, "fixed") * IntegralKernel()`` and ``tol=1e-4``: only the
         length scale is learned. Occupancy data are nearly separable, so the EP evidence
