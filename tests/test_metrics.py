@@ -891,6 +891,28 @@ def test_a_band_step_a_little_nearer_another_wall_is_nearer(gap, measured):
     assert q["n_wall_samples"] == q["n_wall_bands"] == measured
 
 
+@pytest.mark.parametrize("x0", [0.0, 0.3, 0.7, 1.0, 2.0, 0.33])
+def test_wall_thickness_of_a_band_on_cell_edges_does_not_hang_on_rounding(x0):
+    # A 0.1 m wall at x = x0 on the edge between two 0.1 m cells (the grid starts at x0 - 1),
+    # so every band step lies on a cell edge. The map is occupied in the four cells from
+    # x0 - 0.2 to x0 + 0.2: a band 0.4 m wide, as many steps from the wall's centre line at
+    # x0 - 0.2, x0 - 0.1, x0 and x0 + 0.1 (a step on an edge is in the cell above it). The
+    # true grid marks the two cells touching the wall: 0.2 m. The step x0 + 0.2 used to read
+    # the cell below or above by the rounding of (x - x_min) / 0.1, so the same map measured
+    # 0.4 or 0.5 m (the true grid 0.1 or 0.2 m) as the wall moved by whole cells.
+    env = Environment2D([[x0, -1.0, x0, 1.0]], wall_thickness=0.1)
+    extent = (x0 - 1, x0 + 1, -1, 1)
+    grid = env.ground_truth_grid(0.1, extent)
+    assert grid.occupied.sum() == 2 * 20
+    centre = grid.points[:, 0] - x0
+    band = (np.abs(centre) < 0.2).astype(float)
+    assert band.sum() == 4 * 20
+    q = map_quality(band, env, extent=extent)
+    assert q["n_wall_samples"] == q["n_wall_bands"] == 20
+    assert_allclose(q["wall_thickness"], 0.4)
+    assert_allclose(map_quality(grid.occupied, env, extent=extent)["wall_thickness"], 0.2)
+
+
 def test_map_quality_samples_a_wall_shorter_than_a_step():
     # Every wall of non-zero length has at least one sample, at its middle: a 0.04 m post
     # beside a 4 m wall adds one to its 40.
