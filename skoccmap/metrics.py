@@ -470,7 +470,10 @@ def heldout_auc(
     estimator : fitted classifier
         Its ``predict_proba`` on zero-length segments (on points, for a classifier fitted
         on as many columns as the scans have dimensions, e.g. ``layout="points"``) gives
-        P(occupied) in the column of class 1.
+        P(occupied) in the column of the larger class, ``classes_[1]`` (1 of {0, 1}, 2 of
+        {1, 2}, ``"occupied"`` of {``"free"``, ``"occupied"``}), as every estimator of the
+        package reads its labels: labels whose occupied one sorts first (e.g. ``"hit"`` and
+        ``"miss"``) score the map inverted.
     scans : Scans
         Held-out scans; see :func:`split_scans`.
     n_free_per_beam, free_margin, max_beam_range, random_state
@@ -892,7 +895,8 @@ def map_quality(estimator_or_proba, environment, *, resolution=0.1, scans=None, 
     Parameters
     ----------
     estimator_or_proba : fitted classifier or array-like
-        A classifier whose ``predict_proba`` (column of class 1) is evaluated, as
+        A classifier whose ``predict_proba`` (column of the larger class, as in
+        :func:`heldout_auc`) is evaluated, as
         zero-length segments (as points, for a classifier fitted on points), over each cell
         and at the wall-band points; or P(occupied) per cell of the grid, of shape
         (n_cells,) in the grid's order or the grid's ``shape`` (an image), or (with

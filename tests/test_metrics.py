@@ -250,6 +250,23 @@ def test_the_larger_class_is_occupied(paper):
         heldout_auc(ThreeColumns(paper.environment), test, random_state=0)
 
 
+def test_string_labels_read_the_larger_one_as_occupied(paper):
+    # As the docstrings say: "occupied" of {"free", "occupied"} is the occupied column, and
+    # "miss" of {"hit", "miss"} too, which scores the truth as the worst map. Each classifier
+    # gives the true occupancy as the probability of its occupied label.
+    test = paper.scans[:4]
+    for classes, occupied, auc in ((["free", "occupied"], 1, 1.0), (["hit", "miss"], 0, 0.0)):
+
+        class Named(_TruthClassifier):
+            classes_ = np.array(classes)
+
+            def predict_proba(self, X, occupied=occupied):
+                proba = super().predict_proba(X)
+                return proba if occupied == 1 else proba[:, ::-1]
+
+        assert heldout_auc(Named(paper.environment), test, random_state=0) == auc
+
+
 def test_heldout_auc_rejects_nan_and_one_class():
     class NaNClassifier:
         def predict_proba(self, X):
