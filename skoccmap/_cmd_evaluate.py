@@ -12,8 +12,10 @@ Two protocols choose the test scans and points (:mod:`skoccmap.metrics`):
   the hit.
 
 Either way the positives are the held-out hits, the models train on every
-``--train-every``-th of the remaining scans, and each of ``--seeds`` repeats the whole run
-(split, test points, mixture), printing the AUC per seed and their mean.
+``--train-every``-th of the remaining scans, and each of ``--seeds`` repeats the whole run,
+printing the AUC per seed and their mean. A seed draws the held-out blocks (``blocks``), the
+free test points and the mixture's clusters; ``every-nth`` holds out the same scans for
+every seed.
 """
 
 import sys
@@ -34,6 +36,8 @@ from ._cmd_map import (
 # Defaults of the options that only one protocol reads (None: the option was not given).
 _EVERY_NTH_DEFAULTS = {"holdout_every": 10, "free_per_beam": 1}
 _BLOCKS_DEFAULTS = {"block_size": 40}
+# heldout_points' free_margin, which --protocol every-nth keeps.
+_FREE_MARGIN = 0.05
 
 
 def add_arguments(parser):
@@ -61,8 +65,8 @@ def add_arguments(parser):
         nargs="+",
         default=None,
         metavar="S",
-        help="repeat the evaluation with each seed (split, test points, mixture) and report "
-        "the mean AUC (default: --seed)",
+        help="repeat the evaluation with each seed (held-out blocks of --protocol blocks, free "
+        "test points, mixture) and report the mean AUC (default: --seed)",
     )
     parser.add_argument(
         "--grid-resolution",
@@ -160,12 +164,42 @@ def _split(scans, args, seed):
     train, test = split_scans(scans, args.holdout_every, offset=args.holdout_every // 2)
     try:
         points, labels = heldout_points(
-            test, n_free_per_beam=args.free_per_beam, random_state=seed
+            test, n_free_per_beam=args.free_per_beam, free_margin=_FREE_MARGIN, random_state=seed
         )
     except ValueError as exc:
         message = str(exc).replace("n_free_per_beam=", "--free-per-beam ")
         raise ValueError(message.replace("n_free_per_beam", "--free-per-beam")) from None
     return train[:: args.train_every], test, points, labels
+
+
+def _protocol_line(args):
+    """The test set's definition, so that a table of numbers says how they were made."""
+    from .metrics import (
+        HILBERT_BLOCK_SIZE,
+        HILBERT_FREE_MARGIN,
+        HILBERT_HELDOUT_FRACTION,
+        HILBERT_MAX_BEAM_RANGE,
+    )
+
+    if args.protocol == "blocks":
+        own = args.block_size == HILBERT_BLOCK_SIZE
+        blocks = "" if own else f" (the protocol's: {HILBERT_BLOCK_SIZE})"
+        test = (
+            f"{HILBERT_HELDOUT_FRACTION:.0%} of the scans held out in blocks of "
+            f"{args.block_size} consecutive scans{blocks}, floor(r / 2) free points (at least "
+            f"one) per held-out beam of range r <= {HILBERT_MAX_BEAM_RANGE:g} m, "
+            f"{HILBERT_FREE_MARGIN:g} m short of the hit"
+        )
+    else:
+        k = args.holdout_every
+        test = (
+            f"1 in {k} scans held out from scan {k // 2}, {args.free_per_beam} free "
+            f"point(s) per held-out beam, {_FREE_MARGIN:g} m short of the hit"
+        )
+    return (
+        f"protocol {args.protocol}: {test}; training on 1 in {args.train_every} of the "
+        f"remaining scans, seeds {', '.join(map(str, args.seeds))}"
+    )
 
 
 def _models(args, seed):
@@ -186,10 +220,7 @@ def _run(args):
     watch = Stopwatch()
     scans = watch("read log", load_scans, args)
     check_hits(scans, args.log, "scans")
-    print(
-        f"protocol {args.protocol}: training on 1 in {args.train_every} of the remaining scans, "
-        f"seeds {', '.join(map(str, args.seeds))}"
-    )
+    print(_protocol_line(args))
     results = {}  # model name -> list of (auc, fit s, predict s), one per seed
     for seed in args.seeds:
         train, test, points, labels = _split(scans, args, seed)

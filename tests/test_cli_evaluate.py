@@ -223,6 +223,45 @@ def test_evaluate_table_times_the_fit_and_the_prediction(paper_log, monkeypatch,
     assert float(fit_s) >= 0.3 > float(predict_s)
 
 
+@pytest.mark.parametrize(
+    "options, expected",
+    [
+        (
+            ["--holdout-every", "4", "--free-per-beam", "3"],
+            "protocol every-nth: 1 in 4 scans held out from scan 2, 3 free point(s) per "
+            "held-out beam, 0.05 m short of the hit; training on 1 in 5 of the remaining "
+            "scans, seeds 7",
+        ),
+        (
+            ["--protocol", "blocks", "--block-size", "4"],
+            "protocol blocks: 10% of the scans held out in blocks of 4 consecutive scans (the "
+            "protocol's: 40), floor(r / 2) free points (at least one) per held-out beam of "
+            "range r <= 40 m, 0.1 m short of the hit; training on 1 in 5 of the remaining "
+            "scans, seeds 7",
+        ),
+    ],
+)
+def test_evaluate_output_states_the_test_set_it_scored(paper_log, options, expected):
+    # The table's numbers are published with the definition of their test set: the held-out
+    # scans, the free points and their margin. It used to say "protocol every-nth" only.
+    from skoccmap._cmd_evaluate import _protocol_line, _split
+
+    args = _parsed(paper_log, *options, "--train-every", "5", "--seed", "7")
+    assert _protocol_line(args) == expected
+    # What the line says is what the split does: scans 2, 6, 10, ... held out, three free
+    # points per beam within the free margin of the hit.
+    if args.protocol == "every-nth":
+        scans = _numbered_scans(26)
+        _, test, points, labels = _split(scans, args, 7)
+        assert test.poses[:, 0].tolist() == list(range(2, 26, 4))
+        assert np.count_nonzero(labels == 0) == 3 * test.ranges.size
+        free = (
+            points[labels == 0]
+            - np.repeat(test.poses[:, :2], 2, axis=0)[np.tile(np.arange(test.ranges.size), 3)]
+        )
+        assert np.linalg.norm(free, axis=1).max() <= 2.0 - 0.05
+
+
 def test_evaluate_missing_log(tmp_path, capsys):
     assert main(["evaluate", str(tmp_path / "missing.log")]) == 2
     err = capsys.readouterr().err
