@@ -12,8 +12,8 @@ import warnings
 SUBCOMMANDS = {
     "demo": "reproduce the paper's simulation experiment (tables, figures, maps)",
     "map": "build an occupancy map from a CARMEN laser log or a ROS bag",
-    "evaluate": "score a map on held-out scans of a CARMEN log or a ROS bag against a "
-    "counting grid",
+    "evaluate": "score a map on held-out scans of a CARMEN log or a ROS bag against "
+    "counting grids",
 }
 
 

@@ -8,7 +8,8 @@ from skoccmap.cli import main
 
 def _table(out):
     """Rows of the results table: model name -> list of numbers."""
-    rows = re.findall(r"^\| (mixture of GP experts|counting grid \(0.1 m\)) \|(.*)\|$", out, re.M)
+    names = r"mixture of GP experts|frequency grid \(0.1 m\)|log-odds grid per scan \(0.1 m\)"
+    rows = re.findall(rf"^\| ({names}) \|(.*)\|$", out, re.M)
     return {name: [float(v) for v in cells.split("|")] for name, cells in rows}
 
 
@@ -21,7 +22,11 @@ def test_evaluate_blocks_protocol_several_seeds(paper_log, capsys):
     assert len(re.findall(r"^seed [01]: training on 11 scans .* testing on 4 held-out", out, re.M))
     assert "| model | AUC seed 0 | AUC seed 1 | mean AUC | fit s | predict s |" in out
     table = _table(out)
-    assert set(table) == {"mixture of GP experts", "counting grid (0.1 m)"}
+    assert set(table) == {
+        "mixture of GP experts",
+        "frequency grid (0.1 m)",
+        "log-odds grid per scan (0.1 m)",
+    }
     for auc0, auc1, mean, _, _ in table.values():
         assert 0.5 < auc0 <= 1 and 0.5 < auc1 <= 1
         assert abs(mean - (auc0 + auc1) / 2) <= 1e-4
@@ -193,7 +198,35 @@ def test_evaluate_grid_resolution_reaches_the_counting_grid(paper_log):
     from skoccmap._cmd_evaluate import _models
 
     models = _models(_parsed(paper_log, "--grid-resolution", "0.3"), 0)
-    assert models["counting grid (0.3 m)"].resolution == 0.3
+    assert models["frequency grid (0.3 m)"].resolution == 0.3
+    assert models["log-odds grid per scan (0.3 m)"].resolution == 0.3
+
+
+def test_evaluate_scores_the_log_odds_grid_updated_scan_by_scan(paper_log, capsys):
+    # The baselines as benchmarks/README.md's B4 has them: the log-odds grid clamped after
+    # every scan (OctoMap), not after its evidence was summed, and the frequency grid.
+    from sklearn.metrics import roc_auc_score
+
+    from skoccmap._cmd_evaluate import _split
+    from skoccmap.baselines import FrequencyGridMap, OccupancyGridMap
+    from skoccmap.datasets import load_carmen
+    from skoccmap.observations import as_segments
+
+    options = ["--holdout-every", "4", "--train-every", "1", "--seed", "3"]
+    argv = ["evaluate", str(paper_log[0]), *options, "--n-jobs", "1", "--quiet"]
+    assert main(argv) == 0
+    table = _table(capsys.readouterr().out)
+    train, _, points, labels = _split(load_carmen(paper_log[0]), _parsed(paper_log, *options), 3)
+    X, y, _, scan = train.to_observations(return_scan_index=True)
+    queries = as_segments(points)
+    # On this log the summed grid ranks them 0.9365, the grid per scan 0.9359.
+    expected = {
+        "log-odds grid per scan (0.1 m)": OccupancyGridMap(0.1).fit(X, y, scan_index=scan),
+        "frequency grid (0.1 m)": FrequencyGridMap(0.1).fit(X, y),
+    }
+    for name, grid in expected.items():
+        auc = roc_auc_score(labels, grid.predict_proba(queries)[:, 1])
+        assert table[name][0] == pytest.approx(auc, abs=5e-5)  # printed to 4 digits
 
 
 def test_evaluate_table_times_the_fit_and_the_prediction(paper_log, monkeypatch, capsys):
