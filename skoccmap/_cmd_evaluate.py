@@ -12,10 +12,10 @@ Two protocols choose the test scans and points (:mod:`skoccmap.metrics`):
   the hit.
 
 The baselines are the counting grids of benchmark B4 (``benchmarks/README.md``): the
-frequency grid of the Hilbert-maps protocol
-(hits / (hits + passes), unclamped) and the log-odds grid updated scan by scan as OctoMap
-does (``scan_index``); the log-odds grid with its evidence summed over all scans saturates
-and ranks them worse (on the Intel lab, all scans: 0.874 against 0.938 per scan).
+frequency grid of the Hilbert-maps protocol (hits / (hits + passes), unclamped) and the
+log-odds grid updated scan by scan as OctoMap does (``scan_index``); the log-odds grid
+with its evidence summed over all scans saturates and ranks held-out points worse (on the
+Intel lab, all scans: 0.874 against 0.938 per scan).
 
 Either way the positives are the held-out hits, the models train on every
 ``--train-every``-th of the remaining scans, and each of ``--seeds`` repeats the whole run,
