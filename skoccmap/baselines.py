@@ -393,6 +393,10 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
     def _prepare_batch(self, X, y, classes):
         """Validate a later ``partial_fit`` batch; grow the grid to hold it; return starts,
         ends, hit mask."""
+        # Parameters set between calls: checked as the first call checks them.
+        self._validate_params()
+        self._check_params()
+        self._check_resolution()
         with non_finite_explained("observations"):
             X, y = validate_data(self, X, y, dtype=np.float64, reset=False)
         if classes is not None and not np.array_equal(np.unique(classes), self.classes_):
@@ -405,6 +409,16 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         warn_unless_metres(starts, ends)
         self._grow(starts, ends)
         return starts, ends, hit
+
+    def _check_resolution(self):
+        """``resolution`` set since the grid was built would read its cells at another
+        size: refused, as the cells cannot be resized."""
+        edge = (self.extent_[1::2] - self.extent_[::2]) / np.asarray(self.shape_)
+        if not np.allclose(edge, self.resolution, rtol=1e-6, atol=0.0):
+            raise ValueError(
+                f"resolution={self.resolution!r} was set after the grid was built with cells "
+                f"of {float(edge[0]):g}; call fit again (partial_fit cannot resize cells)."
+            )
 
     def _grow(self, starts, ends):
         """Widen the grid to hold ``starts`` and ``ends``; the observed cells keep their
@@ -706,7 +720,9 @@ class OccupancyGridMap(_CountingGridBase):
         ``scan_index``, scan by scan, its scans after those of the earlier calls. Calls
         that each hold whole scans, with their ``scan_index``, give the grid of one
         ``fit`` on all the rows with theirs. The grid grows to hold new rows; a refused
-        call (NaN, other columns, a label outside ``classes_``) leaves it as it was.
+        call (NaN, other columns, a label outside ``classes_``, a ``resolution`` set since
+        the grid was built) leaves it as it was. Other parameters set between calls apply
+        to the later rows.
 
         Parameters
         ----------
@@ -925,8 +941,9 @@ class FrequencyGridMap(_CountingGridBase):
         one only); later calls add their counts, so any split of the rows into calls gives
         the grid of one ``fit`` on all of them (up to the rounding of a point on a cell's
         edge, which the grown grid's origin may place in either cell). The grid grows to
-        hold new rows; a refused
-        call (NaN, other columns, a label outside ``classes_``) leaves it as it was.
+        hold new rows; a refused call (NaN, other columns, a label outside ``classes_``, a
+        ``resolution`` set since the grid was built) leaves it as it was. Other parameters
+        set between calls apply to the later rows.
 
         Parameters
         ----------

@@ -1178,3 +1178,23 @@ def test_first_partial_fit_takes_its_classes_from_classes_or_y(estimator):
     grid.partial_fit([[1.05, 0.0, 1.05, 0.0]], ["wall"])
     assert grid.predict([[1.05, 0.0, 1.05, 0.0]]).tolist() == ["wall"]
     assert grid.predict_proba([[0.55, 0.0, 0.55, 0.0]])[0, 1] < 0.5
+
+
+@pytest.mark.parametrize("estimator", [FrequencyGridMap, OccupancyGridMap])
+def test_partial_fit_checks_parameters_set_between_calls(estimator):
+    import pickle
+
+    (X, y, _), (X2, y2, _), *_ = _scattered_batches()
+    grid = estimator(resolution=0.25).partial_fit(X, y)
+    before = pickle.dumps(grid)
+    changes = [({"resolution": -1.0}, "resolution"), ({"resolution": 0.5}, "resolution=0.5")]
+    if estimator is OccupancyGridMap:
+        changes.append(({"l_min": 3.0, "l_max": 1.0}, "l_min"))
+    for params, match in changes:
+        # Cells of 0.25 m read as 0.5 m ones would move every observed cell.
+        with pytest.raises(ValueError, match=match):
+            clone_of = pickle.loads(before)
+            clone_of.set_params(**params).partial_fit(X2, y2)
+        assert pickle.dumps(clone_of.set_params(**grid.get_params())) == before
+    # Parameters that apply to later rows only are taken up.
+    grid.set_params(max_free_length=1.0).partial_fit(X2, y2)
