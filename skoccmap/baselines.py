@@ -426,8 +426,11 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         res = float(self.resolution)
         low = np.minimum(starts.min(axis=0), ends.min(axis=0))
         high = np.maximum(starts.max(axis=0), ends.max(axis=0))
-        shift = np.maximum(np.rint((self.origin_ - _snapped_origin(low, res)) / res), 0)
-        origin = self.origin_ - shift * res
+        snapped = _snapped_origin(low, res)
+        shift = np.maximum(np.rint((self.origin_ - snapped) / res), 0)
+        # An axis that grows down takes the snapped origin of its new lowest point, as fit
+        # on all rows would: origin_ - shift * res would add its rounding at every growth.
+        origin = np.where(shift > 0, snapped, self.origin_)
         shape = np.maximum(np.asarray(self.shape_) + shift, np.floor((high - origin) / res) + 1)
         if np.array_equal(shape, self.shape_):
             return

@@ -1198,3 +1198,24 @@ def test_partial_fit_checks_parameters_set_between_calls(estimator):
         assert pickle.dumps(clone_of.set_params(**grid.get_params())) == before
     # Parameters that apply to later rows only are taken up.
     grid.set_params(max_free_length=1.0).partial_fit(X2, y2)
+
+
+def test_partial_fit_origin_does_not_drift_over_many_growths():
+    # A robot driving away from the map's origin grows it at every call: the grid's origin
+    # stays the multiple of the resolution that fit on all rows takes, not a sum of shifts.
+    rng = np.random.default_rng(1)
+    grid, rows = FrequencyGridMap(resolution=0.1), []
+    for i in range(300):
+        sensor = 5e5 - np.array([0.37, 0.23]) * i + rng.uniform(-0.5, 0.5, 2)
+        hit = sensor + rng.normal(0, 0.5, 2)
+        X = np.array([np.r_[sensor, hit], np.r_[hit, hit]])
+        grid.partial_fit(X, [0, 1])
+        rows.append(X)
+    X = np.vstack(rows)
+    low = X.reshape(-1, 2, 2).min(axis=(0, 1))
+    expected = np.floor(low / 0.1) * 0.1
+    expected = np.where(expected > low, expected - 0.1, expected)
+    np.testing.assert_array_equal(grid.origin_, expected)
+    full = FrequencyGridMap(resolution=0.1).fit(X, np.tile([0, 1], len(rows)))
+    np.testing.assert_array_equal(grid.origin_, full.origin_)
+    np.testing.assert_array_equal(grid.hits_, full.hits_)
