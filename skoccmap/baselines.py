@@ -397,8 +397,7 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         self._validate_params()
         self._check_params()
         self._check_resolution()
-        with non_finite_explained("observations"):
-            X, y = validate_data(self, X, y, dtype=np.float64, reset=False)
+        X, y = validate_queries(self, X, y)  # an empty batch passes
         if classes is not None and not np.array_equal(np.unique(classes), self.classes_):
             raise ValueError(
                 f"classes={list(classes)!r} differ from classes_ {self.classes_.tolist()!r} "
@@ -407,7 +406,8 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         hit = _label_index(y, self.classes_) == 1
         starts, ends = _split_rows(X, self.layout)
         warn_unless_metres(starts, ends)
-        self._grow(starts, ends)
+        if hit.size:
+            self._grow(starts, ends)
         return starts, ends, hit
 
     def _check_resolution(self):
@@ -458,15 +458,17 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
 
     def _partial_fit(self, X, y, classes, update):
         """``partial_fit``: the first call fits (with ``classes`` where given); a later one
-        grows the grid and ``update(starts, ends, hit)`` adds its rows. A refused batch
-        leaves the grid as it was."""
+        grows the grid and ``update(starts, ends, hit)`` adds its rows, an empty one
+        none. A refused batch leaves the grid as it was."""
         if not hasattr(self, "cell_index_"):
             with unfitted_on_error(self):
                 update(*self._prepare_fit(X, y, classes))
             return self
         before = dict(vars(self))
         try:
-            update(*self._prepare_batch(X, y, classes))
+            starts, ends, hit = self._prepare_batch(X, y, classes)
+            if hit.size:  # an empty batch (every reading of a scan failed) adds nothing
+                update(starts, ends, hit)
         except BaseException:
             vars(self).clear()
             vars(self).update(before)
@@ -732,7 +734,9 @@ class OccupancyGridMap(_CountingGridBase):
         X : array-like of shape (n_samples, 2 * n_dims)
             Segment rows ``[start, end]``; hits are zero-length segments.
         y : array-like of shape (n_samples,)
-            Labels among ``classes_`` (the larger one marks hits).
+            Labels among ``classes_`` (the larger one marks hits). After the first call a
+            batch may be empty (nothing is added), as in
+            :meth:`skoccmap.MixtureGPOccupancyMap.partial_fit`.
         classes : array-like of shape (2,), default=None
             Both labels; needed on the first call only if its ``y`` holds one.
         scan_index : array-like of int of shape (n_samples,), default=None
@@ -953,7 +957,9 @@ class FrequencyGridMap(_CountingGridBase):
         X : array-like of shape (n_samples, 2 * n_dims)
             Segment rows ``[start, end]``; hits are zero-length segments.
         y : array-like of shape (n_samples,)
-            Labels among ``classes_`` (the larger one marks hits).
+            Labels among ``classes_`` (the larger one marks hits). After the first call a
+            batch may be empty (nothing is added), as in
+            :meth:`skoccmap.MixtureGPOccupancyMap.partial_fit`.
         classes : array-like of shape (2,), default=None
             Both labels; needed on the first call only if its ``y`` holds one.
 

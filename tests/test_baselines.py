@@ -1219,3 +1219,18 @@ def test_partial_fit_origin_does_not_drift_over_many_growths():
     full = FrequencyGridMap(resolution=0.1).fit(X, np.tile([0, 1], len(rows)))
     np.testing.assert_array_equal(grid.origin_, full.origin_)
     np.testing.assert_array_equal(grid.hits_, full.hits_)
+
+
+@pytest.mark.parametrize("estimator", [FrequencyGridMap, OccupancyGridMap])
+def test_a_later_empty_partial_fit_adds_nothing(estimator):
+    # A scan whose readings all failed gives no rows: the robot's loop goes on, as with
+    # MixtureGPOccupancyMap.partial_fit.
+    import pickle
+
+    (X, y, _), *_ = _scattered_batches()
+    grid = estimator(resolution=0.25).partial_fit(X, y)
+    before = pickle.dumps(grid)
+    assert grid.partial_fit(np.zeros((0, 4)), np.zeros(0)) is grid
+    assert pickle.dumps(grid) == before
+    with pytest.raises(ValueError, match="0 sample"):
+        estimator().partial_fit(np.zeros((0, 4)), np.zeros(0), classes=[0, 1])
