@@ -360,7 +360,12 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         if classes is None:
             self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         else:
-            self.classes_ = _binary_classes(np.asarray(classes), "classes")[0]
+            self.classes_ = np.unique(classes)
+            if self.classes_.size != 2:
+                raise ValueError(
+                    "classes must name the 2 labels (free, occupied), got "
+                    f"{self.classes_.tolist()!r}."
+                )
             y_idx = _label_index(y, self.classes_)
         starts, ends = _split_rows(X, self.layout)
         warn_unless_metres(starts, ends)

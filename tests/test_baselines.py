@@ -1234,3 +1234,10 @@ def test_a_later_empty_partial_fit_adds_nothing(estimator):
     assert pickle.dumps(grid) == before
     with pytest.raises(ValueError, match="0 sample"):
         estimator().partial_fit(np.zeros((0, 4)), np.zeros(0), classes=[0, 1])
+
+
+@pytest.mark.parametrize("classes", [[1, 1], [0, 1, 2], ["free"]])
+def test_first_partial_fit_refuses_classes_other_than_two_labels(classes):
+    beams = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    with pytest.raises(ValueError, match="classes must name the 2 labels"):
+        FrequencyGridMap().partial_fit(beams, [1, 1], classes=classes)
