@@ -224,14 +224,19 @@ def test_clusterer_fitted_on_a_subsample_labels_every_hit(paper):
     assert full.clusterer_.labels_.size == np.sum(y == 1)
 
 
-def test_one_class_cluster_gets_constant_expert():
+def _wall_and_far_hits():
+    """Left: a wall at x=0 seen by 30 beams from x=3; right: 12 hits at x=20 that no beam
+    reaches (a one-class cluster)."""
     rng = np.random.default_rng(1)
-    # Left: a wall at x=0 seen by beams from x=3; right: hits at x=20 that no beam reaches.
     wall = np.column_stack([np.zeros(30), np.linspace(-2, 2, 30)])
     beams = np.column_stack([np.full(30, 3.0), wall[:, 1], wall + [0.05, 0.0]])
     far = rng.normal([20.0, 0.0], 0.3, size=(12, 2))
     X = np.vstack([as_segments(wall), beams, as_segments(far)])
-    y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
+    return X, np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
+
+
+def test_one_class_cluster_gets_constant_expert():
+    X, y = _wall_and_far_hits()
     model = MixtureGPOccupancyMap(
         KMeans(2, n_init=3, random_state=0),
         _fast_expert(),
@@ -1804,12 +1809,7 @@ def test_experts_without_a_kernel_have_a_unit_prior():
     # Without a kernel to read it from, an expert's prior latent variance is 1 (the
     # probit's scale), and so is that of a one-class cluster's constant expert of such an
     # expert: it learned nothing, so the robust BCM gives the prior where it alone speaks.
-    rng = np.random.default_rng(1)
-    wall = np.column_stack([np.zeros(30), np.linspace(-2, 2, 30)])
-    beams = np.column_stack([np.full(30, 3.0), wall[:, 1], wall + [0.05, 0.0]])
-    far = rng.normal([20.0, 0.0], 0.3, size=(12, 2))
-    X = np.vstack([as_segments(wall), beams, as_segments(far)])
-    y = np.r_[np.ones(30), np.zeros(30), np.ones(12)].astype(int)
+    X, y = _wall_and_far_hits()
     model = MixtureGPOccupancyMap(
         KMeans(2, n_init=3, random_state=0),
         _KernelFreeExpert(),
