@@ -24,7 +24,8 @@ markdown table per workload and writes JSON to ``benchmarks/results/``: ``b1_pap
 - **B2**, the mixture's fit and predict time from 1k to 64k, 300k and 3M observations and the
   log-log slopes of fit time: ``benchmarks/bench_mixture.py`` run as a subprocess.
 - **B3**, the Intel Research Lab log (``../shared/data/intel.gfs.log``): every 10th scan held
-  out (offset 5); the mixture and the counting grid (0.1 m) trained on every 1st (unless
+  out (offset 5); the mixture and two counting grids at 0.1 m (the frequency grid, and the
+  log-odds grid updated scan by scan as OctoMap does) trained on every 1st (unless
   ``--skip-full-log``), 10th and 40th remaining scan; AUC on held-out hits against points drawn
   along the held-out beams (as ``skoccmap.metrics.heldout_auc``); fit s, predict us/point
   on the test points, the time of the whole 0.1 m map over the training hits
@@ -52,6 +53,7 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
+from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -62,7 +64,7 @@ from sklearn.gaussian_process.kernels import ConstantKernel as C  # noqa: E402
 from sklearn.metrics import roc_auc_score  # noqa: E402
 
 from skoccmap import OccupancyGrid  # noqa: E402
-from skoccmap.baselines import OccupancyGridMap  # noqa: E402
+from skoccmap.baselines import FrequencyGridMap, OccupancyGridMap  # noqa: E402
 from skoccmap.experiment import points_along_beams, run_paper_experiment  # noqa: E402
 from skoccmap.metrics import heldout_points, split_scans  # noqa: E402
 from skoccmap.mixture import MixtureGPOccupancyMap  # noqa: E402
@@ -287,14 +289,16 @@ def run_b3(args):
     rows = []
     for every in sparsities:
         train = train_all[::every]
-        X, y, _ = train.to_observations()
+        X, y, _, scan_index = train.to_observations(return_scan_index=True)
         models = {
             "mixture of GP experts": MixtureGPOccupancyMap(n_jobs=args.n_jobs, random_state=0),
-            "counting grid (0.1 m)": OccupancyGridMap(resolution=0.1),
+            "frequency grid (0.1 m)": FrequencyGridMap(resolution=0.1),
+            "log-odds grid per scan (0.1 m)": OccupancyGridMap(resolution=0.1),
         }
         for name, model in models.items():
             print(f"B3: every {every} scan(s), {len(X)} observations: {name} ...", flush=True)
-            _, fit_s = timed(model.fit, X, y)
+            per_scan = {"scan_index": scan_index} if isinstance(model, OccupancyGridMap) else {}
+            _, fit_s = timed(partial(model.fit, **per_scan), X, y)
             auc, predict_s = score_heldout(model, points, labels)
             # The fewest seconds of three calls, as the expert's in query_cost.
             queries = as_segments(points)
