@@ -146,6 +146,13 @@ def predictive(n, s, S, prior):
     return _student_t(kappa, nu, mean, chol, logdet), logdet
 
 
+def prior_predictive(prior):
+    """The prior's predictive Student-t ``t_0``, that of a cluster of no point: a new
+    cluster's in the Chinese restaurant."""
+    D = prior.mean.shape[0]
+    return predictive(np.zeros(1), np.zeros((1, D)), np.zeros((1, D, D)), prior)[0]
+
+
 def _student_t(kappa, nu, mean, chol, logdet):
     D = mean.shape[-1]
     dof = nu - D + 1.0

@@ -24,6 +24,7 @@ from ._niw import (
     mahalanobis_sq,
     posterior,
     predictive,
+    prior_predictive,
 )
 from ._validation import caller_stacklevel, check_magnitude, fit_or_unfitted
 
@@ -163,8 +164,7 @@ class _CollapsedGibbs:
         self.dof = np.zeros(cap)
         self.const = np.zeros(cap)
         self.logdet = np.zeros(cap)
-        zero = np.zeros(1)
-        self.prior_t, _ = predictive(zero, np.zeros((1, D)), np.zeros((1, D, D)), prior)
+        self.prior_t = prior_predictive(prior)
         if statistics is None:
             self.recompute()
         else:
@@ -991,10 +991,7 @@ class DPGMMClusterer(ClusterMixin, BaseEstimator):
         X = X - self._shift
         t, log_w = self._predictive, np.log(self.weights_)
         if new_cluster:
-            n, D = self._statistics[0], X.shape[1]
-            prior_t, _ = predictive(
-                np.zeros(1), np.zeros((1, D)), np.zeros((1, D, D)), self._prior
-            )
+            n, prior_t = self._statistics[0], prior_predictive(self._prior)
             t = StudentT(*(np.concatenate(pair) for pair in zip(t, prior_t, strict=True)))
             log_w = np.log(np.append(n, self.alpha)) - np.log(n.sum() + self.alpha)
         out = np.empty((X.shape[0], len(log_w)))
