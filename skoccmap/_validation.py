@@ -135,6 +135,18 @@ def queries_at(estimator, points):
     return np.concatenate([points, points], axis=1)
 
 
+def check_known_labels(y, classes):
+    """ValueError where ``y`` holds labels outside ``classes`` (those of the first
+    ``partial_fit`` call)."""
+    unknown = ~np.isin(y, classes)
+    if np.any(unknown):
+        raise ValueError(
+            f"y holds label(s) {np.unique(y[unknown]).tolist()} not in classes "
+            f"{np.asarray(classes).tolist()}; pass every label on the first call "
+            "(classes=...)."
+        )
+
+
 @contextlib.contextmanager
 def non_finite_explained(what):
     """Around ``validate_data`` of a map estimator: scikit-learn's NaN and infinity errors

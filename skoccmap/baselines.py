@@ -30,6 +30,7 @@ from sklearn.utils.random import sample_without_replacement
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from ._validation import (
+    check_known_labels,
     check_magnitude,
     fit_or_unfitted,
     non_finite_explained,
@@ -281,12 +282,7 @@ def _binary_classes(y, name):
 def _label_index(y, classes):
     """0/1 index of every label among ``classes``, refusing labels outside them."""
     check_classification_targets(y)
-    unknown = np.setdiff1d(np.unique(y), classes)
-    if unknown.size:
-        raise ValueError(
-            f"y holds label(s) {unknown.tolist()!r} outside classes_ {classes.tolist()!r}; "
-            "pass every label on the first call (classes=...)."
-        )
+    check_known_labels(y, classes)
     return np.searchsorted(classes, y)
 
 

@@ -66,6 +66,7 @@ from ._shared_kernel import (
 from ._thinning import thin_free_pieces
 from ._transient import CellCounts
 from ._validation import (
+    check_known_labels,
     check_magnitude,
     fit_or_unfitted,
     non_finite_explained,
@@ -179,15 +180,6 @@ def _check_two_classes(classes):
         raise ValueError(
             f"{refusal}MixtureGPOccupancyMap needs y with exactly 2 classes (free and "
             f"occupied), got {classes.size} class(es): {classes.tolist()}."
-        )
-
-
-def _check_known_labels(y, classes):
-    unknown = ~np.isin(y, classes)
-    if np.any(unknown):
-        raise ValueError(
-            f"y holds label(s) {np.unique(y[unknown]).tolist()} not in classes "
-            f"{np.asarray(classes).tolist()}."
         )
 
 
@@ -1144,7 +1136,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                     classes = present
                 classes = np.unique(np.asarray(classes))
                 _check_two_classes(classes)
-                _check_known_labels(y, classes)
+                check_known_labels(y, classes)
                 return self._fit(X, np.searchsorted(classes, y), classes)
         check_is_fitted(self)
         X_in, (X, y) = X, validate_queries(self, X, y)
@@ -1159,7 +1151,7 @@ class MixtureGPOccupancyMap(ClassifierMixin, BaseEstimator):
                 f"classes={np.unique(classes).tolist()} differs from the classes of the "
                 f"first call, {self.classes_.tolist()}."
             )
-        _check_known_labels(y, self.classes_)
+        check_known_labels(y, self.classes_)
         self._check_fitted_with()
         X, y_enc = _as_segment_rows(X, self.layout), np.searchsorted(self.classes_, y)
         # The checks of the first call: a later batch with its labels reversed (beams as
