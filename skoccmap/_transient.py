@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from .baselines import _chunks_by_crossings, _passed_cells
+from .baselines import _bounding_box, _chunks_by_crossings, _passed_cells
 
 __all__ = ["CellCounts"]
 
@@ -141,8 +141,7 @@ class CellCounts:
         first_cells, last_cells = self._cells(starts[free]), self._cells(ends[free])
         for lo, hi in _chunks_by_crossings(first_cells, last_cells, _CHUNK):
             rows, first, last = free[lo:hi], first_cells[lo:hi], last_cells[lo:hi]
-            low = np.minimum(first.min(axis=0), last.min(axis=0))
-            high = np.maximum(first.max(axis=0), last.max(axis=0))
+            low, high = _bounding_box(first, last)
             shape = tuple(int(n) for n in high - low + 1)
             # Grid units from the absolute cell coordinates, so that every batch rounds a
             # point to the same cell.

@@ -238,6 +238,14 @@ def _chunks_by_crossings(first, last, max_rows):
         lo = hi
 
 
+def _bounding_box(starts, ends):
+    """Lower and upper corners of the box holding every row's start and end."""
+    return (
+        np.minimum(starts.min(axis=0), ends.min(axis=0)),
+        np.maximum(starts.max(axis=0), ends.max(axis=0)),
+    )
+
+
 def _passed_cells(q0, q1, shape):
     """The cells free segments pass, in grid units: (segment, flat cell) pairs.
 
@@ -366,8 +374,7 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         starts, ends = _split_rows(X, self.layout)
         warn_unless_metres(starts, ends)
         res = float(self.resolution)
-        low = np.minimum(starts.min(axis=0), ends.min(axis=0))
-        high = np.maximum(starts.max(axis=0), ends.max(axis=0))
+        low, high = _bounding_box(starts, ends)
         origin = _snapped_origin(low, res)
         self._set_grid(origin, np.floor((high - origin) / res) + 1)
         self.cell_index_ = np.zeros(0, dtype=np.int64)
@@ -425,8 +432,7 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         """Widen the grid to hold ``starts`` and ``ends``; the observed cells keep their
         places, their flat indices renumbered (C order is kept: they stay sorted)."""
         res = float(self.resolution)
-        low = np.minimum(starts.min(axis=0), ends.min(axis=0))
-        high = np.maximum(starts.max(axis=0), ends.max(axis=0))
+        low, high = _bounding_box(starts, ends)
         snapped = _snapped_origin(low, res)
         shift = np.maximum(np.rint((self.origin_ - snapped) / res), 0)
         # An axis that grows down takes the snapped origin of its new lowest point, as fit
@@ -1269,12 +1275,7 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
         # on "SVD did not converge".
         starts, ends = _split_rows(check_magnitude(X), self.layout)
         warn_unless_metres(starts, ends)
-        self.extent_ = np.column_stack(
-            [
-                np.minimum(starts.min(axis=0), ends.min(axis=0)),
-                np.maximum(starts.max(axis=0), ends.max(axis=0)),
-            ]
-        ).ravel()
+        self.extent_ = np.column_stack(_bounding_box(starts, ends)).ravel()
         # Features are computed relative to the data's centre: scikit-learn's RBF kernel
         # takes |x|^2 + |y|^2 - 2 x.y, which at map coordinates of 1e5-1e7 m (UTM) loses
         # the distances between nearby points.
