@@ -43,8 +43,6 @@ from ._cmd_map import (
 # Defaults of the options that only one protocol reads (None: the option was not given).
 _EVERY_NTH_DEFAULTS = {"holdout_every": 10, "free_per_beam": 1}
 _BLOCKS_DEFAULTS = {"block_size": 40}
-# heldout_points' free_margin, which --protocol every-nth keeps.
-_FREE_MARGIN = 0.05
 
 
 def add_arguments(parser):
@@ -171,7 +169,7 @@ def _split(scans, args, seed):
     train, test = split_scans(scans, args.holdout_every, offset=args.holdout_every // 2)
     try:
         points, labels = heldout_points(
-            test, n_free_per_beam=args.free_per_beam, free_margin=_FREE_MARGIN, random_state=seed
+            test, n_free_per_beam=args.free_per_beam, random_state=seed
         )
     except ValueError as exc:
         message = str(exc).replace("n_free_per_beam=", "--free-per-beam ")
@@ -182,6 +180,7 @@ def _split(scans, args, seed):
 def _protocol_line(args):
     """The test set's definition, so that a table of numbers says how they were made."""
     from .metrics import (
+        _FREE_MARGIN,
         HILBERT_BLOCK_SIZE,
         HILBERT_FREE_MARGIN,
         HILBERT_HELDOUT_FRACTION,

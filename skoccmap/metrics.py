@@ -53,6 +53,8 @@ HILBERT_N_FREE_PER_BEAM = "half_range"
 HILBERT_MAX_BEAM_RANGE = 40.0
 #: Gap in metres between a beam's free test points and its hit.
 HILBERT_FREE_MARGIN = 0.1
+# heldout_points' and heldout_auc's gap between a beam's free test points and its hit.
+_FREE_MARGIN = 0.05
 
 
 def _check_scans(scans, name="scans"):
@@ -246,7 +248,7 @@ def _check_max_beam_range(max_beam_range):
 
 
 def heldout_points(
-    scans, *, n_free_per_beam=1, free_margin=0.05, max_beam_range=None, random_state=None
+    scans, *, n_free_per_beam=1, free_margin=_FREE_MARGIN, max_beam_range=None, random_state=None
 ):
     """Labelled test points from held-out scans: hits occupied, points along beams free.
 
@@ -459,7 +461,7 @@ def heldout_auc(
     scans,
     *,
     n_free_per_beam=1,
-    free_margin=0.05,
+    free_margin=_FREE_MARGIN,
     max_beam_range=None,
     random_state=None,
 ):
