@@ -97,6 +97,18 @@ def _snapped_origin(low, resolution):
     return np.where(origin > low, origin - resolution, origin)
 
 
+def _cells_below(position):
+    """``floor(position)``, a position within 1e-9 (relative) of a whole number taken as
+    that number: a point on a cell's lower edge is in that cell, whichever way the division
+    by the resolution rounded it (1.2 m above -0.2 m is 6.999... cells of 0.2 m).
+    Infinite or NaN positions stay as they are."""
+    position = np.asarray(position, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        nearest = np.rint(position)
+        on_edge = np.abs(position - nearest) <= 1e-9 * np.maximum(1.0, np.abs(nearest))
+    return np.floor(np.where(on_edge, nearest, position))
+
+
 def _checked_counts(counts, resolution):
     """Cell counts as integers; ValueError when the grid would exceed ``_MAX_CELLS``."""
     if np.prod(counts) > _MAX_CELLS:

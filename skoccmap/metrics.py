@@ -19,7 +19,7 @@ from sklearn.utils import Bunch, check_random_state
 
 from ._validation import queries_at, queries_of_our_own
 from .datasets import Environment2D, Room3D
-from .grid import ROS_FREE_THRESH, ROS_OCCUPIED_THRESH
+from .grid import ROS_FREE_THRESH, ROS_OCCUPIED_THRESH, _cells_below
 from .observations import Scans, _check_free_margin
 
 __all__ = [
@@ -676,18 +676,14 @@ def _surface_distance(environment, points):
 def _cell_index(points, grid):
     """Flat index of the grid cell holding each point; -1 outside the grid.
 
-    A point on a cell edge is in the cell above it (cells are ``[lo, lo + resolution)``).
-    The band steps of a wall on cell edges lie on them, and ``(x - lo) / resolution`` comes
-    out a rounding either side of the whole number, so the quotient is taken as that number
-    when within 1e-9 of it: else the same map measured a step thicker or thinner as the wall
-    moved by whole cells.
+    A point on a cell edge is in the cell above it (cells are ``[lo, lo + resolution)``),
+    whichever way ``(x - lo) / resolution`` rounded (:func:`~skoccmap.grid._cells_below`):
+    the band steps of a wall lie on cell edges, and the same map would otherwise measure a
+    step thicker or thinner as the wall moved by whole cells.
     """
     lo = grid.extent[0::2]
     counts = np.array(grid.shape[::-1])  # x first, like the cell order of the grid
-    position = (points - lo) / grid.resolution
-    nearest = np.rint(position)
-    on_edge = np.abs(position - nearest) <= 1e-9 * np.maximum(1.0, np.abs(nearest))
-    cell = np.floor(np.where(on_edge, nearest, position)).astype(np.int64)
+    cell = _cells_below((points - lo) / grid.resolution).astype(np.int64)
     inside = np.all((cell >= 0) & (cell < counts), axis=-1)
     strides = np.cumprod(np.r_[1, counts[:-1]])
     return np.where(inside, cell @ strides, -1)

@@ -7,7 +7,7 @@ matplotlib is imported only when something is drawn; install it with
 import numpy as np
 
 from ._validation import is_number
-from .grid import OccupancyGrid
+from .grid import OccupancyGrid, _cells_below
 from .uncertainty import probability_std
 
 __all__ = ["OccupancyMapDisplay"]
@@ -123,11 +123,9 @@ class OccupancyMapDisplay:
             else:
                 # The layer as a float first: a height far off the grid gives an infinite
                 # one, which int() refuses with an OverflowError. A height on a layer's
-                # lower face is in that layer, whatever the division's rounding (1.2 m
-                # above -0.2 m is 6.999... layers of 0.2 m).
-                with np.errstate(over="ignore", invalid="ignore"):
-                    layers = (float(z) - zmin) / grid.resolution
-                    k = np.floor(layers + 1e-9 * abs(layers))
+                # lower face is in that layer, as a cell's lower edge is in the metrics.
+                with np.errstate(over="ignore"):
+                    k = _cells_below((float(z) - zmin) / grid.resolution)
             if not 0 <= k < grid.shape[0]:
                 raise ValueError(f"z={z} is outside the grid's height range {grid.extent[4:]}.")
             k = int(k)

@@ -221,6 +221,16 @@ def test_3d_slice_at_a_layers_lower_face_is_that_layer(z, k):
     np.testing.assert_allclose(disp.im_.get_array(), grid.probability[k])
 
 
+def test_3d_slice_at_the_grids_lower_face_rounded_below_it_is_the_bottom_layer():
+    # 0.1 + 0.2 is 0.30000000000000004: z = 0.3 is the grid's lower face, a rounding below.
+    rng = np.random.default_rng(4)
+    grid = OccupancyGrid(rng.uniform(size=(3, 2, 2)), (0.0, 0.0, 0.1 + 0.2), 0.1)
+    disp = OccupancyMapDisplay.from_grid(grid, z=0.3)
+    np.testing.assert_allclose(disp.im_.get_array(), grid.probability[0])
+    with pytest.raises(ValueError, match="outside the grid's height range"):
+        OccupancyMapDisplay.from_grid(grid, z=0.29)
+
+
 def test_3d_default_slice_is_the_layer_holding_the_mid_height():
     # An even number of layers: four of 1 m from z = 0. The grid's mid-height, 2 m, is the
     # bottom of layer 2 (layers span [k, k + 1)): the default slice is the layer asking for
