@@ -365,6 +365,31 @@ def test_pose_stamped_topic_gives_the_laser_pose(tmp_path):
     np.testing.assert_allclose(scans.poses, [[2.5, 1.0, 1.75]], atol=1e-12)
 
 
+@pytest.mark.parametrize("message", ["pose_stamped", "odometry"])
+def test_a_pose_topic_naming_no_frame_warns_when_the_laser_is_mounted(tmp_path, message):
+    # amcl_pose and an Odometry with an empty child_frame_id give the robot's pose, not the
+    # laser's: read as the laser's own pose they lose its offset, which a warning names.
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.3, 0.0, 0.2), yaw=np.pi, static=True)
+    for stamp, x in ((0.0, 0.0), (1.0, 1.0)):
+        if message == "pose_stamped":
+            bag.pose_stamped(stamp, (x, 0.0, 0.0), 0.0, topic="/odom")
+        else:
+            bag.odometry(stamp, (x, 0.0, 0.0), 0.0, child="")
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    with pytest.warns(UserWarning, match=r"mount 'laser' on 'base_link'.*base_frame='base_link'"):
+        scans = load_rosbag(path, pose_topic="/odom")
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
+    scans = load_rosbag(path, pose_topic="/odom", base_frame="base_link")
+    np.testing.assert_allclose(scans.poses[:, :2], [[0.8, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(_wrap(scans.poses[:, 2] - np.pi), 0.0, atol=1e-12)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = load_rosbag(path, pose_topic="/odom", base_frame="laser")
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
+
+
 def _rolled_laser_bag(tmp_path, roll):
     """A ROS 2 bag of one scan by a laser 0.4 m up at yaw 0.5, rolled by ``roll``."""
     bag = _Bag(2)

@@ -485,6 +485,25 @@ def _laser_from_pose_topic(track, tree, base_frame, laser_frame, stamps, path):
     return t, q, valid & ok, span
 
 
+def _warn_laser_has_parents(tree, laser_frame, pose_topic, path):
+    """Warn when pose messages that name no child frame (``PoseStamped``,
+    ``PoseWithCovarianceStamped``, an ``Odometry`` with an empty ``child_frame_id``) are taken
+    as the laser's own pose although the transforms mount the laser on another frame: such
+    poses are most often the robot's (``amcl_pose``, a SLAM node's pose), and using them for
+    the laser would leave out its mounting offset and rotation without a word."""
+    parents = sorted({parent for parent, child in tree.edges if child == laser_frame})
+    if parents:
+        warnings.warn(
+            f"{path}: the poses on {pose_topic!r} name no child frame, so they are taken as "
+            f"the pose of the scans' frame {laser_frame!r} itself; but the transforms mount "
+            f"{laser_frame!r} on {', '.join(map(repr, parents))}. If the poses are the "
+            f"robot's, pass base_frame= its frame (e.g. base_frame={parents[0]!r}); "
+            f"base_frame={laser_frame!r} keeps them as the laser's pose without this warning.",
+            UserWarning,
+            stacklevel=caller_stacklevel(),
+        )
+
+
 def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topics):
     """Laser poses (translation, rotation, valid) of every scan at its stamp."""
     stamps = np.array([s.stamp for s in scans], dtype=np.int64)
@@ -508,6 +527,8 @@ def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topi
         if pose == "tf":
             out = _laser_in_map(tree, map_frame, frame, stamps[rows], path)
         else:
+            if base_frame is None and not child:
+                _warn_laser_has_parents(tree, frame, pose_topic, path)
             base = base_frame if base_frame is not None else (child or frame)
             out = _laser_from_pose_topic(track, tree, _frame(base), frame, stamps[rows], path)
         t[rows], q[rows], valid[rows] = out[:3]
@@ -653,9 +674,12 @@ def load_rosbag(
         ``geometry_msgs/PoseWithCovarianceStamped`` messages.
     base_frame : str or None, default=None
         Frame whose pose the ``pose_topic`` messages give. ``None``: the ``child_frame_id``
-        of Odometry messages, the laser's own frame for the pose messages, which name none.
-        Pass the laser's frame to use the message poses as laser poses unchanged. Only with
-        ``pose_topic`` (a ValueError otherwise: the transforms give the laser's pose itself).
+        of Odometry messages, the laser's own frame for the pose messages, which name none
+        (and for Odometry messages with an empty ``child_frame_id``), with a warning when
+        the transforms mount the laser on another frame: ``amcl_pose`` and most pose topics
+        give the robot's base, not the laser. Pass the laser's frame to use the message
+        poses as laser poses unchanged. Only with ``pose_topic`` (a ValueError otherwise:
+        the transforms give the laser's pose itself).
     laser_frame : str or None, default=None
         Frame of the scans; ``None``: each scan's ``header.frame_id``. For bags whose scans
         name no frame, or the wrong one.
@@ -694,6 +718,9 @@ def load_rosbag(
         With the number of scans skipped because their stamp lies outside the time range of
         their transforms (poses are interpolated -- linearly in translation, by slerp in
         rotation -- never extrapolated) or because they have no usable reading.
+    UserWarning
+        When ``pose_topic`` messages name no child frame, ``base_frame`` is not given, and
+        the transforms mount the scans' frame on another frame (see ``base_frame``).
 
     Notes
     -----
