@@ -347,15 +347,24 @@ def _bag_option(args, name):
 
 
 def _load_bag(args):
+    """``load_rosbag`` with the command's option names in its errors and warnings."""
     from .datasets import load_rosbag
 
-    try:
-        options = {name: _bag_option(args, name) for name in _BAG_DEFAULTS}
-        scans = load_rosbag(args.log, **options, max_range=args.max_range)
-    except ImportError as exc:
-        raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
-    except ValueError as exc:
-        raise ValueError(_option_names(str(exc), [*_BAG_DEFAULTS, "max_range"])) from None
+    names = [*_BAG_DEFAULTS, "max_range"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", UserWarning)
+        try:
+            options = {name: _bag_option(args, name) for name in _BAG_DEFAULTS}
+            scans = load_rosbag(args.log, **options, max_range=args.max_range)
+        except ImportError as exc:
+            raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
+        except ValueError as exc:
+            raise ValueError(_option_names(str(exc), names)) from None
+        finally:
+            command = getattr(args, "command", None) or "map"
+            for warning in caught:
+                message = _option_names(str(warning.message), names)
+                print(f"skoccmap {command}: warning: {message}", file=sys.stderr)
     if scans.n_dims != 2:
         tolerance = _bag_option(args, "level_tolerance")
         raise ValueError(

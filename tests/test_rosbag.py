@@ -390,6 +390,24 @@ def test_a_pose_topic_naming_no_frame_warns_when_the_laser_is_mounted(tmp_path, 
     np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
 
 
+def test_cli_names_its_options_in_the_bag_reader_warnings(tmp_path, capsys):
+    from skoccmap._cmd_map import load_scans
+    from skoccmap.cli import build_parser
+
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.3, 0.0, 0.2), static=True)
+    bag.pose_stamped(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.pose_stamped(1.0, (1.0, 0.0, 0.0), 0.0)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    bag.scan(1.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    load_scans(build_parser().parse_args(["map", str(path), "--pose-topic", "/pose"]))
+    err = capsys.readouterr().err
+    assert "skoccmap map: warning:" in err and "skipped 1 of 2 scans" in err
+    assert "pass --base-frame its frame (e.g. --base-frame 'base_link')" in err
+    assert "base_frame=" not in err
+
+
 def _rolled_laser_bag(tmp_path, roll):
     """A ROS 2 bag of one scan by a laser 0.4 m up at yaw 0.5, rolled by ``roll``."""
     bag = _Bag(2)
