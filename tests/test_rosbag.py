@@ -516,6 +516,34 @@ def test_range_rules(tmp_path):
     assert set(directions) == {0.0, 0.1, 0.6, 0.7}
 
 
+@pytest.mark.parametrize("roll", [0.0, np.pi])
+def test_scans_with_the_same_beams_share_one_row_of_angles(tmp_path, roll):
+    # Upright or upside down, scans alike share one row of angles, also with a scan
+    # without a usable reading among them (skipped).
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), roll=roll)
+    bag.tf(2.0, "map", "laser", (0.0, 0.0, 0.0), roll=roll)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    bag.scan(1.0, [0.0, 0.0, 0.0])  # below range_min
+    bag.scan(1.5, [3.0, 2.0, 1.0])
+    with pytest.warns(UserWarning, match="skipped 1 scans without a reading"):
+        scans = load_rosbag(bag.write(tmp_path / "b"))
+    expected = [-0.5, 0.0, 0.5] if roll == 0.0 else [0.5, 0.0, -0.5]
+    assert scans.angles.shape == (3,)
+    np.testing.assert_allclose(scans.angles, expected, atol=1e-6)
+    np.testing.assert_array_equal(scans.ranges, [[1.0, 2.0, 3.0], [3.0, 2.0, 1.0]])
+
+
+def test_an_upright_and_an_upside_down_laser_mirror_only_the_second(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "up", (0.0, 0.0, 0.0), static=True)
+    bag.tf(0.0, "map", "down", (0.0, 0.0, 0.0), roll=np.pi, static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0], frame="up")
+    bag.scan(1.0, [1.0, 2.0, 3.0], frame="down")
+    scans = load_rosbag(bag.write(tmp_path / "b"))
+    np.testing.assert_allclose(scans.angles, [[-0.5, 0.0, 0.5], [0.5, 0.0, -0.5]], atol=1e-6)
+
+
 def test_scans_with_different_beam_counts(tmp_path):
     bag = _Bag(1)
     bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))

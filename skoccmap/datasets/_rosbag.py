@@ -313,25 +313,33 @@ def _read(reader, conns):
 
 @dataclass
 class _LaserMessage:
+    """A scan as read: its ranges as the message holds them (float32), its beam angles as
+    ``angle_min`` and ``angle_increment`` (a bag of many scans is held in memory until the
+    rows are built: per-scan float64 copies of both would take four times as much)."""
+
     stamp: int
     frame: str
     ranges: np.ndarray
-    angles: np.ndarray
+    angle_min: float
+    angle_increment: float
     range_min: float
     range_max: float
+
+    @property
+    def angles(self):
+        return self.angle_min + self.angle_increment * np.arange(self.ranges.size)
 
 
 def _read_scans(reader, path, topic):
     scans = []
     for _, msg in _read(reader, _connections(reader, path, topic, [_LASER_SCAN], "scan")):
-        ranges = np.asarray(msg.ranges, dtype=np.float64)
+        ranges = np.array(msg.ranges, dtype=np.float32)
         start, step = float(msg.angle_min), float(msg.angle_increment)
         if not (np.isfinite(start) and np.isfinite(step) and (step != 0 or ranges.size < 2)):
             raise ValueError(
                 f"{path}: a LaserScan on {topic!r} at {_stamp_ns(msg.header) * 1e-9:.9f} s has "
                 f"angle_min {start} and angle_increment {step}: its beams have no directions."
             )
-        angles = start + step * np.arange(ranges.size)
         range_min, range_max = float(msg.range_min), float(msg.range_max)
         # Both limits in use (see _usable_ranges) and crossed: every reading is dropped
         # (below range_min) or read as a beam without a return (above range_max), so the
@@ -348,7 +356,8 @@ def _read_scans(reader, path, topic):
                 _stamp_ns(msg.header),
                 _frame(msg.header.frame_id),
                 ranges,
-                angles,
+                start,
+                step,
                 range_min,
                 range_max,
             )
@@ -546,7 +555,7 @@ def _usable_ranges(scan):
     -- so they are dropped: a free beam to the maximum range would invent free space through
     whatever was in front of the sensor.
     """
-    ranges = scan.ranges.copy()
+    ranges = scan.ranges.astype(np.float64)
     limit = scan.range_max if np.isfinite(scan.range_max) and scan.range_max > 0 else np.inf
     range_min = scan.range_min if np.isfinite(scan.range_min) else 0.0
     with np.errstate(invalid="ignore"):
@@ -556,20 +565,35 @@ def _usable_ranges(scan):
 
 
 def _rectangular(scans, max_range):
-    """Ranges and angles (n_scans, n_beams) of the usable beams of every scan.
+    """Ranges (n_scans, n_beams) and angles of the usable beams of every scan.
 
     A scan with fewer usable beams than the widest fills its row by repeating its own
     usable beams, in beam order: a repeated beam counts twice, no beam is invented.
-    Returns the rows and the mask of scans that have at least one usable beam.
+    Returns the rows, the angles -- one row (n_beams,) when every scan with a usable beam
+    has all its beams usable at the same angles, per scan (n_scans, n_beams) otherwise --
+    and the mask of scans that have at least one usable beam. Each scan's ranges are
+    cleaned twice (counted, then copied) rather than held cleaned: the rows are the only
+    float64 copy of the bag's ranges.
     """
-    cleaned = [_usable_ranges(s) for s in scans]
-    counts = np.array([int(u.sum()) for _, u in cleaned])
+    counts = np.array([int(_usable_ranges(s)[1].sum()) for s in scans])
     has_beams = counts > 0
     width = int(counts.max()) if has_beams.any() else 0
+    with_beams = [s for s, has in zip(scans, has_beams, strict=True) if has]
+    shared = bool(with_beams) and all(
+        s.ranges.size == width
+        and s.angle_min == with_beams[0].angle_min
+        and s.angle_increment == with_beams[0].angle_increment
+        for s in with_beams
+    )
+    shared &= bool(np.all(counts[has_beams] == width))
     ranges = np.empty((len(scans), width))
-    angles = np.empty((len(scans), width))
-    for row, (scan, (r, usable)) in enumerate(zip(scans, cleaned, strict=True)):
+    angles = with_beams[0].angles if shared else np.empty((len(scans), width))
+    for row, scan in enumerate(scans):
         if not has_beams[row]:
+            continue
+        r, usable = _usable_ranges(scan)
+        if shared:
+            ranges[row] = r
             continue
         index = np.flatnonzero(usable)
         if index.size < width:
@@ -591,6 +615,8 @@ def _scan_max_range(scans, max_range, path):
 
 
 def _to_scans(t, q, ranges, angles, stamps, max_range, level_tolerance):
+    """Scans from the laser poses and the rows of :func:`_rectangular`: ``angles`` of shape
+    (n_beams,) shared by all scans, or (n_scans, n_beams)."""
     from ..observations import Scans, _quaternion_to_matrix
 
     rot = _quaternion_to_matrix(q)
@@ -601,11 +627,19 @@ def _to_scans(t, q, ranges, angles, stamps, max_range, level_tolerance):
         poses = np.column_stack([t[:, :2], theta])
         # Upside down, the map's x-y block of the rotation is a reflection: the beam at
         # angle a points at theta - a.
-        beams = np.where((rot[:, 2, 2] < 0.0)[:, None], -angles, angles)
+        upside_down = rot[:, 2, 2] < 0.0
+        if angles.ndim == 1 and upside_down.all():
+            beams = -angles
+        elif angles.ndim == 1 and not upside_down.any():
+            beams = angles
+        else:
+            beams = np.where(upside_down[:, None], -angles, angles)
+        per_scan = beams.ndim == 2
     else:
         poses = np.column_stack([t, q])
         beams = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=-1)
-    if np.all(beams == beams[0]):
+        per_scan = beams.ndim == 3
+    if per_scan and np.all(beams == beams[0]):
         beams = beams[0].copy()
     return Scans(
         poses=poses, ranges=ranges, angles=beams, max_range=max_range, timestamps=stamps / _NS
@@ -816,9 +850,11 @@ def load_rosbag(
             f"span [{stamps[0]:.9g}, {stamps[1]:.9g}] s."
         )
     stamps = np.array([s.stamp for s in messages], dtype=np.int64)[keep]
-    return _to_scans(
-        t[keep], q[keep], ranges[keep], angles[keep], stamps, max_range, level_tolerance
-    )
+    del messages  # the rows hold the ranges now
+    if not keep.all():
+        ranges = ranges[keep]
+        angles = angles if angles.ndim == 1 else angles[keep]
+    return _to_scans(t[keep], q[keep], ranges, angles, stamps, max_range, level_tolerance)
 
 
 # --------------------------------------------------------------------------------------------
