@@ -116,8 +116,10 @@ def add_model_arguments(parser):
     bag = parser.add_argument_group("ROS bags")
     bag.add_argument(
         "--scan-topic",
+        action="append",
         default=None,
-        help="topic of the sensor_msgs/LaserScan messages (default /scan)",
+        help="topic of the sensor_msgs/LaserScan messages (default /scan); repeat it to map "
+        "with several lasers (--scan-topic /front_scan --scan-topic /rear_scan)",
     )
     bag.add_argument(
         "--pose-topic",
@@ -343,6 +345,8 @@ def _option_names(message, names):
 def _bag_option(args, name):
     """A ROS bag reader option as given, or its default."""
     value = getattr(args, name, None)
+    if isinstance(value, list) and len(value) == 1:  # one --scan-topic
+        value = value[0]
     return _BAG_DEFAULTS[name] if value is None else value
 
 

@@ -544,6 +544,42 @@ def test_an_upright_and_an_upside_down_laser_mirror_only_the_second(tmp_path):
     np.testing.assert_allclose(scans.angles, [[-0.5, 0.0, 0.5], [0.5, 0.0, -0.5]], atol=1e-6)
 
 
+@pytest.mark.parametrize("ros_version", [1, 2])
+def test_two_laser_topics_read_into_one_set_of_scans(tmp_path, ros_version, capsys):
+    # A front laser (3 beams) and a rear one (2 beams, mounted backwards) on their own
+    # topics: one time-ordered set of scans, each placed by its own frame.
+    bag = _Bag(ros_version)
+    bag.tf(0.0, "base_link", "front", (0.3, 0.0, 0.2), static=True)
+    bag.tf(0.0, "base_link", "rear", (-0.3, 0.0, 0.2), yaw=np.pi, static=True)
+    bag.tf(0.0, "map", "base_link", (0.0, 0.0, 0.0))
+    bag.tf(1.0, "map", "base_link", (1.0, 0.0, 0.0))
+    bag.scan(0.25, [1.0, 2.0, 3.0], frame="front", topic="/front_scan")
+    bag.scan(0.5, [1.5, 2.5], frame="rear", topic="/rear_scan", range_max=4.0)
+    bag.scan(0.75, [1.0, 2.0, 3.0], frame="front", topic="/front_scan")
+    path = bag.write(_bag_path(tmp_path, ros_version))
+    scans = load_rosbag(path, ["/front_scan", "/rear_scan"])
+    np.testing.assert_allclose(scans.timestamps, [0.25, 0.5, 0.75])
+    np.testing.assert_allclose(scans.poses[:, :2], [[0.55, 0.0], [0.2, 0.0], [1.05, 0.0]],
+                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(_wrap(scans.poses[:, 2] - [0.0, np.pi, 0.0]), 0.0, atol=1e-12)
+    assert scans.max_range == 4.0  # the rear laser's range_max
+    np.testing.assert_array_equal(scans.ranges[1], [1.5, 1.5, 2.5])  # 2 beams fill 3 slots
+    np.testing.assert_array_equal(scans.ranges[[0, 2]], [[1.0, 2.0, 3.0]] * 2)
+    with pytest.raises(ValueError, match="no scan topic '/side_scan'"):
+        load_rosbag(path, ["/front_scan", "/side_scan"])
+    for bad in ([], [None], 3):
+        with pytest.raises(ValueError, match="scan_topic must be a topic name or a sequence"):
+            load_rosbag(path, bad)
+    # The command line takes --scan-topic once per topic.
+    from skoccmap._cmd_map import load_scans
+    from skoccmap.cli import build_parser
+
+    argv = ["map", str(path), "--scan-topic", "/front_scan", "--scan-topic", "/rear_scan"]
+    assert len(load_scans(build_parser().parse_args(argv))) == 3
+    assert load_scans(build_parser().parse_args(argv[:4])).n_beams == 3
+    assert f"{path}: 2 scans x 3 beams" in capsys.readouterr().out
+
+
 def test_scans_with_different_beam_counts(tmp_path):
     bag = _Bag(1)
     bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0))

@@ -330,7 +330,31 @@ class _LaserMessage:
         return self.angle_min + self.angle_increment * np.arange(self.ranges.size)
 
 
-def _read_scans(reader, path, topic):
+def _check_scan_topics(scan_topic):
+    """``scan_topic`` as a tuple of distinct topic names, or a ValueError."""
+    topics = (scan_topic,) if isinstance(scan_topic, str) else scan_topic
+    try:
+        topics = tuple(dict.fromkeys(topics))
+    except TypeError:  # not a sequence, or unhashable names
+        topics = ()
+    if not topics or not all(isinstance(topic, str) for topic in topics):
+        raise ValueError(
+            "scan_topic must be a topic name or a sequence of them (one per laser), got "
+            f"{scan_topic!r}."
+        )
+    return topics
+
+
+def _read_scans(reader, path, topics):
+    """The scans of every topic in ``topics``, in header stamp order."""
+    scans = []
+    for topic in topics:
+        scans += _read_topic_scans(reader, path, topic)
+    scans.sort(key=lambda s: s.stamp)  # header stamps, whatever order they were recorded in
+    return scans
+
+
+def _read_topic_scans(reader, path, topic):
     scans = []
     for _, msg in _read(reader, _connections(reader, path, topic, [_LASER_SCAN], "scan")):
         ranges = np.array(msg.ranges, dtype=np.float32)
@@ -364,7 +388,6 @@ def _read_scans(reader, path, topic):
         )
     if not scans:
         raise ValueError(f"{path}: topic {topic!r} holds no message.")
-    scans.sort(key=lambda s: s.stamp)  # header stamps, whatever order they were recorded in
     return scans
 
 
@@ -690,8 +713,10 @@ def load_rosbag(
     path : str or path-like
         The bag: ``.bag`` file (ROS 1), ROS 2 bag directory or bare ``.db3`` / ``.mcap``
         file.
-    scan_topic : str, default="/scan"
-        Topic of ``sensor_msgs/LaserScan`` messages. Beam ``i`` of a scan points at
+    scan_topic : str or sequence of str, default="/scan"
+        Topic of ``sensor_msgs/LaserScan`` messages, or several (a robot's front and rear
+        lasers, e.g. ``["/front_scan", "/rear_scan"]``), read into one time-ordered set of
+        scans, each placed by its own frame's transforms. Beam ``i`` of a scan points at
         ``angle_min + i * angle_increment`` in the scan's ``header.frame_id``.
     pose : {"tf", "topic"}, default="tf"
         Where the laser poses come from. ``"tf"``: the chain of transforms from ``map_frame``
@@ -812,6 +837,8 @@ def load_rosbag(
             stacklevel=caller_stacklevel(),
         )
     tf_topics = _check_tf_topics(tf_topics)
+    scan_topics = _check_scan_topics(scan_topic)
+    topic_names = ", ".join(map(repr, scan_topics))
     if max_range is not None:
         from ..observations import _check_max_range
 
@@ -828,7 +855,7 @@ def load_rosbag(
     except AnyReaderError as exc:
         raise ValueError(f"{path} cannot be read as a ROS bag: {exc}") from None
     try:
-        messages = _read_scans(reader, path, scan_topic)
+        messages = _read_scans(reader, path, scan_topics)
         if laser_frame is not None:
             for message in messages:
                 message.frame = _frame(laser_frame)
@@ -841,12 +868,17 @@ def load_rosbag(
     ranges, angles, has_beams = _rectangular(messages, max_range)
     keep = valid & has_beams
     _warn_skipped(
-        path, scan_topic, len(messages), int((~valid).sum()), span, int((valid & ~has_beams).sum())
+        path,
+        ", ".join(scan_topics),
+        len(messages),
+        int((~valid).sum()),
+        span,
+        int((valid & ~has_beams).sum()),
     )
     if not keep.any():
         stamps = [messages[0].stamp / _NS, messages[-1].stamp / _NS]
         raise ValueError(
-            f"{path}: no scan of {scan_topic!r} has a pose and a usable reading; the scans "
+            f"{path}: no scan of {topic_names} has a pose and a usable reading; the scans "
             f"span [{stamps[0]:.9g}, {stamps[1]:.9g}] s."
         )
     stamps = np.array([s.stamp for s in messages], dtype=np.int64)[keep]
