@@ -102,6 +102,7 @@ _BAG_DEFAULTS = {
     "base_frame": None,
     "laser_frame": None,
     "level_tolerance": 0.01,
+    "nan_readings": "no_return",
 }
 
 
@@ -151,6 +152,13 @@ def add_model_arguments(parser):
         help="radians: scans whose plane lies within this angle of the map's horizontal plane "
         "(upright or upside down) are mapped in 2-D (default 0.01); a larger value projects a "
         "tilted laser's scans onto the plane, inf always does",
+    )
+    bag.add_argument(
+        "--nan-readings",
+        default=None,
+        choices=["no_return", "invalid"],
+        help="NaN readings are beams without a return (no_return, the default) or dropped "
+        "(invalid: scans made from a depth camera, whose NaN are pixels without depth)",
     )
     parser.add_argument(
         "--max-range",

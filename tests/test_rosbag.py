@@ -516,6 +516,39 @@ def test_range_rules(tmp_path):
     assert set(directions) == {0.0, 0.1, 0.6, 0.7}
 
 
+def test_nan_readings_invalid_drops_them(tmp_path):
+    # A scan made from a depth camera: NaN where a pixel has no depth is no free space.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, np.nan, np.inf, 2.0], angle_min=0.0, increment=0.1)
+    path = bag.write(tmp_path / "b")
+    as_no_return = load_rosbag(path)
+    np.testing.assert_array_equal(as_no_return.ranges, [[1.0, np.inf, np.inf, 2.0]])
+    dropped = load_rosbag(path, nan_readings="invalid")
+    np.testing.assert_allclose(dropped.angles, [0.0, 0.2, 0.3], atol=1e-6)
+    np.testing.assert_array_equal(dropped.ranges, [[1.0, np.inf, 2.0]])
+    with pytest.raises(ValueError, match="nan_readings must be 'no_return' or 'invalid'"):
+        load_rosbag(path, nan_readings="drop")
+
+
+def test_cli_nan_readings_and_a_max_range_beyond_the_lasers(tmp_path, capsys):
+    from skoccmap._cmd_map import load_scans
+    from skoccmap.cli import build_parser
+
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, np.nan, 2.0], angle_min=0.0, increment=0.1, range_max=5.0)
+    bag.scan(1.0, [1.0, 1.5, 2.0], angle_min=0.0, increment=0.1, range_max=5.0)
+    path = str(bag.write(tmp_path / "b"))
+    parser = build_parser()
+    scans = load_scans(parser.parse_args(["map", path, "--nan-readings", "invalid"]))
+    assert np.isfinite(scans.ranges).all()
+    load_scans(parser.parse_args(["map", path, "--max-range", "8"]))
+    err = capsys.readouterr().err
+    assert "--max-range 8 is beyond the range_max 5 m the scans state" in err
+    assert "Pass --max-range 5 or less" in err
+
+
 @pytest.mark.parametrize("roll", [0.0, np.pi])
 def test_scans_with_the_same_beams_share_one_row_of_angles(tmp_path, roll):
     # Upright or upside down, scans alike share one row of angles, also with a scan
@@ -1105,7 +1138,8 @@ def test_readings_at_range_min_and_range_max_are_hits(tmp_path):
     bag = _Bag(2)
     bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
     bag.scan(0.5, [0.1, 1.0, 5.0], range_min=0.1, range_max=5.0)  # float32 0.1 both times
-    scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
+    with pytest.warns(UserWarning, match="max_range=6 is beyond the range_max"):
+        scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
     np.testing.assert_allclose(scans.angles, [-0.5, 0.0, 0.5], atol=1e-6)
     np.testing.assert_allclose(scans.ranges, [[0.1, 1.0, 5.0]], atol=1e-6)
 
@@ -1116,7 +1150,8 @@ def test_equal_range_limits_keep_the_reading_between_them(tmp_path):
     bag = _Bag(2)
     bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
     bag.scan(0.5, [2.0, 1.0, 3.0], range_min=2.0, range_max=2.0)
-    scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
+    with pytest.warns(UserWarning, match="max_range=6 is beyond the range_max"):
+        scans = load_rosbag(bag.write(tmp_path / "b"), max_range=6.0)
     np.testing.assert_allclose(scans.angles, [-0.5, 0.5], atol=1e-6)
     np.testing.assert_array_equal(scans.ranges, [[2.0, np.inf]])
 

@@ -569,10 +569,11 @@ def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topi
     return t, q, valid, span
 
 
-def _usable_ranges(scan):
+def _usable_ranges(scan, nan_invalid=False):
     """Ranges with no-return beams as ``inf`` and the mask of beams that carry information.
 
-    NaN and readings above ``range_max`` (``+inf`` included) are beams without a return.
+    NaN (unless ``nan_invalid``: then dropped) and readings above ``range_max`` (``+inf``
+    included) are beams without a return.
     Readings below ``range_min`` (``-inf`` included, REP 117's "too close") say nothing about
     where the nearest obstacle is -- a return the sensor could not measure, or an error code
     -- so they are dropped: a free beam to the maximum range would invent free space through
@@ -582,12 +583,15 @@ def _usable_ranges(scan):
     limit = scan.range_max if np.isfinite(scan.range_max) and scan.range_max > 0 else np.inf
     range_min = scan.range_min if np.isfinite(scan.range_min) else 0.0
     with np.errstate(invalid="ignore"):
-        ranges[np.isnan(ranges) | (ranges > limit)] = np.inf
+        nan = np.isnan(ranges)
+        ranges[nan | (ranges > limit)] = np.inf
         usable = ~(ranges < max(range_min, 0.0))
+    if nan_invalid:
+        usable &= ~nan
     return ranges, usable
 
 
-def _rectangular(scans, max_range):
+def _rectangular(scans, max_range, nan_invalid=False):
     """Ranges (n_scans, n_beams) and angles of the usable beams of every scan.
 
     A scan with fewer usable beams than the widest fills its row by repeating its own
@@ -596,9 +600,9 @@ def _rectangular(scans, max_range):
     has all its beams usable at the same angles, per scan (n_scans, n_beams) otherwise --
     and the mask of scans that have at least one usable beam. Each scan's ranges are
     cleaned twice (counted, then copied) rather than held cleaned: the rows are the only
-    float64 copy of the bag's ranges.
+    float64 copy of the bag's ranges. ``nan_invalid``: see :func:`_usable_ranges`.
     """
-    counts = np.array([int(_usable_ranges(s)[1].sum()) for s in scans])
+    counts = np.array([int(_usable_ranges(s, nan_invalid)[1].sum()) for s in scans])
     has_beams = counts > 0
     width = int(counts.max()) if has_beams.any() else 0
     with_beams = [s for s, has in zip(scans, has_beams, strict=True) if has]
@@ -614,7 +618,7 @@ def _rectangular(scans, max_range):
     for row, scan in enumerate(scans):
         if not has_beams[row]:
             continue
-        r, usable = _usable_ranges(scan)
+        r, usable = _usable_ranges(scan, nan_invalid)
         if shared:
             ranges[row] = r
             continue
@@ -627,9 +631,19 @@ def _rectangular(scans, max_range):
 
 
 def _scan_max_range(scans, max_range, path):
-    if max_range is not None:
-        return max_range  # checked by load_rosbag before the bag is read
     stated = [s.range_max for s in scans if np.isfinite(s.range_max) and s.range_max > 0]
+    if max_range is not None:  # checked by load_rosbag before the bag is read
+        if stated and max_range > min(stated) * (1 + 1e-6):
+            laser = float(str(np.float32(min(stated))))
+            warnings.warn(
+                f"{path}: max_range={max_range:g} is beyond the range_max {laser:g} m the "
+                f"scans state: their beams without a return become free up to {max_range:g} "
+                f"m, further than the laser measures. Pass max_range={laser:g} or less "
+                "(or None, the scans' own).",
+                UserWarning,
+                stacklevel=caller_stacklevel(),
+            )
+        return max_range
     # range_max is a float32 field: its shortest decimal is the value the driver was given
     # (81.83, not 81.83000183).
     if not stated:
@@ -701,6 +715,7 @@ def load_rosbag(
     max_range=None,
     level_tolerance=0.01,
     tf_topics=("/tf", "/tf_static"),
+    nan_readings="no_return",
 ):
     """Load the laser scans of a ROS bag, with the laser's pose at every scan.
 
@@ -755,6 +770,12 @@ def load_rosbag(
         poses (the yaw of a tilted laser, mirrored where its z axis points down).
     tf_topics : (str, str), default=("/tf", "/tf_static")
         The dynamic and the static transform topics.
+    nan_readings : {"no_return", "invalid"}, default="no_return"
+        What a ``NaN`` reading is. ``"no_return"``: a beam without a return, free up to
+        ``max_range``, as most laser drivers mean it. ``"invalid"``: dropped, as readings
+        below ``range_min`` are -- REP 117's "erroneous measurement"; use it for scans
+        made from a depth camera (``depthimage_to_laserscan`` writes ``NaN`` where a pixel
+        has no depth, which says nothing about free space).
 
     Returns
     -------
@@ -786,7 +807,10 @@ def load_rosbag(
     Readings follow skoccmap's no-return rule: ``NaN``, ``+inf`` and readings above the
     message's ``range_max`` or at or above ``max_range`` are beams without a return, free up to
     ``max_range``, as :func:`load_carmen` and :class:`~skoccmap.observations.Scans` treat them.
-    (REP 117 reserves ``NaN`` for erroneous readings; drivers use it for no return too.)
+    (REP 117 reserves ``NaN`` for erroneous readings; laser drivers use it for no return
+    too. ``nan_readings="invalid"`` drops them.) A ``max_range`` beyond the scans'
+    ``range_max`` is kept, with a warning: beams without a return then become free further
+    than the laser measures.
 
     Readings below ``range_min`` (zeros, ``-inf``, drivers' error codes) are dropped: ROS calls
     them invalid, and they do not tell where the nearest obstacle is -- something may have been
@@ -826,6 +850,8 @@ def load_rosbag(
         raise ValueError(f"pose must be 'tf' or 'topic', got {pose!r}.")
     if pose == "topic" and pose_topic is None:
         raise ValueError("pose='topic' needs pose_topic, the topic to read poses from.")
+    if nan_readings not in ("no_return", "invalid"):
+        raise ValueError(f"nan_readings must be 'no_return' or 'invalid', got {nan_readings!r}.")
     if not (is_number(level_tolerance) and level_tolerance >= 0):
         raise ValueError(f"level_tolerance must be >= 0 radians, got {level_tolerance!r}.")
     if np.pi / 2 < level_tolerance < np.inf:
@@ -865,7 +891,7 @@ def load_rosbag(
     finally:
         reader.close()
     max_range = _scan_max_range(messages, max_range, path)
-    ranges, angles, has_beams = _rectangular(messages, max_range)
+    ranges, angles, has_beams = _rectangular(messages, max_range, nan_readings == "invalid")
     keep = valid & has_beams
     _warn_skipped(
         path,
