@@ -516,6 +516,16 @@ def test_range_rules(tmp_path):
     assert set(directions) == {0.0, 0.1, 0.6, 0.7}
 
 
+def test_a_topic_name_without_its_leading_slash_is_found(tmp_path):
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    np.testing.assert_array_equal(load_rosbag(path, "scan").ranges, [[1.0, 2.0, 3.0]])
+    with pytest.raises(ValueError, match="has no scan topic 'scans'; its topics: "):
+        load_rosbag(path, "scans")
+
+
 def test_nan_readings_invalid_drops_them(tmp_path):
     # A scan made from a depth camera: NaN where a pixel has no depth is no free space.
     bag = _Bag(2)

@@ -295,6 +295,10 @@ def _describe_topics(reader):
 
 def _connections(reader, path, topic, msgtypes, what):
     conns = [c for c in reader.connections if c.topic == topic]
+    if not conns and not topic.startswith("/"):
+        # A relative name ("scan") resolves in the global namespace, as a node started
+        # without one would resolve it.
+        conns = [c for c in reader.connections if c.topic == "/" + topic]
     if not conns:
         raise ValueError(f"{path} has no {what} topic {topic!r}; {_describe_topics(reader)}.")
     wrong = sorted({c.msgtype for c in conns} - set(msgtypes))
@@ -732,7 +736,9 @@ def load_rosbag(
         Topic of ``sensor_msgs/LaserScan`` messages, or several (a robot's front and rear
         lasers, e.g. ``["/front_scan", "/rear_scan"]``), read into one time-ordered set of
         scans, each placed by its own frame's transforms. Beam ``i`` of a scan points at
-        ``angle_min + i * angle_increment`` in the scan's ``header.frame_id``.
+        ``angle_min + i * angle_increment`` in the scan's ``header.frame_id``. A topic name
+        without its leading slash (``"scan"``) is looked up as the global name
+        (``"/scan"``) when the bag has no topic of that name; so are the other topics.
     pose : {"tf", "topic"}, default="tf"
         Where the laser poses come from. ``"tf"``: the chain of transforms from ``map_frame``
         to each scan's frame in ``/tf`` and ``/tf_static`` (for example map -> odom ->
