@@ -6,6 +6,12 @@ from sklearn.gaussian_process.kernels import Hyperparameter, Kernel
 from ._integrals import integral_kernel, segment_self
 from ._validation import check_segments, segment_dim
 
+# Longest segments, in length scales, whose kernel with one another is evaluated. The
+# quadrature along the shorter segment of a pair takes a panel per 15 length scales: at 1e7
+# a pair costs about a second and is off by 2e-3, at 1e8 fifteen seconds and 13 %; beyond
+# about 1e19 the panel count overflows.
+_MAX_SCALED_LENGTH = 1e7
+
 
 def _check_length_scale_shape(length_scale):
     """Refuse a length scale of more than one dimension, a row of shape (1, n) included: it
@@ -15,6 +21,27 @@ def _check_length_scale_shape(length_scale):
         raise ValueError(
             "length_scale must be a scalar or a 1-D array (one per spatial dimension), got "
             f"shape {shape}; pass np.ravel(length_scale) for a row of length scales."
+        )
+
+
+def _scaled_lengths(X, length_scale):
+    """Lengths of the segment rows ``X`` in length scales (inf where they overflow)."""
+    dim = segment_dim(X)
+    with np.errstate(over="ignore"):
+        d = (X[:, dim:] - X[:, :dim]) / length_scale
+        return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+
+def _check_pair_lengths(longest, length_scale, subject):
+    """Refuse pairs of segments too long for the quadrature: ``longest`` is the length, in
+    length scales, of the shorter segment of the longest pair the kernel may evaluate."""
+    if longest > _MAX_SCALED_LENGTH:
+        raise ValueError(
+            f"{subject} at least {longest:.3g} length scales long (length_scale="
+            f"{length_scale!r}); the kernel between two segments longer than "
+            f"{_MAX_SCALED_LENGTH:g} length scales takes seconds per pair and loses digits. "
+            "Raise length_scale (and the lower bound of length_scale_bounds), or cut the "
+            "segments into pieces with skoccmap.observations.split_segments."
         )
 
 
@@ -38,7 +65,10 @@ class IntegralKernel(Kernel):
     inner integral analytically and the outer one by Gauss-Legendre quadrature with a node count
     that grows with the segment length over the length scale (relative error below 1e-6 for
     segments up to about 1e5 length scales long; beyond, the perpendicular distance, a
-    difference of two squares of that size, loses digits: about 2e-4 at 1e6).
+    difference of two squares of that size, loses digits: about 2e-4 at 1e6 and 2e-3 at 1e7).
+    Two segments both longer than 1e7 length scales are refused with a ValueError: their
+    kernel would take seconds and lose percents. A segment of any length against points, and
+    :meth:`diag`, are closed forms.
     Pairs further apart than 8 length scales are exactly 0 (the point kernel is below 1.3e-14
     there) and are never evaluated, so k(query points, training rows) costs in proportion to
     the pairs within that reach, not to the size of the matrix.
@@ -136,7 +166,16 @@ class IntegralKernel(Kernel):
                     f"X has {X.shape[1]} columns but Y has {Y.shape[1]}; both must be segment "
                     "rows of the same dimension."
                 )
+            if X.shape[0] and Y.shape[0]:
+                longest = min(
+                    _scaled_lengths(X, length_scale).max(), _scaled_lengths(Y, length_scale).max()
+                )
+                _check_pair_lengths(longest, self.length_scale, "X and Y each hold a segment")
             return integral_kernel(X, Y, length_scale=length_scale)
+        if X.shape[0] > 1:
+            # A segment with itself is a closed form: the second longest bounds the pairs.
+            second = np.partition(_scaled_lengths(X, length_scale), -2)[-2]
+            _check_pair_lengths(second, self.length_scale, "X holds two segments")
         want_gradient = eval_gradient and not self.hyperparameter_length_scale.fixed
         out = integral_kernel(
             X,
