@@ -52,6 +52,10 @@ _VARIANCE_FLOOR = 1e-12
 # Smallest merged precision: the smallest normal float, whose reciprocal is finite (that of
 # 1 / finfo.max, a subnormal, is infinite: variances at the largest float gave NaN maps).
 _PRECISION_FLOOR = np.finfo(np.float64).tiny
+# A query's latent means beyond this are scaled down, exactly, by a power of two before their
+# weighted sums: near the float maximum those overflowed to inf (NaN with both signs).
+_LARGE_MEAN = 2.0**500
+_FLOAT_MAX = np.finfo(np.float64).max
 
 
 class MergedPrediction(NamedTuple):
@@ -173,14 +177,45 @@ def _normalized(pairs):
     return scaled / _sum(pairs, scaled)[pairs.query]
 
 
+def _mean_exponents(pairs):
+    """Per query, the power of two by which its means are scaled before their sums: that of
+    the largest ``|mu_k|`` where it exceeds ``_LARGE_MEAN``, else 0 (no scaling)."""
+    mu = pairs.means
+    if not mu.size or max(np.max(mu), -np.min(mu)) <= _LARGE_MEAN:  # as a rule: one pass
+        return np.zeros(pairs.n_queries, dtype=np.intc)
+    largest = np.zeros(pairs.n_queries)
+    np.maximum.at(largest, pairs.query, np.abs(mu))
+    return np.where(largest > _LARGE_MEAN, np.frexp(largest)[1], 0)
+
+
+def _unscaled(values, exponent):
+    """``values * 2**exponent``, saturated at the largest float where the product (a merged
+    mean or variance beyond the float range) overflows."""
+    with np.errstate(over="ignore"):
+        return np.clip(np.ldexp(values, exponent), -_FLOAT_MAX, _FLOAT_MAX)
+
+
 def _moe(pairs):
     w = _normalized(pairs)
     mu, var = pairs.means, pairs.variances
     proba = _sum(pairs, w * _probit(mu, var))
-    mean = _sum(pairs, w * mu)
-    # Law of total variance: E[var] + Var[mean].
-    variance = _sum(pairs, w * (var + (mu - mean[pairs.query]) ** 2))
+    exponent = _mean_exponents(pairs)
+    scaled = np.ldexp(mu, -exponent[pairs.query])
+    mean_scaled = _sum(pairs, w * scaled)
+    mean = _unscaled(mean_scaled, exponent)
+    # Law of total variance: E[var] + Var[mean]; each term saturates at the largest float.
+    spread = _unscaled((scaled - mean_scaled[pairs.query]) ** 2, 2 * exponent[pairs.query])
+    with np.errstate(over="ignore"):
+        variance = np.minimum(_sum(pairs, w * np.minimum(var + spread, _FLOAT_MAX)), _FLOAT_MAX)
     return MergedPrediction(np.clip(proba, 0.0, 1.0), mean, np.maximum(variance, _VARIANCE_FLOOR))
+
+
+def _merged_mean(pairs, variance, coef):
+    """``variance * sum_k coef_k mu_k`` per query (``coef_k = beta_k / s_k^2``), the means
+    scaled as :func:`_mean_exponents` says."""
+    exponent = _mean_exponents(pairs)
+    scaled = np.ldexp(pairs.means, -exponent[pairs.query])
+    return _unscaled(variance * _sum(pairs, coef * scaled), exponent)
 
 
 def _gaussian_product(pairs, betas):
@@ -192,7 +227,7 @@ def _gaussian_product(pairs, betas):
     inv_var = 1.0 / np.maximum(pairs.variances, _VARIANCE_FLOOR)
     precision = np.maximum(_sum(pairs, betas * inv_var), _PRECISION_FLOOR)
     variance = 1.0 / precision
-    mean = variance * _sum(pairs, betas * inv_var * pairs.means)
+    mean = _merged_mean(pairs, variance, betas * inv_var)
     variance = np.maximum(variance, _VARIANCE_FLOOR)
     return MergedPrediction(_probit(mean, variance), mean, variance)
 
@@ -215,7 +250,7 @@ def _bcm(pairs, betas):
     )
     variance = 1.0 / precision
     # Zero prior mean: only the experts' linear natural parameters enter the mean.
-    mean = variance * _sum(pairs, betas * inv_var * pairs.means)
+    mean = _merged_mean(pairs, variance, betas * inv_var)
     variance = np.maximum(variance, _VARIANCE_FLOOR)
     return MergedPrediction(_probit(mean, variance), mean, variance)
 

@@ -307,6 +307,38 @@ def test_variances_at_the_largest_float_give_an_uninformed_finite_answer(method)
     np.testing.assert_allclose(out.proba, [0.5], atol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["moe", "poe", "gpoe", "bcm", "rbcm"])
+def test_means_near_the_largest_float_give_finite_merges(method):
+    # Sure experts with latent means near the float maximum: their weighted sums overflowed
+    # (poe, gpoe and bcm gave an infinite mean, moe an infinite variance, and rbcm a NaN
+    # probability where the means had both signs). The merge saturates at the largest float.
+    big = np.finfo(np.float64).max
+    means = np.array([[1e308, 1e308], [1e308, -1e308], [big, big], [1e300, -3e300]])
+    for variances, prior in (([1.0, 1.0], 4.0), ([1e-12, 1e-12], 1e10)):
+        variances = np.broadcast_to(variances, means.shape)
+        merged = combine(
+            means, variances, method=method, prior_variance=np.full(len(means), prior)
+        )
+        for part in merged:
+            assert np.all(np.isfinite(part)), (method, variances[0, 0], merged)
+        # Agreeing experts give a sure answer; the mixture averages two sure ones that differ.
+        np.testing.assert_allclose(merged.proba[[0, 2]], 1.0)
+        assert merged.proba[3] == (0.5 if method == "moe" else 0.0)
+    # The scaling is exact: means a power of two apart merge as their scaled copies do.
+    small = combine(means / 2.0**1000, [[1.0, 2.0]] * 4, method=method, prior_variance=[4.0] * 4)
+    large = combine(means, [[1.0, 2.0]] * 4, method=method, prior_variance=[4.0] * 4)
+    np.testing.assert_array_equal(large.mean[[0, 1, 3]], small.mean[[0, 1, 3]] * 2.0**1000)
+    pairs = combine_pairs(
+        [0, 0],
+        [1e308, -1e308],
+        [1e-12, 1e-12],
+        n_queries=1,
+        method=method,
+        prior_variance=[1e10] * 2,
+    )
+    np.testing.assert_allclose(pairs.proba, [0.5])
+
+
 def test_bad_inputs_raise_clear_errors():
     m = np.zeros((2, 2))
     v = np.ones((2, 2))
