@@ -36,6 +36,7 @@ from ._validation import (
     non_finite_explained,
     unfitted_on_error,
     validate_queries,
+    warn_if_coarse_float32,
     warn_unless_metres,
 )
 from .grid import _snapped_origin
@@ -360,7 +361,8 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         self._validate_params()
         self._check_params()
         with non_finite_explained("observations"):
-            X, y = validate_data(self, X, y, dtype=np.float64)
+            X_in, (X, y) = X, validate_data(self, X, y, dtype=np.float64)
+        warn_if_coarse_float32(X_in, X)
         if classes is None:
             self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         else:
@@ -405,7 +407,8 @@ class _CountingGridBase(ClassifierMixin, BaseEstimator):
         self._validate_params()
         self._check_params()
         self._check_resolution()
-        X, y = validate_queries(self, X, y)  # an empty batch passes
+        X_in, (X, y) = X, validate_queries(self, X, y)  # an empty batch passes
+        warn_if_coarse_float32(X_in, X)
         if classes is not None and not np.array_equal(np.unique(classes), self.classes_):
             raise ValueError(
                 f"classes={list(classes)!r} differ from classes_ {self.classes_.tolist()!r} "
@@ -1268,7 +1271,8 @@ class HilbertMap(ClassifierMixin, BaseEstimator):
         """
         self._validate_params()
         with non_finite_explained("observations"):
-            X, y = validate_data(self, X, y, dtype=np.float64)
+            X_in, (X, y) = X, validate_data(self, X, y, dtype=np.float64)
+        warn_if_coarse_float32(X_in, X)
         self.classes_, y_idx = _binary_classes(y, type(self).__name__)
         class_weight = self._class_weight()
         # Beyond 1e100 the features' squared distances overflow: the landmarks' SVD stopped

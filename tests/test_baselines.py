@@ -1241,3 +1241,25 @@ def test_first_partial_fit_refuses_classes_other_than_two_labels(classes):
     beams = np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
     with pytest.raises(ValueError, match="classes must name the 2 labels"):
         FrequencyGridMap().partial_fit(beams, [1, 1], classes=classes)
+
+
+@pytest.mark.parametrize("estimator", [FrequencyGridMap, OccupancyGridMap, HilbertMap])
+def test_float32_coordinates_coarser_than_a_centimetre_warn(estimator):
+    # UTM-like offsets in float32 round the rows to 0.25-0.5 m before any cast: the grids'
+    # 0.1 m cells then read a map with gaps and stripes (up to 1.0 off the float64 one),
+    # as the mixture warns.
+    data = make_office_scans(n_poses=4, n_beams=9)
+    X, y = data.X, data.y
+    utm = (X + [5e5, 4e6, 5e5, 4e6]).astype(np.float32)
+    match = "float32 steps are 0.25 m: the map cannot be finer"
+    with pytest.warns(UserWarning, match=match):
+        model = estimator(random_state=0) if estimator is HilbertMap else estimator()
+        model.fit(utm, y)
+    if estimator is not HilbertMap:
+        model = estimator()
+        for rows in (slice(0, 40), slice(40, None)):  # the first call and a later one
+            with pytest.warns(UserWarning, match=match):
+                model.partial_fit(utm[rows], y[rows], classes=[0, 1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        estimator().fit(X.astype(np.float32), y)
