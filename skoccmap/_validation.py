@@ -183,9 +183,13 @@ def validate_queries(estimator, X, y=None):
             )
     except ValueError as exc:
         n_features = getattr(estimator, "n_features_in_", None)
-        shape = np.shape(X)
+        try:
+            shape = np.shape(X)
+        except ValueError:  # rows of different lengths, which the error above names
+            shape = None
         segments = getattr(estimator, "layout", "segments") != "points"
-        if segments and n_features and n_features % 2 == 0 and shape[1:] == (n_features // 2,):
+        hint = segments and n_features and n_features % 2 == 0 and shape is not None
+        if hint and shape[1:] == (n_features // 2,):
             raise ValueError(
                 f"{exc} The {what} look like points of {n_features // 2} coordinates; the "
                 "estimator takes segment rows [start, end] (a point is a zero-length "

@@ -1041,6 +1041,24 @@ def test_points_as_queries_get_a_hint(estimator):
 @pytest.mark.parametrize(
     "estimator", [OccupancyGridMap(resolution=0.5), FrequencyGridMap(resolution=0.5), HilbertMap()]
 )
+def test_rows_of_different_lengths_are_one_clear_error(estimator):
+    # Rows of 2-D and 3-D segments: the hint for points read their shape again, and numpy's
+    # error came out of the error handler, chained under "During handling of the above
+    # exception, another exception occurred".
+    estimator.fit(_TWO_BEAMS, [0, 1, 0, 1])
+    ragged = [[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 0.0, 1.0, 1.0, 1.0]]
+    calls = [lambda: estimator.predict_proba(ragged)]
+    if hasattr(estimator, "partial_fit"):  # a later batch
+        calls.append(lambda: estimator.partial_fit(ragged, [0, 1]))
+    for call in calls:
+        with pytest.raises(ValueError, match="inhomogeneous shape") as info:
+            call()
+        assert info.value.__context__ is None or info.value.__suppress_context__
+
+
+@pytest.mark.parametrize(
+    "estimator", [OccupancyGridMap(resolution=0.5), FrequencyGridMap(resolution=0.5), HilbertMap()]
+)
 def test_no_queries_give_empty_predictions(estimator):
     estimator.fit(_TWO_BEAMS, [0, 1, 0, 1])
     assert estimator.predict_proba(np.empty((0, 4))).shape == (0, 2)
