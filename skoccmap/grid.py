@@ -19,7 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ._validation import caller_stacklevel, is_number, queries_at, queries_of_our_own
+from ._validation import (
+    caller_stacklevel,
+    check_magnitude,
+    is_number,
+    queries_at,
+    queries_of_our_own,
+)
 
 __all__ = ["OccupancyGrid", "ROS_FREE_THRESH", "ROS_OCCUPIED_THRESH"]
 
@@ -61,10 +67,12 @@ def _grid_from_extent(extent, resolution):
                 "extent must be (xmin, xmax, ymin, ymax[, zmin, zmax]) or an array of points "
                 f"or segment rows, got {extent!r}."
             )
+        check_magnitude(arr, "extent")
         low, high = arr[0::2], arr[1::2]
         if np.any(high <= low):
             raise ValueError(f"extent must have max > min on every axis, got {extent!r}.")
-        counts = np.ceil((high - low) / resolution - 1e-9)
+        with np.errstate(over="ignore"):  # inf counts are refused below
+            counts = np.ceil((high - low) / resolution - 1e-9)
         return low, _checked_counts(np.maximum(counts, 1), resolution)
     if arr.ndim != 2 or arr.shape[0] == 0 or arr.shape[1] not in (2, 3, 4, 6):
         raise ValueError(
@@ -73,10 +81,12 @@ def _grid_from_extent(extent, resolution):
         )
     if not np.all(np.isfinite(arr)):
         raise ValueError("extent data contains NaN or infinite values.")
+    check_magnitude(arr, "extent")
     n_dims = arr.shape[1] if arr.shape[1] in (2, 3) else arr.shape[1] // 2
     coords = arr.reshape(-1, n_dims) if arr.shape[1] > n_dims else arr
     low = _snapped_origin(coords.min(axis=0), resolution)
-    counts = np.floor((coords.max(axis=0) - low) / resolution) + 1
+    with np.errstate(over="ignore"):  # inf counts are refused below
+        counts = np.floor((coords.max(axis=0) - low) / resolution) + 1
     if arr.shape[0] == 2 and arr.shape[1] == n_dims and np.any(counts == 1):
         warnings.warn(
             f"extent {arr.tolist()} was read as two points, which span a grid one cell wide; "
@@ -111,9 +121,13 @@ def _cells_below(position):
 
 def _checked_counts(counts, resolution):
     """Cell counts as integers; ValueError when the grid would exceed ``_MAX_CELLS``."""
-    if np.prod(counts) > _MAX_CELLS:
+    with np.errstate(over="ignore"):
+        too_many = np.prod(counts) > _MAX_CELLS
+    if too_many:
+        # Counts beyond 1e15 as 1e+200, not as their 201 digits.
+        sizes = " x ".join(f"{c:.0f}" if c < 1e15 else f"{c:.3g}" for c in counts)
         raise ValueError(
-            f"a grid of {' x '.join(f'{c:.0f}' for c in counts)} cells at resolution "
+            f"a grid of {sizes} cells at resolution "
             f"{resolution:g} is too large (at most {_MAX_CELLS:,} cells): use a coarser "
             "resolution or a smaller extent (a reading far off the map can stretch an extent "
             "taken from the data)."

@@ -413,6 +413,26 @@ def test_a_grid_of_exactly_the_largest_size_is_allowed():
         _grid_from_extent((0.0, 10000.0, 0.0, 5001.0), 1.0)
 
 
+def test_grids_far_too_large_or_far_off_are_refused_in_a_few_words():
+    from skoccmap.grid import _grid_from_extent
+
+    # Counts of 1e300 were printed with their 301 digits, after overflow warnings.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for extent, resolution, sizes in [
+            ((0.0, 1.0, 0.0, 1.0), 1e-300, "1e+300 x 1e+300"),
+            ((0.0, 1.0, 0.0, 1.0), 5e-324, "inf x inf"),
+            (np.array([[0.0, 0.0, 1.0, 1.0]]), 1e-200, "1e+200 x 1e+200"),
+        ]:
+            with pytest.raises(ValueError, match=re.escape(f"a grid of {sizes} cells")):
+                _grid_from_extent(extent, resolution)
+        # Coordinates beyond 1e100 gave a grid of "-inf x -inf" cells, or one of no width.
+        for extent in ((0.0, 1e101, 0.0, 1.0), np.array([[1e308, 1e308, 1e308, 1e308]])):
+            for resolution in (1e-5, 1.0):
+                with pytest.raises(ValueError, match="extent holds coordinates up to"):
+                    _grid_from_extent(extent, resolution)
+
+
 @pytest.mark.parametrize("coordinate", [0.85, 1.7, 1.95, 0.0, -0.85])
 def test_one_point_extent_covers_the_point(coordinate):
     # floor(0.85 / 0.05) * 0.05 rounds above 0.85: the grid must still hold the point.
