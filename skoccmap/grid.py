@@ -9,6 +9,8 @@ lower corner is ``origin + resolution * (i, j[, k])``: C order with x fastest, r
 origin -- the row-major layout of ROS ``OccupancyGrid.data``.
 """
 
+import json
+import re
 import sys
 import time
 import warnings
@@ -572,13 +574,14 @@ class OccupancyGrid:
             fh.write(f"P5\n{width} {height}\n255\n".encode("ascii"))
             fh.write(np.ascontiguousarray(pixels[::-1]).tobytes())
         yaml_path.write_text(
-            f"image: {pgm_path.name}\n"
+            f"image: {_yaml_string(pgm_path.name)}\n"
             f"resolution: {self.resolution!r}\n"
             f"origin: [{float(self.origin[0])!r}, {float(self.origin[1])!r}, 0.0]\n"
             "negate: 0\n"
             f"occupied_thresh: {ROS_OCCUPIED_THRESH}\n"
             f"free_thresh: {ROS_FREE_THRESH}\n"
-            "mode: trinary\n"
+            "mode: trinary\n",
+            encoding="utf-8",
         )
         return yaml_path, pgm_path
 
@@ -834,33 +837,65 @@ def _observed_by(scans, origin, resolution, counts):
     )
 
 
+def _yaml_string(text):
+    """``text`` as a YAML scalar: plain where YAML reads it back unchanged as a string (a
+    file name of letters, digits, ``_ . + -`` and inner spaces), single-quoted otherwise --
+    a ``#`` after a space would start a comment, ``: `` a mapping, and a leading ``[``,
+    ``*``, ``&`` or ``!`` another kind of node."""
+    if re.fullmatch(r"[\w.][\w.+\- ]*[\w.+\-]|\w", text):
+        return text
+    return "'" + text.replace("'", "''") + "'"
+
+
+def _yaml_value(text, path, key):
+    """The value of a ``key: value`` line as YAML reads it: a single-quoted (``''`` a
+    quote) or double-quoted string, or a plain scalar up to a comment (a ``#`` at its start
+    or after whitespace; ``map#2.pgm`` is a name)."""
+    if text[:1] == "'":
+        match = re.fullmatch(r"'((?:[^']|'')*)'\s*(?:#.*)?", text)
+        if match:
+            return match.group(1).replace("''", "'")
+    elif text[:1] == '"':
+        match = re.fullmatch(r'("(?:[^"\\]|\\.)*")\s*(?:#.*)?', text)
+        if match:
+            try:
+                return json.loads(match.group(1))
+            except ValueError:
+                pass
+    else:
+        return re.split(r"(?:^|\s)#", text, maxsplit=1)[0].strip()
+    raise ValueError(f"{path}: cannot read the quoted value of {key!r}: {text!r}.")
+
+
 def _read_simple_yaml(path):
     """``key: value`` lines of a map_server YAML (flat; lists in brackets)."""
     meta = {}
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise ValueError(
             f"{path} is not a map_server YAML file (it is not text); pass the .yaml file "
             "that names the image."
         ) from None
     for raw in text.splitlines():
-        line = raw.split("#", 1)[0].strip()
-        if not line:
+        line = raw.strip()
+        if not line or line.startswith("#"):
             continue
         key, sep, value = line.partition(":")
         if not sep:
             raise ValueError(f"{path}: cannot read line {raw!r}.")
-        value = value.strip().strip("'\"")
-        if value.startswith("["):
+        key, value = key.strip(), value.strip()
+        quoted = value[:1] in ("'", '"')
+        value = _yaml_value(value, path, key)
+        if value.startswith("[") and not quoted:
             try:
-                meta[key.strip()] = [float(v) for v in value.strip("[]").split(",")]
+                meta[key] = [float(v) for v in value.strip("[]").split(",")]
             except ValueError:
                 raise ValueError(
-                    f"{path}: cannot read {key.strip()!r} as a list of numbers: {value!r}."
+                    f"{path}: cannot read {key!r} as a list of numbers: {value!r}."
                 ) from None
         else:
-            meta[key.strip()] = value
+            meta[key] = value
     return meta
 
 

@@ -838,6 +838,58 @@ def test_map_server_yaml_with_comments_and_quotes(tmp_path):
     np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
 
 
+@pytest.mark.parametrize(
+    "stem", ["map#2", "map #2", "map: v2", "[floor 1]", "*m", "it's", "-m", "étage", "m a p"]
+)
+def test_map_server_yaml_names_any_image_as_yaml_reads_it(tmp_path, stem):
+    # Unquoted, "map #2.pgm" read as "map" (a comment), "map: v2.pgm" as a nested mapping,
+    # "[floor 1].pgm" as a list and "*m.pgm" as an alias, in map_server's YAML reader.
+    grid = OccupancyGrid([[0.9, 0.1]], origin=(0.0, 0.0), resolution=0.5)
+    yaml_path, pgm_path = grid.save_map_server(tmp_path / stem)
+    line = yaml_path.read_text(encoding="utf-8").splitlines()[0]
+    image = line.removeprefix("image: ")
+    if image.startswith("'"):
+        assert image == "'" + pgm_path.name.replace("'", "''") + "'"
+    else:
+        assert image == pgm_path.name and re.fullmatch(r"[\w.][\w.+\- ]*", image)
+    back = OccupancyGrid.load_map_server(yaml_path)
+    np.testing.assert_array_equal(back.trinary(), [[100, 0]])
+
+
+@pytest.mark.parametrize(
+    "image, name",
+    [
+        ("map#2.pgm", "map#2.pgm"),  # a '#' after no space starts no comment
+        ("map#2.pgm  # the image", "map#2.pgm"),
+        ("'it''s #2.pgm'  # quoted", "it's #2.pgm"),
+        ('"a \\"b\\".pgm"', 'a "b".pgm'),
+        ("'[m].pgm'", "[m].pgm"),
+    ],
+)
+def test_map_server_yaml_reads_hash_and_quotes_as_yaml_does(tmp_path, image, name):
+    (tmp_path / name).write_bytes(b"P5\n2 1\n255\n" + bytes([0, 255]))
+    (tmp_path / "m.yaml").write_text(
+        f"image: {image}\nresolution: 0.5\norigin: [0, 0, 0]\n", encoding="utf-8"
+    )
+    grid = OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+    np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
+
+
+def test_map_server_yaml_with_a_byte_order_mark(tmp_path):
+    _write_map(tmp_path, [[0, 255]], [])
+    text = (tmp_path / "m.yaml").read_text()
+    (tmp_path / "m.yaml").write_text(text, encoding="utf-8-sig")
+    grid = OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+    np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
+
+
+def test_map_server_yaml_unclosed_quote_is_a_clear_error(tmp_path):
+    _write_map(tmp_path, [[0, 255]], [])
+    (tmp_path / "m.yaml").write_text("image: 'm.pgm\nresolution: 0.5\norigin: [0, 0, 0]\n")
+    with pytest.raises(ValueError, match="cannot read the quoted value of 'image'"):
+        OccupancyGrid.load_map_server(tmp_path / "m.yaml")
+
+
 def test_zero_variance_is_a_valid_variance():
     grid = OccupancyGrid([[0.5, 0.9]], (0.0, 0.0), 1.0, variance=[[0.0, 1.0]])
     np.testing.assert_array_equal(grid.variance, [[0.0, 1.0]])
