@@ -591,7 +591,8 @@ class OccupancyGrid:
 
         Supports the subset this package writes and common hand-made maps: binary ``P5``
         images (8-bit, scaled to 255 as map_server's image reader does), ``negate`` 0 or 1,
-        ``mode`` trinary (default) or scale, and an ``origin`` yaw of 0.
+        ``mode`` trinary (default), scale or raw (with ``negate: 0``), and an ``origin`` yaw
+        of 0.
 
         Parameters
         ----------
@@ -606,7 +607,10 @@ class OccupancyGrid:
             negated); ``unknown`` marks pixels map_server would load as -1, so
             :meth:`trinary` reproduces its ``OccupancyGrid.data`` in trinary mode -- with
             the YAML's ``free_thresh`` and ``occupied_thresh`` as its arguments when they
-            are not the defaults (0.196 and 0.65).
+            are not the defaults (0.196 and 0.65). In raw mode a pixel is the occupancy in
+            percent, as map_server loads it: ``probability`` is ``v / 100``, and pixels above
+            100 are ``unknown`` (their ``probability`` 0.5), so that
+            :meth:`to_ros_occupancy_grid` reproduces map_server's ``data``.
 
         Examples
         --------
@@ -628,8 +632,10 @@ class OccupancyGrid:
             if key not in meta:
                 raise ValueError(f"{yaml_path}: missing key {key!r}.")
         mode = meta.get("mode", "trinary")
-        if mode not in ("trinary", "scale"):
-            raise ValueError(f"{yaml_path}: mode {mode!r} is not supported (trinary or scale).")
+        if mode not in ("trinary", "scale", "raw"):
+            raise ValueError(
+                f"{yaml_path}: mode {mode!r} is not supported (trinary, scale or raw)."
+            )
         if not isinstance(meta["origin"], list) or len(meta["origin"]) not in (2, 3):
             raise ValueError(
                 f"{yaml_path}: origin must be a list [x, y, yaw], got {meta['origin']!r}."
@@ -648,12 +654,24 @@ class OccupancyGrid:
             free_thresh, occupied_thresh, ("free_thresh", "occupied_thresh"), f"{yaml_path}: "
         )
         resolution = _yaml_number(meta, "resolution", yaml_path)
+        if mode == "raw" and negate == "1":
+            # ROS 1's map_server negates raw pixels, Nav2's does not: the map is ambiguous.
+            raise ValueError(
+                f"{yaml_path}: mode raw with negate 1 is not supported (ROS 1's map_server "
+                "negates raw pixels, Nav2's does not)."
+            )
         pixels = _read_pgm(yaml_path.parent / meta["image"])[::-1]
+        origin = [float(v) for v in meta["origin"][:2]]
+        if mode == "raw":
+            # map_server's data is the pixel value itself, -1 outside 0..100.
+            percent = np.rint(pixels)
+            unknown = percent > 100
+            occ = np.where(unknown, 0.5, percent / 100.0)
+            return cls(occ, origin, resolution, unknown=unknown)
         occ = pixels / 255.0 if negate == "1" else (255.0 - pixels) / 255.0
         unknown = ~((occ > occupied_thresh) | (occ < free_thresh))
         if mode == "scale":
             unknown = np.zeros_like(unknown)
-        origin = [float(v) for v in meta["origin"][:2]]
         return cls(occ, origin, resolution, unknown=unknown)
 
     def save(self, path):

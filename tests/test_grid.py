@@ -303,7 +303,7 @@ def test_hand_made_map_server_files(tmp_path):
     np.testing.assert_array_equal(
         OccupancyGrid.load_map_server(tmp_path / "bits.yaml").trinary(), [[100, 0]]
     )
-    for line, message in (("mode: raw", "mode 'raw'"), ("origin: [0, 0, 1.57]", "yaw")):
+    for line, message in (("mode: fancy", "mode 'fancy'"), ("origin: [0, 0, 1.57]", "yaw")):
         bad = tmp_path / "bad.yaml"
         bad.write_text("image: bits.pgm\nresolution: 1\norigin: [0, 0, 0]\n" + line + "\n")
         if line.startswith("origin"):
@@ -821,6 +821,19 @@ def test_scale_mode_marks_no_pixel_unknown(tmp_path):
     grid = _write_map(tmp_path, [[0, 128, 205, 255]], ["mode: scale"])
     assert not grid.unknown.any()
     np.testing.assert_allclose(grid.probability, [[1.0, 127 / 255, 50 / 255, 0.0]])
+
+
+def test_raw_map_server_image_is_percent_occupancy(tmp_path):
+    # Raw mode: map_server's data is the pixel itself, -1 for pixels above 100 (Nav2's
+    # map_saver writes unknown cells as 255 in raw mode).
+    grid = _write_map(tmp_path, [[0, 37, 100, 101, 255]], ["mode: raw", "negate: 0"])
+    np.testing.assert_array_equal(grid.unknown, [[False, False, False, True, True]])
+    np.testing.assert_allclose(grid.probability, [[0.0, 0.37, 1.0, 0.5, 0.5]])
+    data = grid.to_ros_occupancy_grid()["data"]
+    np.testing.assert_array_equal(data, [0, 37, 100, -1, -1])
+    np.testing.assert_array_equal(grid.trinary(), [[0, -1, 100, -1, -1]])
+    with pytest.raises(ValueError, match="mode raw with negate 1 is not supported"):
+        _write_map(tmp_path, [[0, 255]], ["mode: raw", "negate: 1"])
 
 
 def test_map_server_yaml_with_comments_and_quotes(tmp_path):
