@@ -40,6 +40,13 @@ ROS_OCCUPIED_THRESH = 0.65
 _PIXEL_OCCUPIED, _PIXEL_FREE, _PIXEL_UNKNOWN = 0, 254, 205
 # unknown_variance="auto": this fraction of the prior variance (see _reference_variance).
 _AUTO_UNKNOWN = 0.9
+# YAML booleans as yaml-cpp (map_server's YAML reader) spells them, as negate's 0 / 1.
+_YAML_BOOLEANS = {
+    word: bit
+    for words, bit in (("true yes on", "1"), ("false no off", "0"))
+    for lower in words.split()
+    for word in (lower, lower.capitalize(), lower.upper())
+}
 # Cells of one map at most: a probability and a variance each, 0.8 GB at this bound.
 _MAX_CELLS = 50_000_000
 
@@ -590,9 +597,9 @@ class OccupancyGrid:
         """Read a ``map_server`` map (YAML + PGM) the way map_server interprets it.
 
         Supports the subset this package writes and common hand-made maps: binary ``P5``
-        images (8-bit, scaled to 255 as map_server's image reader does), ``negate`` 0 or 1,
-        ``mode`` trinary (default), scale or raw (with ``negate: 0``), and an ``origin`` yaw
-        of 0.
+        images (8-bit, scaled to 255 as map_server's image reader does), ``negate`` 0 or 1
+        (or a YAML boolean, as Nav2 reads it), ``mode`` trinary (default), scale or raw
+        (with ``negate: 0``), and an ``origin`` yaw of 0.
 
         Parameters
         ----------
@@ -646,8 +653,12 @@ class OccupancyGrid:
                 "maps (yaw 0) are supported."
             )
         negate = str(meta.get("negate", 0))
+        # Nav2's map_server reads a YAML boolean too (yaml-cpp's spellings of one).
+        negate = _YAML_BOOLEANS.get(negate, negate)
         if negate not in ("0", "1"):
-            raise ValueError(f"{yaml_path}: negate must be 0 or 1, got {negate!r}.")
+            raise ValueError(
+                f"{yaml_path}: negate must be 0 or 1 (or true or false), got {negate!r}."
+            )
         occupied_thresh = _yaml_number(meta, "occupied_thresh", yaml_path, ROS_OCCUPIED_THRESH)
         free_thresh = _yaml_number(meta, "free_thresh", yaml_path, ROS_FREE_THRESH)
         _check_thresholds(

@@ -319,8 +319,8 @@ def test_hand_made_map_server_files(tmp_path):
         ("resolution: [1, 2]", r"resolution must be a number, got \[1.0, 2.0\]"),
         ("resolution: fine", "resolution must be a number, got 'fine'"),
         # int("1.0") failed unnamed; 2 was read as negated
-        ("negate: 1.0", "negate must be 0 or 1, got '1.0'"),
-        ("negate: 2", "negate must be 0 or 1, got '2'"),
+        ("negate: 1.0", r"negate must be 0 or 1 \(or true or false\), got '1.0'"),
+        ("negate: 2", r"negate must be 0 or 1 \(or true or false\), got '2'"),
         # read, with free cells above the occupied threshold
         ("occupied_thresh: 0.1", "need 0 <= free_thresh <= occupied_thresh <= 1"),
         ("free_thresh: high", "free_thresh must be a number"),
@@ -821,6 +821,13 @@ def test_scale_mode_marks_no_pixel_unknown(tmp_path):
     grid = _write_map(tmp_path, [[0, 128, 205, 255]], ["mode: scale"])
     assert not grid.unknown.any()
     np.testing.assert_allclose(grid.probability, [[1.0, 127 / 255, 50 / 255, 0.0]])
+
+
+@pytest.mark.parametrize("negate, occupied", [("true", 255), ("False", 0), ("yes", 255)])
+def test_negate_may_be_a_yaml_boolean(tmp_path, negate, occupied):
+    # Nav2's map_server reads negate as an int or else a boolean.
+    grid = _write_map(tmp_path, [[occupied, 255 - occupied]], [f"negate: {negate}"])
+    np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
 
 
 def test_raw_map_server_image_is_percent_occupancy(tmp_path):
