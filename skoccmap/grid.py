@@ -719,8 +719,11 @@ class OccupancyGrid:
         grid : OccupancyGrid
         """
         path = Path(path)
-        if not path.exists() and path.suffix != ".npz":
-            path = path.with_name(path.name + ".npz")
+        if not path.is_file() and path.suffix != ".npz":
+            # save("maps/office") wrote maps/office.npz, a folder "office" there or not.
+            with_npz = path.with_name(path.name + ".npz")
+            if with_npz.is_file() or not path.exists():
+                path = with_npz
         not_saved = f"{path} is not an OccupancyGrid saved by OccupancyGrid.save (a .npz)"
         # A truncated or damaged archive fails in zipfile or zlib, when opened or read.
         damaged = (EOFError, zipfile.BadZipFile, zlib.error)

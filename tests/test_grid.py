@@ -369,6 +369,17 @@ def test_npz_round_trip(tmp_path):
     np.testing.assert_array_equal(OccupancyGrid.load(tmp_path / "nosuffix").unknown, grid.unknown)
 
 
+def test_load_takes_the_path_save_took_beside_a_folder_of_that_name(tmp_path):
+    # save("out/map") writes out/map.npz; a folder out/map must not hide it from load.
+    grid = OccupancyGrid([[0.9, 0.1]], origin=(0.0, 0.0), resolution=0.5)
+    (tmp_path / "map").mkdir()
+    grid.save(tmp_path / "map")
+    np.testing.assert_array_equal(OccupancyGrid.load(tmp_path / "map").probability, [[0.9, 0.1]])
+    (tmp_path / "other").mkdir()
+    with pytest.raises(ValueError, match="not an OccupancyGrid saved by OccupancyGrid.save"):
+        OccupancyGrid.load(tmp_path / "other")
+
+
 def test_map_server_stem_keeps_its_dots(tmp_path):
     grid = OccupancyGrid([[0.9, 0.1]], origin=(0.0, 0.0), resolution=0.05)
     yaml_path, pgm_path = grid.save_map_server(tmp_path / "intel_0.05")
