@@ -24,7 +24,18 @@ LOG_HELP = (
 )
 
 
+OUTPUT_HELP = (
+    "Writes, into --out, files named after the log (its name without .log, .gz, .bag, ...): "
+    "<name>.pgm + <name>.yaml, the map for ROS map_server (trinary: occupied black, free "
+    "white, unknown grey 205; origin the lower-left corner); <name>.npz, the probability, "
+    "variance and unknown mask (skoccmap.OccupancyGrid.load); and, with matplotlib, "
+    "<name>.png, the probability and uncertainty panels (unknown cells light blue). Files "
+    "of an earlier map of the same name are overwritten, with a warning."
+)
+
+
 def add_arguments(parser):
+    parser.epilog = OUTPUT_HELP
     parser.add_argument("log", metavar="LOG", help=LOG_HELP)
     add_model_arguments(parser)
     parser.add_argument(

@@ -300,6 +300,14 @@ def test_help_names_bags_as_well_as_carmen_logs(capsys):
         assert "--skip-bad-lines" in text
 
 
+def test_map_help_names_the_files_it_writes(capsys):
+    with pytest.raises(SystemExit):
+        main(["map", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for name in ("<name>.pgm + <name>.yaml", "<name>.npz", "<name>.png"):
+        assert name in text
+
+
 def test_map_warns_of_a_max_range_above_the_logs_sentinel(tmp_path, capsys):
     lines = [f"FLASER 4 1.5 40.0 2.0 40.0 {i} 0 0 {i} 0 0 {i} host {i}\n" for i in range(6)]
     log = tmp_path / "sentinel.log"
