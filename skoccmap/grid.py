@@ -417,6 +417,16 @@ class OccupancyGrid:
             ``{"header": {"frame_id"}, "info": {"resolution", "width", "height", "origin":
             {"position": {"x", "y", "z"}, "orientation": {"x", "y", "z", "w"}}}, "data"}``;
             ``data`` is int8, row-major starting with the row at the origin, -1 unknown.
+
+        Examples
+        --------
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.1, 0.9], [0.5, 0.0]], origin=(-1.0, 2.0), resolution=0.5)
+        >>> msg = grid.to_ros_occupancy_grid()
+        >>> msg["info"]["width"], msg["info"]["height"], msg["info"]["origin"]["position"]
+        (2, 2, {'x': -1.0, 'y': 2.0, 'z': 0.0})
+        >>> msg["data"]  # cell (i, j) is data[i + j * width]
+        array([10, 90, 50,  0], dtype=int8)
         """
         if self.n_dims != 2:
             raise ValueError("nav_msgs/OccupancyGrid is 2-D; this grid is 3-D (use to_points).")
@@ -539,6 +549,13 @@ class OccupancyGrid:
         Returns
         -------
         points : ndarray of shape (n_occupied, n_dims)
+
+        Examples
+        --------
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.1, 0.9], [0.5, 0.8]], origin=(-1.0, 2.0), resolution=0.5)
+        >>> grid.to_points().tolist()
+        [[-0.25, 2.25], [-0.25, 2.75]]
         """
         _check_thresholds(0.0, occupied_threshold)
         occupied = (self.probability > occupied_threshold) & ~self._unknown_mask()
@@ -693,6 +710,18 @@ class OccupancyGrid:
         path : str or path-like
             ``.npz`` is appended when the name does not end with it (as numpy does);
             :meth:`load` takes the path either way.
+
+        Examples
+        --------
+        >>> import tempfile, os
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.1, 0.9]], origin=(0.0, 0.0), resolution=0.5,
+        ...                      variance=[[0.2, 0.3]], unknown=[[False, True]])
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     grid.save(os.path.join(tmp, "office"))  # writes office.npz
+        ...     back = OccupancyGrid.load(os.path.join(tmp, "office"))
+        >>> back.variance.tolist(), back.unknown.tolist()
+        ([[0.2, 0.3]], [[False, True]])
         """
         arrays = {
             "probability": self.probability,
@@ -717,6 +746,11 @@ class OccupancyGrid:
         Returns
         -------
         grid : OccupancyGrid
+            With the variance and unknown mask that were saved, if any.
+
+        Examples
+        --------
+        See :meth:`save`.
         """
         path = Path(path)
         if not path.is_file() and path.suffix != ".npz":

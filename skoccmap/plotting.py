@@ -105,6 +105,19 @@ class OccupancyMapDisplay:
         Returns
         -------
         display : OccupancyMapDisplay
+
+        Examples
+        --------
+        >>> import matplotlib
+        >>> matplotlib.use("Agg")
+        >>> import numpy as np
+        >>> from skoccmap import OccupancyGrid
+        >>> from skoccmap.plotting import OccupancyMapDisplay
+        >>> grid = OccupancyGrid(np.full((2, 3, 4), 0.2), origin=(0, 0, 0), resolution=0.5,
+        ...                      unknown=np.zeros((2, 3, 4), dtype=bool))
+        >>> disp = OccupancyMapDisplay.from_grid(grid, z=0.7)  # the layer [0.5, 1.0)
+        >>> disp.ax_.get_title()
+        'P(occupied), slice at z = 0.75 m'
         """
         if not isinstance(grid, OccupancyGrid):
             raise ValueError(f"grid must be an OccupancyGrid, got {type(grid).__name__}.")
