@@ -400,7 +400,14 @@ class OccupancyGrid:
         values[self._unknown_mask()] = -1
         return values
 
-    def to_ros_occupancy_grid(self, *, frame_id="map", trinary=False):
+    def to_ros_occupancy_grid(
+        self,
+        *,
+        frame_id="map",
+        trinary=False,
+        free_threshold=ROS_FREE_THRESH,
+        occupied_threshold=ROS_OCCUPIED_THRESH,
+    ):
         """The fields of a ROS ``nav_msgs/OccupancyGrid`` message, as a dict.
 
         Parameters
@@ -410,6 +417,8 @@ class OccupancyGrid:
         trinary : bool, default=False
             ``data`` holds 0 / 100 / -1 (see :meth:`trinary`) instead of
             ``round(100 * probability)``.
+        free_threshold, occupied_threshold : float, default=0.196, 0.65
+            The thresholds of ``trinary=True`` (as :meth:`save_map_server` takes them).
 
         Returns
         -------
@@ -440,8 +449,9 @@ class OccupancyGrid:
                 f"resolution {self.resolution!r} is not a positive float32, as "
                 "nav_msgs/MapMetaData.resolution must be: rescale the coordinates."
             )
+        _check_thresholds(free_threshold, occupied_threshold)
         if trinary:
-            data = self.trinary()
+            data = self.trinary(free_threshold, occupied_threshold)
         else:
             data = np.rint(100.0 * self.probability).astype(np.int8)
             data[self._unknown_mask()] = -1
@@ -460,7 +470,16 @@ class OccupancyGrid:
             "data": data.ravel(),
         }
 
-    def to_ros_message(self, *, frame_id="map", trinary=False, stamp=None, ros_version=2):
+    def to_ros_message(
+        self,
+        *,
+        frame_id="map",
+        trinary=False,
+        stamp=None,
+        ros_version=2,
+        free_threshold=ROS_FREE_THRESH,
+        occupied_threshold=ROS_OCCUPIED_THRESH,
+    ):
         """The map as a ``nav_msgs/OccupancyGrid`` message of the ``rosbags`` package.
 
         Needs ``rosbags`` (``pip install "skoccmap[ros]"``); no ROS installation.
@@ -478,6 +497,8 @@ class OccupancyGrid:
         ros_version : {1, 2}, default=2
             Message definitions of ROS 1 (Noetic) or ROS 2 (Humble); serialise the message
             with the matching ``rosbags`` type store.
+        free_threshold, occupied_threshold : float, default=0.196, 0.65
+            The thresholds of ``trinary=True``.
 
         Returns
         -------
@@ -495,7 +516,12 @@ class OccupancyGrid:
         """
         from .datasets._rosbag import occupancy_grid_message
 
-        fields = self.to_ros_occupancy_grid(frame_id=frame_id, trinary=trinary)
+        fields = self.to_ros_occupancy_grid(
+            frame_id=frame_id,
+            trinary=trinary,
+            free_threshold=free_threshold,
+            occupied_threshold=occupied_threshold,
+        )
         return occupancy_grid_message(fields, stamp=stamp, ros_version=ros_version)
 
     def write_rosbag(
@@ -508,6 +534,8 @@ class OccupancyGrid:
         stamp=None,
         ros_version=2,
         storage="sqlite3",
+        free_threshold=ROS_FREE_THRESH,
+        occupied_threshold=ROS_OCCUPIED_THRESH,
     ):
         """Write the map into a new ROS bag, one ``nav_msgs/OccupancyGrid`` on a latched topic.
 
@@ -522,7 +550,7 @@ class OccupancyGrid:
             The new bag: a ``.bag`` file for ROS 1, a directory for ROS 2. It must not exist.
         topic : str, default="/map"
             Topic of the map.
-        frame_id, trinary, stamp, ros_version
+        frame_id, trinary, stamp, ros_version, free_threshold, occupied_threshold
             As in :meth:`to_ros_message`.
         storage : {"sqlite3", "mcap"}, default="sqlite3"
             ROS 2 storage plugin.
@@ -534,7 +562,12 @@ class OccupancyGrid:
         """
         from .datasets._rosbag import write_occupancy_grid
 
-        fields = self.to_ros_occupancy_grid(frame_id=frame_id, trinary=trinary)
+        fields = self.to_ros_occupancy_grid(
+            frame_id=frame_id,
+            trinary=trinary,
+            free_threshold=free_threshold,
+            occupied_threshold=occupied_threshold,
+        )
         return write_occupancy_grid(
             fields, path, topic=topic, stamp=stamp, ros_version=ros_version, storage=storage
         )

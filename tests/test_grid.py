@@ -940,6 +940,24 @@ def test_trinary_with_equal_thresholds():
     np.testing.assert_array_equal(grid.trinary(0.5, 0.5), [[0, -1, 100]])
 
 
+def test_ros_occupancy_grid_takes_the_trinary_thresholds_of_save_map_server(tmp_path):
+    # A map saved for map_server with its own thresholds and sent as a message agree.
+    grid = OccupancyGrid([[0.1, 0.3, 0.5, 0.8]], (0.0, 0.0), 1.0)
+    thresholds = {"free_threshold": 0.25, "occupied_threshold": 0.45}
+    message = grid.to_ros_occupancy_grid(trinary=True, **thresholds)
+    np.testing.assert_array_equal(message["data"], [0, -1, 100, 100])
+    yaml_path, _ = grid.save_map_server(tmp_path / "m", **thresholds)
+    np.testing.assert_array_equal(
+        OccupancyGrid.load_map_server(yaml_path).trinary(**thresholds).ravel(), message["data"]
+    )
+    np.testing.assert_array_equal(
+        grid.to_ros_occupancy_grid(trinary=True)["data"], [0, -1, -1, 100]
+    )
+    # Used with trinary=True only, but checked either way.
+    with pytest.raises(ValueError, match="free_threshold"):
+        grid.to_ros_occupancy_grid(free_threshold=0.7)
+
+
 def test_trinary_thresholds_that_are_no_numbers_are_named():
     # Before: numpy's comparison TypeError for a string, and True read as 1.
     grid = OccupancyGrid([[0.4, 0.5, 0.6]], (0.0, 0.0), 1.0)

@@ -797,6 +797,18 @@ def test_map_round_trip_on_a_latched_topic(grid, tmp_path, ros_version, storage,
     np.testing.assert_array_equal(msg.data, expected)
 
 
+def test_map_bag_takes_the_trinary_thresholds(grid, tmp_path):
+    path = grid.write_rosbag(tmp_path / "map", trinary=True, stamp=1.0, free_threshold=0.35,
+                             occupied_threshold=0.95)  # fmt: skip
+    with AnyReader([path]) as reader:
+        ((conn, _, raw),) = list(reader.messages())
+        msg = reader.deserialize(raw, conn.msgtype)
+    np.testing.assert_array_equal(msg.data, [0, 0, 0, -1, -1, -1])
+    message = grid.to_ros_message(trinary=True, stamp=1.0, free_threshold=0.35,
+                                  occupied_threshold=0.95)  # fmt: skip
+    np.testing.assert_array_equal(message.data, msg.data)
+
+
 def test_to_ros_message_matches_the_fields(grid):
     for ros_version in (1, 2):
         msg = grid.to_ros_message(stamp=1.0, ros_version=ros_version)
