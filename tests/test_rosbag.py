@@ -526,6 +526,17 @@ def test_a_topic_name_without_its_leading_slash_is_found(tmp_path):
         load_rosbag(path, "scans")
 
 
+def test_two_names_of_one_scan_topic_read_it_once(tmp_path):
+    # "scan" and "/scan" (--scan-topic scan --scan-topic /scan) are one topic: read twice,
+    # every scan came out twice.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    for topics in (["scan", "/scan"], ["/scan", "scan"]):
+        np.testing.assert_array_equal(load_rosbag(path, topics).ranges, [[1.0, 2.0, 3.0]])
+
+
 def test_nan_readings_invalid_drops_them(tmp_path):
     # A scan made from a depth camera: NaN where a pixel has no depth is no free space.
     bag = _Bag(2)

@@ -293,12 +293,17 @@ def _describe_topics(reader):
     return "its topics: " + ", ".join(f"{name} ({info.msgtype})" for name, info in topics.items())
 
 
+def _resolved_topic(reader, topic):
+    """``topic`` as the bag names it: a relative name (``"scan"``) the bag lacks resolves
+    in the global namespace (``"/scan"``), as a node started without one would resolve it."""
+    names = {c.topic for c in reader.connections}
+    if topic not in names and not topic.startswith("/") and "/" + topic in names:
+        return "/" + topic
+    return topic
+
+
 def _connections(reader, path, topic, msgtypes, what):
-    conns = [c for c in reader.connections if c.topic == topic]
-    if not conns and not topic.startswith("/"):
-        # A relative name ("scan") resolves in the global namespace, as a node started
-        # without one would resolve it.
-        conns = [c for c in reader.connections if c.topic == "/" + topic]
+    conns = [c for c in reader.connections if c.topic == _resolved_topic(reader, topic)]
     if not conns:
         raise ValueError(f"{path} has no {what} topic {topic!r}; {_describe_topics(reader)}.")
     wrong = sorted({c.msgtype for c in conns} - set(msgtypes))
@@ -352,7 +357,8 @@ def _check_scan_topics(scan_topic):
 def _read_scans(reader, path, topics):
     """The scans of every topic in ``topics``, in header stamp order."""
     scans = []
-    for topic in topics:
+    # Resolved first: "scan" and "/scan" name one topic, whose scans are read once.
+    for topic in dict.fromkeys(_resolved_topic(reader, topic) for topic in topics):
         scans += _read_topic_scans(reader, path, topic)
     scans.sort(key=lambda s: s.stamp)  # header stamps, whatever order they were recorded in
     return scans
@@ -738,7 +744,8 @@ def load_rosbag(
         scans, each placed by its own frame's transforms. Beam ``i`` of a scan points at
         ``angle_min + i * angle_increment`` in the scan's ``header.frame_id``. A topic name
         without its leading slash (``"scan"``) is looked up as the global name
-        (``"/scan"``) when the bag has no topic of that name; so are the other topics.
+        (``"/scan"``) when the bag has no topic of that name (``pose_topic``'s too), and
+        two names of one topic read it once.
     pose : {"tf", "topic"}, default="tf"
         Where the laser poses come from. ``"tf"``: the chain of transforms from ``map_frame``
         to each scan's frame in ``/tf`` and ``/tf_static`` (for example map -> odom ->
