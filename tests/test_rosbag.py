@@ -537,6 +537,16 @@ def test_two_names_of_one_scan_topic_read_it_once(tmp_path):
         np.testing.assert_array_equal(load_rosbag(path, topics).ranges, [[1.0, 2.0, 3.0]])
 
 
+def test_transform_topic_names_without_their_leading_slash_are_found(tmp_path):
+    # As the scan and pose topics are: ("tf", "tf_static") found no transform topic.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.0), static=True)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "b")
+    scans = load_rosbag(path, "scan", tf_topics=("tf", "tf_static"))
+    np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0]], atol=1e-12)
+
+
 def test_nan_readings_invalid_drops_them(tmp_path):
     # A scan made from a depth camera: NaN where a pixel has no depth is no free space.
     bag = _Bag(2)

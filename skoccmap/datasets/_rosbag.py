@@ -549,6 +549,7 @@ def _warn_laser_has_parents(tree, laser_frame, pose_topic, path):
 def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topics):
     """Laser poses (translation, rotation, valid) of every scan at its stamp."""
     stamps = np.array([s.stamp for s in scans], dtype=np.int64)
+    tf_topics = tuple(_resolved_topic(reader, topic) for topic in tf_topics)
     have_tf = any(c.topic in tf_topics for c in reader.connections)
     if pose == "tf" and not have_tf:
         raise ValueError(
@@ -744,8 +745,8 @@ def load_rosbag(
         scans, each placed by its own frame's transforms. Beam ``i`` of a scan points at
         ``angle_min + i * angle_increment`` in the scan's ``header.frame_id``. A topic name
         without its leading slash (``"scan"``) is looked up as the global name
-        (``"/scan"``) when the bag has no topic of that name (``pose_topic``'s too), and
-        two names of one topic read it once.
+        (``"/scan"``) when the bag has no topic of that name (so are ``pose_topic`` and
+        ``tf_topics``), and two names of one topic read it once.
     pose : {"tf", "topic"}, default="tf"
         Where the laser poses come from. ``"tf"``: the chain of transforms from ``map_frame``
         to each scan's frame in ``/tf`` and ``/tf_static`` (for example map -> odom ->
