@@ -948,8 +948,8 @@ def _yaml_string(text):
 
 def _yaml_value(text, path, key):
     """The value of a ``key: value`` line as YAML reads it: a single-quoted (``''`` a
-    quote) or double-quoted string, or a plain scalar up to a comment (a ``#`` at its start
-    or after whitespace; ``map#2.pgm`` is a name)."""
+    quote) or double-quoted string, or a plain scalar up to a comment (a ``#`` at its start,
+    after whitespace or right after a flow sequence's ``]``; ``map#2.pgm`` is a name)."""
     if text[:1] == "'":
         match = re.fullmatch(r"'((?:[^']|'')*)'\s*(?:#.*)?", text)
         if match:
@@ -962,6 +962,10 @@ def _yaml_value(text, path, key):
             except ValueError:
                 pass
     else:
+        # A flow sequence ends at its "]": a "#" right after it starts a comment.
+        flow = re.fullmatch(r"(\[[^\]]*\])\s*#.*", text)
+        if flow:
+            return flow.group(1)
         return re.split(r"(?:^|\s)#", text, maxsplit=1)[0].strip()
     raise ValueError(f"{path}: cannot read the quoted value of {key!r}: {text!r}.")
 

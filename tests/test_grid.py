@@ -906,6 +906,17 @@ def test_map_server_yaml_reads_hash_and_quotes_as_yaml_does(tmp_path, image, nam
     np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
 
 
+def test_map_server_yaml_comment_right_after_a_list(tmp_path):
+    # YAML (yaml-cpp, PyYAML) ends a flow sequence at its "]": the "#" after it starts a
+    # comment, which the list's numbers took in.
+    _write_map(tmp_path, [[0, 255]], [])
+    (tmp_path / "c.yaml").write_text(
+        "image: m.pgm\nresolution: 0.5\norigin: [-1.0, 2.0, 0.0]# lower-left\n"
+    )
+    grid = OccupancyGrid.load_map_server(tmp_path / "c.yaml")
+    np.testing.assert_array_equal(grid.origin, [-1.0, 2.0])
+
+
 def test_map_server_yaml_with_a_byte_order_mark(tmp_path):
     _write_map(tmp_path, [[0, 255]], [])
     text = (tmp_path / "m.yaml").read_text()
