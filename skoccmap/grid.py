@@ -43,7 +43,7 @@ _AUTO_UNKNOWN = 0.9
 # YAML booleans as yaml-cpp (map_server's YAML reader) spells them, as negate's 0 / 1.
 _YAML_BOOLEANS = {
     word: bit
-    for words, bit in (("true yes on", "1"), ("false no off", "0"))
+    for words, bit in (("y yes true on", "1"), ("n no false off", "0"))
     for lower in words.split()
     for word in (lower, lower.capitalize(), lower.upper())
 }

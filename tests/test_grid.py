@@ -834,9 +834,13 @@ def test_scale_mode_marks_no_pixel_unknown(tmp_path):
     np.testing.assert_allclose(grid.probability, [[1.0, 127 / 255, 50 / 255, 0.0]])
 
 
-@pytest.mark.parametrize("negate, occupied", [("true", 255), ("False", 0), ("yes", 255)])
+@pytest.mark.parametrize(
+    "negate, occupied",
+    [("true", 255), ("False", 0), ("yes", 255), ("OFF", 0), ("y", 255), ("N", 0)],
+)
 def test_negate_may_be_a_yaml_boolean(tmp_path, negate, occupied):
-    # Nav2's map_server reads negate as an int or else a boolean.
+    # Nav2's map_server reads negate as an int or else a boolean, as yaml-cpp spells one:
+    # y, yes, true, on and n, no, false, off, lower case, capitalised or upper case.
     grid = _write_map(tmp_path, [[occupied, 255 - occupied]], [f"negate: {negate}"])
     np.testing.assert_array_equal(grid.trinary(), [[100, 0]])
 
