@@ -6,6 +6,7 @@ when matplotlib is installed, ``<name>.png`` (probability and uncertainty panels
 """
 
 import argparse
+import contextlib
 import math
 import re
 import sys
@@ -335,20 +336,30 @@ def _load_carmen(args):
     from .datasets._carmen import SKIP_HINT
 
     errors = "skip" if getattr(args, "skip_bad_lines", False) else "raise"
+    try:
+        with _warnings_as_the_commands(args, ["max_range"]):
+            scans = load_carmen(args.log, max_range=args.max_range, errors=errors)
+    except ValueError as exc:
+        hint = "Pass --skip-bad-lines to skip malformed lines with a warning."
+        message = _option_names(str(exc).replace(SKIP_HINT, hint), ["max_range"])
+        raise ValueError(message) from None
+    return scans
+
+
+@contextlib.contextmanager
+def _warnings_as_the_commands(args, names):
+    """Print the warnings of a log reader as the command's own (``skoccmap map: warning:``),
+    with the command's option names for the reader's arguments ``names``; also when the
+    reader then fails."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", UserWarning)
         try:
-            scans = load_carmen(args.log, max_range=args.max_range, errors=errors)
-        except ValueError as exc:
-            hint = "Pass --skip-bad-lines to skip malformed lines with a warning."
-            message = _option_names(str(exc).replace(SKIP_HINT, hint), ["max_range"])
-            raise ValueError(message) from None
+            yield
         finally:
             command = getattr(args, "command", None) or "map"
             for warning in caught:
-                message = _option_names(str(warning.message), ["max_range"])
+                message = _option_names(str(warning.message), names)
                 print(f"skoccmap {command}: warning: {message}", file=sys.stderr)
-    return scans
 
 
 def _option_names(message, names):
@@ -374,20 +385,14 @@ def _load_bag(args):
     from .datasets import load_rosbag
 
     names = [*_BAG_DEFAULTS, "max_range"]
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", UserWarning)
-        try:
+    try:
+        with _warnings_as_the_commands(args, names):
             options = {name: _bag_option(args, name) for name in _BAG_DEFAULTS}
             scans = load_rosbag(args.log, **options, max_range=args.max_range)
-        except ImportError as exc:
-            raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
-        except ValueError as exc:
-            raise ValueError(_option_names(str(exc), names)) from None
-        finally:
-            command = getattr(args, "command", None) or "map"
-            for warning in caught:
-                message = _option_names(str(warning.message), names)
-                print(f"skoccmap {command}: warning: {message}", file=sys.stderr)
+    except ImportError as exc:
+        raise ValueError(str(exc)) from None  # reported like any bad input, without a trace
+    except ValueError as exc:
+        raise ValueError(_option_names(str(exc), names)) from None
     if scans.n_dims != 2:
         tolerance = _bag_option(args, "level_tolerance")
         raise ValueError(

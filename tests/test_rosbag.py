@@ -408,6 +408,23 @@ def test_cli_names_its_options_in_the_bag_reader_warnings(tmp_path, capsys):
     assert "base_frame=" not in err
 
 
+def test_cli_prints_the_bag_reader_warnings_when_it_then_fails(tmp_path, capsys):
+    from skoccmap._cmd_map import load_scans
+    from skoccmap.cli import build_parser
+
+    bag = _Bag(2)
+    bag.tf(0.0, "base_link", "laser", (0.3, 0.0, 0.2), static=True)
+    bag.pose_stamped(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.pose_stamped(1.0, (1.0, 0.0, 0.0), 0.0)
+    bag.scan(1.5, [1.0, 2.0, 3.0])  # after the last pose: no scan has one
+    path = bag.write(tmp_path / "b")
+    args = build_parser().parse_args(["map", str(path), "--pose-topic", "/pose"])
+    with pytest.raises(ValueError, match="no scan of '/scan' has a pose"):
+        load_scans(args)
+    err = capsys.readouterr().err
+    assert "skoccmap map: warning:" in err and "--base-frame 'base_link'" in err
+
+
 def _rolled_laser_bag(tmp_path, roll):
     """A ROS 2 bag of one scan by a laser 0.4 m up at yaw 0.5, rolled by ``roll``."""
     bag = _Bag(2)
