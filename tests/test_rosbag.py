@@ -390,6 +390,19 @@ def test_a_pose_topic_naming_no_frame_warns_when_the_laser_is_mounted(tmp_path, 
     np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
 
 
+def test_a_pose_topic_in_the_lasers_parent_frame_does_not_warn(tmp_path):
+    # The transforms place the laser in the poses' own frame: no other frame to suggest.
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (0.3, 0.0, 0.0), static=True)
+    bag.pose_stamped(0.0, (0.0, 0.0, 0.0), 0.0)
+    bag.pose_stamped(1.0, (1.0, 0.0, 0.0), 0.0)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scans = load_rosbag(bag.write(tmp_path / "b"), pose_topic="/pose")
+    np.testing.assert_allclose(scans.poses, [[0.5, 0.0, 0.0]], atol=1e-12)
+
+
 def test_cli_names_its_options_in_the_bag_reader_warnings(tmp_path, capsys):
     from skoccmap._cmd_map import load_scans
     from skoccmap.cli import build_parser

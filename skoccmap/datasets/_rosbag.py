@@ -492,7 +492,7 @@ def _read_pose_topic(reader, path, topic):
             f"{path}: pose topic {topic!r} changes frames (header.frame_id {sorted(frames)}, "
             f"child_frame_id {sorted(children)})."
         )
-    return _Track.from_samples(*track), children.pop()
+    return _Track.from_samples(*track), frames.pop(), children.pop()
 
 
 def _laser_in_map(tree, map_frame, laser_frame, stamps, path):
@@ -527,13 +527,16 @@ def _laser_from_pose_topic(track, tree, base_frame, laser_frame, stamps, path):
     return t, q, valid & ok, span
 
 
-def _warn_laser_has_parents(tree, laser_frame, pose_topic, path):
+def _warn_laser_has_parents(tree, laser_frame, pose_frame, pose_topic, path):
     """Warn when pose messages that name no child frame (``PoseStamped``,
     ``PoseWithCovarianceStamped``, an ``Odometry`` with an empty ``child_frame_id``) are taken
     as the laser's own pose although the transforms mount the laser on another frame: such
     poses are most often the robot's (``amcl_pose``, a SLAM node's pose), and using them for
-    the laser would leave out its mounting offset and rotation without a word."""
-    parents = sorted({parent for parent, child in tree.edges if child == laser_frame})
+    the laser would leave out its mounting offset and rotation without a word. The poses'
+    own frame (``header.frame_id``), where the transforms place the laser directly in it,
+    is no frame to suggest."""
+    parents = {parent for parent, child in tree.edges if child == laser_frame}
+    parents = sorted(parents - {pose_frame})
     if parents:
         warnings.warn(
             f"{path}: the poses on {pose_topic!r} name no child frame, so they are taken as "
@@ -562,7 +565,7 @@ def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topi
     valid = np.empty(len(scans), dtype=bool)
     spans = []
     if pose == "topic":
-        track, child = _read_pose_topic(reader, path, pose_topic)
+        track, pose_frame, child = _read_pose_topic(reader, path, pose_topic)
     # Scans from several lasers (frames) on one topic each get their own chain.
     frames = np.array([s.frame for s in scans])
     for frame in dict.fromkeys(s.frame for s in scans):
@@ -571,7 +574,7 @@ def _poses(scans, reader, path, pose, map_frame, pose_topic, base_frame, tf_topi
             out = _laser_in_map(tree, map_frame, frame, stamps[rows], path)
         else:
             if base_frame is None and not child:
-                _warn_laser_has_parents(tree, frame, pose_topic, path)
+                _warn_laser_has_parents(tree, frame, pose_frame, pose_topic, path)
             base = base_frame if base_frame is not None else (child or frame)
             out = _laser_from_pose_topic(track, tree, _frame(base), frame, stamps[rows], path)
         t[rows], q[rows], valid[rows] = out[:3]
