@@ -628,6 +628,22 @@ def test_scans_with_the_same_beams_share_one_row_of_angles(tmp_path, roll):
     np.testing.assert_array_equal(scans.ranges, [[1.0, 2.0, 3.0], [3.0, 2.0, 1.0]])
 
 
+def test_scans_alike_hold_one_row_of_angles_not_one_per_scan():
+    # The memory of a long bag: one (n_beams,) row of angles, not (n_scans, n_beams).
+    from skoccmap.datasets._rosbag import _LaserMessage, _rectangular
+
+    def message(ranges, start=-0.5):
+        return _LaserMessage(0, "laser", np.float32(ranges), start, 0.5, 0.1, 5.0)
+
+    ranges, angles, has_beams = _rectangular([message([1, 2, 3]), message([3, 2, 1])], 5.0)
+    assert angles.shape == (3,) and ranges.shape == (2, 3) and has_beams.all()
+    np.testing.assert_allclose(angles, [-0.5, 0.0, 0.5])
+    # Another start, or a dropped reading: per-scan rows.
+    for other in (message([3, 2, 1], start=-0.4), message([3, 0.0, 1])):
+        _, angles, _ = _rectangular([message([1, 2, 3]), other], 5.0)
+        assert angles.shape == (2, 3)
+
+
 def test_an_upright_and_an_upside_down_laser_mirror_only_the_second(tmp_path):
     bag = _Bag(2)
     bag.tf(0.0, "map", "up", (0.0, 0.0, 0.0), static=True)
