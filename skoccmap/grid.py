@@ -260,7 +260,15 @@ class OccupancyGrid:
         return tuple(float(v) for pair in zip(self.origin, high, strict=True) for v in pair)
 
     def cell_centers(self):
-        """Centres of all cells, shape (n_cells, n_dims), in the C order of ``probability``."""
+        """Centres of all cells, shape (n_cells, n_dims), in the C order of ``probability``.
+
+        Examples
+        --------
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.1, 0.9], [0.5, 0.8]], origin=(-1.0, 2.0), resolution=0.5)
+        >>> grid.cell_centers().tolist()  # x fastest, rows upwards from the origin
+        [[-0.75, 2.25], [-0.25, 2.25], [-0.75, 2.75], [-0.25, 2.75]]
+        """
         return _cell_centers(self.origin, self.resolution, self.shape[::-1])
 
     # -- construction -----------------------------------------------------------------------
@@ -559,6 +567,20 @@ class OccupancyGrid:
         -------
         path : pathlib.Path
             The bag written.
+
+        Examples
+        --------
+        >>> import os, tempfile
+        >>> from rosbags.highlevel import AnyReader
+        >>> from skoccmap import OccupancyGrid
+        >>> grid = OccupancyGrid([[0.1, 0.9], [0.5, 0.0]], origin=(-1.0, 2.0), resolution=0.5)
+        >>> with tempfile.TemporaryDirectory() as tmp:
+        ...     path = grid.write_rosbag(os.path.join(tmp, "map"), stamp=0.0)
+        ...     with AnyReader([path]) as reader:
+        ...         ((conn, _, raw),) = list(reader.messages())
+        ...         msg = reader.deserialize(raw, conn.msgtype)
+        >>> conn.topic, msg.info.width, msg.data.tolist()
+        ('/map', 2, [10, 90, 50, 0])
         """
         from .datasets._rosbag import write_occupancy_grid
 

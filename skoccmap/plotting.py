@@ -245,6 +245,20 @@ class OccupancyMapDisplay:
         -------
         display : OccupancyMapDisplay
             ``self``, with ``ax_``, ``axes_``, ``im_``, ``images_`` and ``figure_`` set.
+
+        Examples
+        --------
+        >>> import matplotlib
+        >>> matplotlib.use("Agg")
+        >>> import numpy as np
+        >>> from skoccmap.plotting import OccupancyMapDisplay
+        >>> probability = np.array([[0.1, 0.9], [0.5, 0.2]])
+        >>> variance = np.array([[0.2, 0.3], [1.0, 0.1]])
+        >>> disp = OccupancyMapDisplay(probability, extent=(0.0, 2.0, 0.0, 2.0),
+        ...                            variance=variance, unknown=probability == 0.5)
+        >>> disp = disp.plot(points=[[0.5, 0.5, 0.0], [1.5, 1.5, 1.0]])  # e.g. robot poses
+        >>> [ax.get_title() for ax in disp.axes_]
+        ['P(occupied)', 'std of P(occupied)']
         """
         plt = _import_pyplot()
         if points is not None:
