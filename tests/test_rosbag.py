@@ -876,6 +876,15 @@ def test_map_bag_takes_the_trinary_thresholds(grid, tmp_path):
     np.testing.assert_array_equal(message.data, msg.data)
 
 
+@pytest.mark.parametrize("ros_version", [1, 2])
+def test_a_map_bag_is_written_into_folders_made_for_it(grid, tmp_path, ros_version):
+    path = grid.write_rosbag(_bag_path(tmp_path / "new" / "maps", ros_version, "map"),
+                             stamp=1.0, ros_version=ros_version)  # fmt: skip
+    with AnyReader([path]) as reader:
+        ((conn, _, raw),) = list(reader.messages())
+        assert reader.deserialize(raw, conn.msgtype).info.width == 3
+
+
 def test_to_ros_message_matches_the_fields(grid):
     for ros_version in (1, 2):
         msg = grid.to_ros_message(stamp=1.0, ros_version=ros_version)

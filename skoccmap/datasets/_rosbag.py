@@ -980,6 +980,8 @@ class _BagWriter:
         if ros_version == 1:
             if path.suffix != ".bag":
                 raise ValueError(f"a ROS 1 bag is a .bag file, got {path}.")
+            # Its folders are made as a ROS 2 bag's are (the ROS 2 writer makes them).
+            path.parent.mkdir(parents=True, exist_ok=True)
             self.writer = Writer1(path)
         else:
             plugins = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
