@@ -115,6 +115,7 @@ _BAG_DEFAULTS = {
     "laser_frame": None,
     "level_tolerance": 0.01,
     "nan_readings": "no_return",
+    "tf_topics": ("/tf", "/tf_static"),
 }
 
 
@@ -133,6 +134,14 @@ def add_model_arguments(parser):
         default=None,
         help="topic of the sensor_msgs/LaserScan messages (default /scan); repeat it to map "
         "with several lasers (--scan-topic /front_scan --scan-topic /rear_scan)",
+    )
+    bag.add_argument(
+        "--tf-topics",
+        nargs=2,
+        default=None,
+        metavar=("DYNAMIC", "STATIC"),
+        help="the transform topics (default /tf /tf_static; e.g. /robot1/tf "
+        "/robot1/tf_static for a namespaced robot)",
     )
     bag.add_argument(
         "--pose-topic",

@@ -577,6 +577,23 @@ def test_transform_topic_names_without_their_leading_slash_are_found(tmp_path):
     np.testing.assert_allclose(scans.poses, [[1.0, 0.0, 0.0]], atol=1e-12)
 
 
+def test_cli_tf_topics_of_a_namespaced_robot(tmp_path):
+    from skoccmap._cmd_map import load_scans
+    from skoccmap.cli import build_parser
+
+    bag = _Bag(2)
+    bag.tf(0.0, "map", "laser", (1.0, 0.0, 0.0))
+    bag.tf(1.0, "map", "laser", (1.0, 0.0, 0.0))
+    bag.messages = [("/robot1" + m[0], *m[1:]) for m in bag.messages]
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = str(bag.write(tmp_path / "b"))
+    parser = build_parser()
+    with pytest.raises(ValueError, match="has no transform topic"):
+        load_scans(parser.parse_args(["map", path]))
+    args = parser.parse_args(["map", path, "--tf-topics", "/robot1/tf", "/robot1/tf_static"])
+    np.testing.assert_allclose(load_scans(args).poses, [[1.0, 0.0, 0.0]], atol=1e-12)
+
+
 def test_nan_readings_invalid_drops_them(tmp_path):
     # A scan made from a depth camera: NaN where a pixel has no depth is no free space.
     bag = _Bag(2)
