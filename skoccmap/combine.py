@@ -177,15 +177,18 @@ def _normalized(pairs):
     return scaled / _sum(pairs, scaled)[pairs.query]
 
 
-def _mean_exponents(pairs):
-    """Per query, the power of two by which its means are scaled before their sums: that of
-    the largest ``|mu_k|`` where it exceeds ``_LARGE_MEAN``, else 0 (no scaling)."""
+def _scaled_means(pairs):
+    """The pairs' means scaled down by a power of two per query before their sums, and
+    that power (its exponent) per query: the one of the largest ``|mu_k|`` where it exceeds
+    ``_LARGE_MEAN``, else 0 (no scaling)."""
     mu = pairs.means
     if not mu.size or max(np.max(mu), -np.min(mu)) <= _LARGE_MEAN:  # as a rule: one pass
-        return np.zeros(pairs.n_queries, dtype=np.intc)
-    largest = np.zeros(pairs.n_queries)
-    np.maximum.at(largest, pairs.query, np.abs(mu))
-    return np.where(largest > _LARGE_MEAN, np.frexp(largest)[1], 0)
+        exponent = np.zeros(pairs.n_queries, dtype=np.intc)
+    else:
+        largest = np.zeros(pairs.n_queries)
+        np.maximum.at(largest, pairs.query, np.abs(mu))
+        exponent = np.where(largest > _LARGE_MEAN, np.frexp(largest)[1], 0)
+    return np.ldexp(mu, -exponent[pairs.query]), exponent
 
 
 def _unscaled(values, exponent):
@@ -199,8 +202,7 @@ def _moe(pairs):
     w = _normalized(pairs)
     mu, var = pairs.means, pairs.variances
     proba = _sum(pairs, w * _probit(mu, var))
-    exponent = _mean_exponents(pairs)
-    scaled = np.ldexp(mu, -exponent[pairs.query])
+    scaled, exponent = _scaled_means(pairs)
     mean_scaled = _sum(pairs, w * scaled)
     mean = _unscaled(mean_scaled, exponent)
     # Law of total variance: E[var] + Var[mean]; each term saturates at the largest float.
@@ -212,9 +214,8 @@ def _moe(pairs):
 
 def _merged_mean(pairs, variance, coef):
     """``variance * sum_k coef_k mu_k`` per query (``coef_k = beta_k / s_k^2``), the means
-    scaled as :func:`_mean_exponents` says."""
-    exponent = _mean_exponents(pairs)
-    scaled = np.ldexp(pairs.means, -exponent[pairs.query])
+    scaled as :func:`_scaled_means` says."""
+    scaled, exponent = _scaled_means(pairs)
     return _unscaled(variance * _sum(pairs, coef * scaled), exponent)
 
 
