@@ -303,7 +303,8 @@ def _resolved_topic(reader, topic):
 
 
 def _connections(reader, path, topic, msgtypes, what):
-    conns = [c for c in reader.connections if c.topic == _resolved_topic(reader, topic)]
+    resolved = _resolved_topic(reader, topic)
+    conns = [c for c in reader.connections if c.topic == resolved]
     if not conns:
         raise ValueError(f"{path} has no {what} topic {topic!r}; {_describe_topics(reader)}.")
     wrong = sorted({c.msgtype for c in conns} - set(msgtypes))
@@ -646,9 +647,11 @@ def _rectangular(scans, max_range, nan_invalid=False):
 
 def _scan_max_range(scans, max_range, path):
     stated = [s.range_max for s in scans if np.isfinite(s.range_max) and s.range_max > 0]
+    # range_max is a float32 field: its shortest decimal is the value the driver was given
+    # (81.83, not 81.83000183).
+    laser = float(str(np.float32(min(stated)))) if stated else None
     if max_range is not None:  # checked by load_rosbag before the bag is read
-        if stated and max_range > min(stated) * (1 + 1e-6):
-            laser = float(str(np.float32(min(stated))))
+        if laser is not None and max_range > min(stated) * (1 + 1e-6):
             warnings.warn(
                 f"{path}: max_range={max_range:g} is beyond the range_max {laser:g} m the "
                 f"scans state: their beams without a return become free up to {max_range:g} "
@@ -658,11 +661,9 @@ def _scan_max_range(scans, max_range, path):
                 stacklevel=caller_stacklevel(),
             )
         return max_range
-    # range_max is a float32 field: its shortest decimal is the value the driver was given
-    # (81.83, not 81.83000183).
-    if not stated:
+    if laser is None:
         raise ValueError(f"{path}: the scans state no positive finite range_max; pass max_range=.")
-    return float(str(np.float32(min(stated))))
+    return laser
 
 
 def _to_scans(t, q, ranges, angles, stamps, max_range, level_tolerance):
